@@ -1,0 +1,15 @@
+//! geoloc-core: the math of geoloc — image-based 6-DoF camera localization with calibrated
+//! uncertainty — in pure Rust (no Python types anywhere).
+//!
+//! Conventions, held throughout the crate:
+//! * a pose `T` is **world_from_cam** (camera-to-world), 4×4 homogeneous, f64;
+//! * twists are ξ = (ρ, φ) ∈ R⁶, **translation first**, T = exp(ξ^);
+//! * perturbations are on the **right**, T ⊞ δ = T·exp(δ^); pose covariances live there;
+//! * metres and radians.
+
+pub mod error;
+pub mod lie;
+pub mod parallel;
+pub mod testing;
+
+pub use error::{GeolocError, Result};

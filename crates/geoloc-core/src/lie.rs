@@ -1,0 +1,14 @@
+//! Lie groups SO(3) and SE(3): exponential and logarithm maps, Jacobians, adjoints,
+//! distances and interpolation.
+//!
+//! Conventions (DESIGN.md §3): poses are world_from_cam; twists are ξ = (ρ, φ),
+//! translation first, T = exp(ξ^); perturbations are on the right, T ⊞ δ = T exp(δ^);
+//! Jacobians and the Q block follow Barfoot, *State Estimation for Robotics* (2017).
+
+mod series;
+pub mod se3;
+pub mod so3;
+
+pub use se3::{SE3, Twist};
+pub use series::TAYLOR_THRESHOLD_RAD;
+pub use so3::{ROTATION_TOLERANCE, SO3, rotation_angle};

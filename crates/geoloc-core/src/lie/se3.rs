@@ -1,0 +1,281 @@
+//! SE(3): rigid transforms T = [[R, t], [0, 1]] with the twist ξ = (ρ, φ) ∈ R⁶ as the
+//! Lie-algebra coordinate — **translation first** — and poses meant as world_from_cam.
+//!
+//! * hat:  ξ^ = [[φ^, ρ], [0, 0]];  curly hat (small adjoint) ξ⋏ = ad(ξ) = [[φ^, ρ^], [0, φ^]].
+//! * exp:  T = [[exp(φ^), J_l(φ) ρ], [0, 1]] (Barfoot 2017 eq. 7.83).
+//! * log:  φ = log(R), ρ = J_l⁻¹(φ) t.
+//! * Ad(T) = [[R, t^R], [0, R]], so T exp(ξ^) T⁻¹ = exp((Ad(T) ξ)^) and Ad(exp ξ) = exp(ad ξ).
+//! * Jacobians (Barfoot eqs. 7.85–7.86): 𝒥_l(ξ) = [[J_l(φ), Q_l(ξ)], [0, J_l(φ)]],
+//!   𝒥_l⁻¹(ξ) = [[J_l⁻¹, −J_l⁻¹ Q_l J_l⁻¹], [0, J_l⁻¹]], 𝒥_r(ξ) = 𝒥_l(−ξ), such that
+//!   exp(ξ + δ) ≈ exp(ξ) exp(𝒥_r(ξ) δ) ≈ exp(𝒥_l(ξ) δ) exp(ξ).
+//! * Perturbations are on the **right**: T ⊞ δ = T exp(δ^); a pose covariance lives in
+//!   that tangent space, translation first.
+//! * d(T₁, T₂) = ‖log(T₁⁻¹T₂)^∨‖₂ (mixes metres and radians, as in the paper).
+
+use nalgebra::{Matrix3, Matrix4, Matrix6, Vector3, Vector6};
+
+use super::series;
+use super::so3::{self, SO3};
+use crate::error::{GeolocError, Result};
+
+/// A twist ξ = (ρ, φ) ∈ R⁶: translation part ρ first, rotation vector φ last.
+pub type Twist = Vector6<f64>;
+
+/// A rigid transform; as a pose it maps camera coordinates to world coordinates
+/// (world_from_cam): p_world = R p_cam + t.
+///
+/// ```
+/// use geoloc_core::lie::{SE3, Twist};
+/// let xi = Twist::new(1.0, -2.0, 0.5, 0.1, 0.2, -0.3);
+/// let back = SE3::exp(&xi).log();
+/// assert!((back - xi).norm() < 1e-14);
+/// ```
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SE3 {
+    /// The rotation R.
+    pub rotation: SO3,
+    /// The translation t (for a world_from_cam pose: the camera centre in the world).
+    pub translation: Vector3<f64>,
+}
+
+/// ρ of a twist.
+#[inline]
+pub fn rho(xi: &Twist) -> Vector3<f64> {
+    xi.fixed_rows::<3>(0).into_owned()
+}
+
+/// φ of a twist.
+#[inline]
+pub fn phi(xi: &Twist) -> Vector3<f64> {
+    xi.fixed_rows::<3>(3).into_owned()
+}
+
+/// Stacks (ρ, φ) into a twist.
+#[inline]
+pub fn twist(rho: &Vector3<f64>, phi: &Vector3<f64>) -> Twist {
+    Twist::new(rho.x, rho.y, rho.z, phi.x, phi.y, phi.z)
+}
+
+/// ξ^ = [[φ^, ρ], [0, 0]] ∈ se(3).
+pub fn hat(xi: &Twist) -> Matrix4<f64> {
+    let mut m = Matrix4::zeros();
+    m.fixed_view_mut::<3, 3>(0, 0).copy_from(&so3::hat(&phi(xi)));
+    m.fixed_view_mut::<3, 1>(0, 3).copy_from(&rho(xi));
+    m
+}
+
+/// The inverse of [`hat`] (the rotation block is read through its skew-symmetric part).
+pub fn vee(m: &Matrix4<f64>) -> Twist {
+    let phi = so3::vee(&m.fixed_view::<3, 3>(0, 0).into_owned());
+    let rho = m.fixed_view::<3, 1>(0, 3).into_owned();
+    twist(&rho, &phi)
+}
+
+/// ad(ξ) = ξ⋏ = [[φ^, ρ^], [0, φ^]]: the adjoint of se(3), ad(ξ₁) ξ₂ = [ξ₁, ξ₂]^∨.
+pub fn curly_hat(xi: &Twist) -> Matrix6<f64> {
+    let p = so3::hat(&phi(xi));
+    let mut m = Matrix6::zeros();
+    m.fixed_view_mut::<3, 3>(0, 0).copy_from(&p);
+    m.fixed_view_mut::<3, 3>(3, 3).copy_from(&p);
+    m.fixed_view_mut::<3, 3>(0, 3).copy_from(&so3::hat(&rho(xi)));
+    m
+}
+
+impl SE3 {
+    /// The identity transform.
+    #[inline]
+    pub fn identity() -> Self {
+        Self { rotation: SO3::identity(), translation: Vector3::zeros() }
+    }
+
+    /// From a rotation and a translation.
+    #[inline]
+    pub fn new(rotation: SO3, translation: Vector3<f64>) -> Self {
+        Self { rotation, translation }
+    }
+
+    /// Accepts a 4×4 homogeneous matrix whose last row is (0, 0, 0, 1) and whose rotation
+    /// block is a rotation, both within [`so3::ROTATION_TOLERANCE`].
+    ///
+    /// # Errors
+    /// [`GeolocError::NonFinite`] or [`GeolocError::NotARotation`].
+    pub fn from_matrix(m: &Matrix4<f64>) -> Result<Self> {
+        so3::check_finite(m.as_slice())?;
+        check_last_row(m)?;
+        let rotation = SO3::from_matrix(&m.fixed_view::<3, 3>(0, 0).into_owned())
+            .map_err(relabel_rigid)?;
+        Ok(Self { rotation, translation: m.fixed_view::<3, 1>(0, 3).into_owned() })
+    }
+
+    /// Like [`SE3::from_matrix`] but projects the rotation block onto SO(3)
+    /// ([`SO3::from_matrix_projected`]); the last row must still be (0, 0, 0, 1).
+    ///
+    /// # Errors
+    /// Non-finite input, a bad last row, or a rotation block that is not a near-rotation.
+    pub fn from_matrix_projected(m: &Matrix4<f64>) -> Result<Self> {
+        so3::check_finite(m.as_slice())?;
+        check_last_row(m)?;
+        let rotation = SO3::from_matrix_projected(&m.fixed_view::<3, 3>(0, 0).into_owned())?;
+        Ok(Self { rotation, translation: m.fixed_view::<3, 1>(0, 3).into_owned() })
+    }
+
+    /// The 4×4 homogeneous matrix.
+    pub fn matrix(&self) -> Matrix4<f64> {
+        let mut m = Matrix4::identity();
+        m.fixed_view_mut::<3, 3>(0, 0).copy_from(self.rotation.matrix());
+        m.fixed_view_mut::<3, 1>(0, 3).copy_from(&self.translation);
+        m
+    }
+
+    /// exp(ξ^) = [[exp(φ^), J_l(φ) ρ], [0, 1]].
+    #[inline]
+    pub fn exp(xi: &Twist) -> Self {
+        let phi = phi(xi);
+        let rho = rho(xi);
+        let theta = phi.norm();
+        // J_l(φ) ρ = ρ + B φ×ρ + C φ×(φ×ρ), without forming the matrix.
+        let phi_x_rho = phi.cross(&rho);
+        let translation = rho
+            + series::one_minus_cos_over_t2(theta) * phi_x_rho
+            + series::t_minus_sin_over_t3(theta) * phi.cross(&phi_x_rho);
+        Self { rotation: SO3::exp(&phi), translation }
+    }
+
+    /// log(T)^∨ = (J_l⁻¹(φ) t, φ) with ‖φ‖ ∈ [0, π].
+    #[inline]
+    pub fn log(&self) -> Twist {
+        let phi = self.rotation.log();
+        let rho = so3::left_jacobian_inverse(&phi) * self.translation;
+        twist(&rho, &phi)
+    }
+
+    /// T⁻¹ = [[Rᵀ, −Rᵀt], [0, 1]].
+    #[inline]
+    pub fn inverse(&self) -> Self {
+        let r_inv = self.rotation.inverse();
+        Self { rotation: r_inv, translation: -(r_inv * self.translation) }
+    }
+
+    /// Ad(T) = [[R, t^R], [0, R]] (translation-first twists).
+    pub fn adjoint(&self) -> Matrix6<f64> {
+        let r = self.rotation.matrix();
+        let mut m = Matrix6::zeros();
+        m.fixed_view_mut::<3, 3>(0, 0).copy_from(r);
+        m.fixed_view_mut::<3, 3>(3, 3).copy_from(r);
+        m.fixed_view_mut::<3, 3>(0, 3).copy_from(&(so3::hat(&self.translation) * r));
+        m
+    }
+
+    /// d(T₁, T₂) = ‖log(T₁⁻¹T₂)^∨‖₂.
+    #[inline]
+    pub fn distance(&self, other: &Self) -> f64 {
+        (self.inverse() * *other).log().norm()
+    }
+
+    /// The geodesic T₁ exp(α log(T₁⁻¹T₂)): T₁ at α = 0, T₂ at α = 1 (constant body twist).
+    pub fn interpolate(&self, other: &Self, alpha: f64) -> Self {
+        *self * Self::exp(&(alpha * (self.inverse() * *other).log()))
+    }
+}
+
+impl std::ops::Mul for SE3 {
+    type Output = SE3;
+    /// Composition T₁T₂ = (R₁R₂, R₁t₂ + t₁).
+    #[inline]
+    fn mul(self, rhs: SE3) -> SE3 {
+        SE3 {
+            rotation: self.rotation * rhs.rotation,
+            translation: self.rotation * rhs.translation + self.translation,
+        }
+    }
+}
+
+impl std::ops::Mul<Vector3<f64>> for SE3 {
+    type Output = Vector3<f64>;
+    /// Transforms a point: T p = R p + t (e.g. p_world = world_from_cam * p_cam).
+    #[inline]
+    fn mul(self, p: Vector3<f64>) -> Vector3<f64> {
+        self.rotation * p + self.translation
+    }
+}
+
+/// Barfoot's Q_l(ξ) block (eq. 7.86), the upper-right block of 𝒥_l(ξ):
+/// Q = ½ρ^ + C (φ^ρ^ + ρ^φ^ + φ^ρ^φ^) + D (φ^φ^ρ^ + ρ^φ^φ^ − 3φ^ρ^φ^)
+///       + E (φ^ρ^φ^φ^ + φ^φ^ρ^φ^),
+/// C = (θ − sin θ)/θ³, D = (θ² + 2cos θ − 2)/(2θ⁴), E = (2θ − 3 sin θ + θ cos θ)/(2θ⁵).
+pub fn q_block(xi: &Twist) -> Matrix3<f64> {
+    let p = so3::hat(&phi(xi));
+    let r = so3::hat(&rho(xi));
+    let theta = phi(xi).norm();
+    let pr = p * r;
+    let rp = r * p;
+    let prp = pr * p;
+    let pp = p * p;
+    0.5 * r
+        + series::t_minus_sin_over_t3(theta) * (pr + rp + prp)
+        + series::q_second(theta) * (pp * r + rp * p - 3.0 * prp)
+        + series::q_third(theta) * (prp * p + p * prp)
+}
+
+/// 𝒥_l(ξ) = [[J_l(φ), Q_l(ξ)], [0, J_l(φ)]].
+pub fn left_jacobian(xi: &Twist) -> Matrix6<f64> {
+    let j = so3::left_jacobian(&phi(xi));
+    let mut m = Matrix6::zeros();
+    m.fixed_view_mut::<3, 3>(0, 0).copy_from(&j);
+    m.fixed_view_mut::<3, 3>(3, 3).copy_from(&j);
+    m.fixed_view_mut::<3, 3>(0, 3).copy_from(&q_block(xi));
+    m
+}
+
+/// 𝒥_r(ξ) = 𝒥_l(−ξ).
+pub fn right_jacobian(xi: &Twist) -> Matrix6<f64> {
+    left_jacobian(&-xi)
+}
+
+/// 𝒥_l⁻¹(ξ) = [[J_l⁻¹, −J_l⁻¹ Q_l J_l⁻¹], [0, J_l⁻¹]] (closed form; no matrix inversion).
+pub fn left_jacobian_inverse(xi: &Twist) -> Matrix6<f64> {
+    let j_inv = so3::left_jacobian_inverse(&phi(xi));
+    let mut m = Matrix6::zeros();
+    m.fixed_view_mut::<3, 3>(0, 0).copy_from(&j_inv);
+    m.fixed_view_mut::<3, 3>(3, 3).copy_from(&j_inv);
+    m.fixed_view_mut::<3, 3>(0, 3).copy_from(&(-j_inv * q_block(xi) * j_inv));
+    m
+}
+
+/// 𝒥_r⁻¹(ξ) = 𝒥_l⁻¹(−ξ).
+pub fn right_jacobian_inverse(xi: &Twist) -> Matrix6<f64> {
+    left_jacobian_inverse(&-xi)
+}
+
+/// Largest deviation of a homogeneous matrix's last row from (0, 0, 0, 1) that is accepted.
+const LAST_ROW_TOLERANCE: f64 = 1e-9;
+
+fn check_last_row(m: &Matrix4<f64>) -> Result<()> {
+    let deviation = (m.fixed_view::<1, 4>(3, 0) - nalgebra::RowVector4::new(0.0, 0.0, 0.0, 1.0))
+        .abs()
+        .max();
+    if deviation > LAST_ROW_TOLERANCE {
+        return Err(GeolocError::NotARotation {
+            name: "T".into(),
+            index: 0,
+            what: "rigid transform",
+            reason: format!(
+                "last row {:?} is not (0, 0, 0, 1)",
+                m.fixed_view::<1, 4>(3, 0).iter().collect::<Vec<_>>()
+            ),
+        });
+    }
+    Ok(())
+}
+
+fn relabel_rigid(e: GeolocError) -> GeolocError {
+    match e {
+        GeolocError::NotARotation { index, reason, .. } => GeolocError::NotARotation {
+            name: "T".into(),
+            index,
+            what: "rigid transform",
+            reason: format!("rotation block: {reason}"),
+        },
+        other => other,
+    }
+}
