@@ -20,11 +20,11 @@ pub enum GeolocError {
         reason: String,
     },
     /// An argument holds NaN or ±∞.
-    #[error("{name}: element {index} is not finite (NaN or inf)")]
+    #[error("{name}[{index}] holds a non-finite value (NaN or inf)")]
     NonFinite {
         /// The argument's name.
         name: String,
-        /// Index (flat, or of the batch item) of the first offending value.
+        /// Index of the first offending item (of a batch), or of the value in a flat array.
         index: usize,
     },
     /// A matrix that must be a rotation (or a rigid transform) is not one within tolerance.

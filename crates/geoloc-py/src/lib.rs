@@ -1,0 +1,19 @@
+//! `geoloc._core`: the compiled half of the `geoloc` Python package.
+//!
+//! This crate holds no math: each function validates and borrows its numpy inputs, calls
+//! geoloc-core without the GIL, and converts the outputs (STYLE.md "Boundaries").
+
+mod convert;
+mod errors;
+mod lie;
+
+use pyo3::prelude::*;
+
+/// The compiled extension module.
+#[pymodule]
+fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add("__version__", env!("CARGO_PKG_VERSION"))?;
+    m.add("PARALLEL_MIN_ITEMS", geoloc_core::parallel::PARALLEL_MIN_ITEMS)?;
+    lie::register(m)?;
+    Ok(())
+}

@@ -1,0 +1,92 @@
+//! Borrowing numpy arrays as flat row-major slices and filling new ones, with the checks
+//! that make every binding raise a named error instead of panicking.
+
+use geoloc_core::GeolocError;
+use geoloc_core::parallel::try_fill_items;
+use nalgebra::{SMatrix, SVector};
+use numpy::ndarray::Array2;
+use numpy::{IntoPyArray, PyArray2, PyReadonlyArray2, PyUntypedArrayMethods};
+use pyo3::prelude::*;
+
+use crate::errors::{invalid, to_py_err};
+
+/// The rows of an (N, WIDTH) float64 array as one C-contiguous slice, after checking the
+/// width, the layout and that every value is finite.
+pub fn rows<'a, const WIDTH: usize>(
+    name: &str,
+    array: &'a PyReadonlyArray2<'_, f64>,
+) -> PyResult<&'a [f64]> {
+    let shape = array.shape();
+    if shape[1] != WIDTH {
+        return Err(invalid(name, format!("expected shape (N, {WIDTH}), got {shape:?}")));
+    }
+    let values = array
+        .as_slice()
+        .map_err(|_| invalid(name, "array must be C-contiguous (use numpy.ascontiguousarray)"))?;
+    if let Some(flat) = values.iter().position(|v| !v.is_finite()) {
+        return Err(to_py_err(GeolocError::NonFinite { name: name.into(), index: flat / WIDTH }));
+    }
+    Ok(values)
+}
+
+/// Row `i` of a flat row-major slice as a fixed-size array.
+#[inline]
+pub fn row<const WIDTH: usize>(values: &[f64], i: usize) -> &[f64; WIDTH] {
+    values[i * WIDTH..(i + 1) * WIDTH]
+        .try_into()
+        .expect("invariant: callers index rows of a slice checked by `rows`")
+}
+
+/// A row-major R×C matrix from a row of R·C values.
+#[inline]
+pub fn matrix_from_row<const R: usize, const C: usize>(values: &[f64]) -> SMatrix<f64, R, C> {
+    SMatrix::<f64, R, C>::from_row_slice(values)
+}
+
+/// A vector from a row of values.
+#[inline]
+pub fn vector_from_row<const N: usize>(values: &[f64; N]) -> SVector<f64, N> {
+    SVector::<f64, N>::from_column_slice(values)
+}
+
+/// Writes an R×C matrix row-major into `out` (length R·C).
+#[inline]
+pub fn write_matrix<const R: usize, const C: usize>(m: &SMatrix<f64, R, C>, out: &mut [f64]) {
+    for r in 0..R {
+        for c in 0..C {
+            out[r * C + c] = m[(r, c)];
+        }
+    }
+}
+
+/// A new (n, WIDTH) array whose row i is written by `fill(i, row)`, computed without the
+/// GIL (in parallel for large n). A failing row's error names `name[i]`.
+pub fn fill_rows<'py, const WIDTH: usize, F>(
+    py: Python<'py>,
+    n: usize,
+    fill: F,
+) -> PyResult<Bound<'py, PyArray2<f64>>>
+where
+    F: Fn(usize, &mut [f64]) -> geoloc_core::Result<()> + Sync + Send,
+{
+    let values = py
+        .detach(|| {
+            let mut out = vec![0.0; n * WIDTH];
+            try_fill_items(&mut out, WIDTH, fill).map(|()| out)
+        })
+        .map_err(to_py_err)?;
+    let array = Array2::from_shape_vec((n, WIDTH), values)
+        .map_err(|e| invalid("output", format!("internal shape error: {e}")))?;
+    Ok(array.into_pyarray(py))
+}
+
+/// The common batch length of several (N, ·) arrays.
+pub fn batch_len(names_and_lengths: &[(&str, usize)]) -> PyResult<usize> {
+    let (first_name, n) = names_and_lengths[0];
+    for &(name, len) in &names_and_lengths[1..] {
+        if len != n {
+            return Err(invalid(name, format!("has {len} items but {first_name} has {n}")));
+        }
+    }
+    Ok(n)
+}

@@ -1,0 +1,19 @@
+"""geoloc: where is the camera? 6-DoF pose and a calibrated 6×6 covariance from images.
+
+Poses are world_from_cam (camera-to-world) 4×4 float64 matrices; twists are (rho, phi),
+translation first; perturbations and covariances are on the right (``T @ exp(δ^)``).
+"""
+
+from __future__ import annotations
+
+from . import lie
+from ._core import __version__
+from .exceptions import GeolocError, InvalidInputError, NotARotationError
+
+__all__ = [
+    "GeolocError",
+    "InvalidInputError",
+    "NotARotationError",
+    "__version__",
+    "lie",
+]

@@ -1,0 +1,79 @@
+"""Argument checks shared by the public wrappers: every failure names the argument."""
+
+from __future__ import annotations
+
+from math import prod
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .exceptions import InvalidInputError
+
+__all__ = ["as_batch", "broadcast_batches", "describe_shape"]
+
+_REAL_KINDS = "iuf"
+
+
+def describe_shape(item_shape: tuple[int, ...]) -> str:
+    """'(3,) or (..., 3)' style description of an accepted shape."""
+    inner = ", ".join(str(d) for d in item_shape)
+    single = f"({inner},)" if len(item_shape) == 1 else f"({inner})"
+    return f"{single} or (N, {inner})"
+
+
+def as_float64(x: Any, name: str) -> NDArray[np.float64]:
+    """``x`` as a float64 array, refusing non-real dtypes and non-finite values."""
+    try:
+        arr = np.asarray(x)
+    except (ValueError, TypeError) as exc:  # ragged nested sequences
+        raise InvalidInputError(f"{name}: cannot be read as an array ({exc})") from None
+    if arr.dtype.kind not in _REAL_KINDS:
+        raise InvalidInputError(
+            f"{name}: expected real numbers (float64), got an array of dtype {arr.dtype}"
+        )
+    arr = arr.astype(np.float64, copy=False)
+    if not np.isfinite(arr).all():
+        bad = np.argwhere(~np.isfinite(arr))[0]
+        where = "" if arr.ndim == 0 else "[" + ", ".join(str(i) for i in bad) + "]"
+        raise InvalidInputError(f"{name}{where} is not finite (NaN or inf)")
+    return arr
+
+
+def as_batch(
+    x: Any, name: str, item_shape: tuple[int, ...]
+) -> tuple[NDArray[np.float64], tuple[int, ...]]:
+    """Validate ``x`` as one item of ``item_shape`` or a batch of them.
+
+    Returns the items as a C-contiguous ``(N, prod(item_shape))`` float64 array and the
+    leading batch shape (``()`` for a single item), so results can be reshaped back.
+    """
+    arr = as_float64(x, name)
+    k = len(item_shape)
+    if arr.ndim < k or arr.shape[arr.ndim - k :] != item_shape:
+        raise InvalidInputError(
+            f"{name}: expected shape {describe_shape(item_shape)}, got {arr.shape}"
+        )
+    lead = arr.shape[: arr.ndim - k]
+    flat = np.ascontiguousarray(arr).reshape(-1, prod(item_shape))
+    return flat, lead
+
+
+def broadcast_batches(
+    items: list[tuple[NDArray[np.float64], tuple[int, ...], str]],
+) -> tuple[list[NDArray[np.float64]], tuple[int, ...]]:
+    """Broadcast several ``(flat, lead, name)`` batches against each other (numpy rules).
+
+    Returns contiguous flat arrays with a common number of rows and the common lead shape.
+    """
+    try:
+        lead = np.broadcast_shapes(*(it[1] for it in items))
+    except ValueError:
+        shapes = ", ".join(f"{name} batch {lead}" for _, lead, name in items)
+        raise InvalidInputError(f"batch shapes do not broadcast: {shapes}") from None
+    out = []
+    for flat, item_lead, _ in items:
+        width = flat.shape[1]
+        full = np.broadcast_to(flat.reshape(*item_lead, width), (*lead, width))
+        out.append(np.ascontiguousarray(full).reshape(-1, width))
+    return out, lead

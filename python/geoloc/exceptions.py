@@ -1,0 +1,25 @@
+"""The exceptions geoloc raises.
+
+Every error derives from :class:`GeolocError`; errors about bad arguments also derive from
+the builtin :class:`ValueError`, so ``except ValueError`` keeps working.
+"""
+
+from __future__ import annotations
+
+__all__ = ["GeolocError", "InvalidInputError", "NotARotationError"]
+
+
+class GeolocError(Exception):
+    """Base class of every error raised by geoloc."""
+
+
+class InvalidInputError(GeolocError, ValueError):
+    """An argument has the wrong shape, dtype or value; the message names the argument."""
+
+
+class NotARotationError(InvalidInputError):
+    """A matrix that must be a rotation (or rigid transform) is not one within tolerance.
+
+    Real datasets often ship slightly non-orthonormal rotations; project them first with
+    :func:`geoloc.lie.so3_project` / :func:`geoloc.lie.se3_project`.
+    """
