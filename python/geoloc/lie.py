@@ -84,7 +84,7 @@ def _call(
                 message = message.replace(f"{name}[0]", name)
             raise type(exc)(message) from None
         raise
-    return out.reshape(*lead, *out_shape)
+    return out.reshape(lead + out_shape)
 
 
 # ----------------------------------------------------------------------------- SO(3)
