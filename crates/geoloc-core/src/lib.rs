@@ -13,3 +13,8 @@ pub mod parallel;
 pub mod testing;
 
 pub use error::{GeolocError, Result};
+
+/// The README's Rust example, compiled and run by `cargo test` so it cannot rot.
+#[doc = include_str!("../../../README.md")]
+#[cfg(doctest)]
+pub struct ReadmeDoctests;

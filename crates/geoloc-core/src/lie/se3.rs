@@ -132,20 +132,22 @@ impl SE3 {
     pub fn exp(xi: &Twist) -> Self {
         let phi = phi(xi);
         let rho = rho(xi);
-        let theta = phi.norm();
+        let k = series::ExpCoefficients::new(phi.norm());
         // J_l(φ) ρ = ρ + B φ×ρ + C φ×(φ×ρ), without forming the matrix.
         let phi_x_rho = phi.cross(&rho);
-        let translation = rho
-            + series::one_minus_cos_over_t2(theta) * phi_x_rho
-            + series::t_minus_sin_over_t3(theta) * phi.cross(&phi_x_rho);
-        Self { rotation: SO3::exp(&phi), translation }
+        let translation = rho + k.b * phi_x_rho + k.c * phi.cross(&phi_x_rho);
+        Self { rotation: SO3::from_coefficients(&phi, &k), translation }
     }
 
     /// log(T)^∨ = (J_l⁻¹(φ) t, φ) with ‖φ‖ ∈ [0, π].
     #[inline]
     pub fn log(&self) -> Twist {
         let phi = self.rotation.log();
-        let rho = so3::left_jacobian_inverse(&phi) * self.translation;
+        // J_l⁻¹(φ) t = t − ½ φ×t + F φ×(φ×t), without forming the matrix.
+        let t = &self.translation;
+        let phi_x_t = phi.cross(t);
+        let rho = t - 0.5 * phi_x_t
+            + series::jacobian_inverse_second(phi.norm()) * phi.cross(&phi_x_t);
         twist(&rho, &phi)
     }
 

@@ -88,8 +88,18 @@ impl SO3 {
     /// re-index with [`GeolocError::at`]).
     pub fn from_matrix(matrix: &Matrix3<f64>) -> Result<Self> {
         check_finite(matrix.as_slice())?;
-        let gram_error = (matrix.transpose() * matrix - Matrix3::identity()).abs().max();
-        let det = matrix.determinant();
+        let (c0, c1, c2) = (matrix.column(0), matrix.column(1), matrix.column(2));
+        let gram_error = [
+            c0.norm_squared() - 1.0,
+            c1.norm_squared() - 1.0,
+            c2.norm_squared() - 1.0,
+            c0.dot(&c1),
+            c0.dot(&c2),
+            c1.dot(&c2),
+        ]
+        .iter()
+        .fold(0.0_f64, |m, e| m.max(e.abs()));
+        let det = c0.dot(&c1.cross(&c2));
         if gram_error > ROTATION_TOLERANCE || (det - 1.0).abs() > ROTATION_TOLERANCE {
             return Err(GeolocError::NotARotation {
                 name: "R".into(),
@@ -161,10 +171,13 @@ impl SO3 {
     /// exp(φ^) by Rodrigues' formula R = cos θ I + (sin θ/θ) φ^ + ((1 − cos θ)/θ²) φφᵀ.
     #[inline]
     pub fn exp(phi: &Vector3<f64>) -> Self {
-        let theta = phi.norm();
-        let a = series::sin_over_t(theta);
-        let b = series::one_minus_cos_over_t2(theta);
-        let c = theta.cos();
+        Self::from_coefficients(phi, &series::ExpCoefficients::new(phi.norm()))
+    }
+
+    /// Rodrigues' formula with precomputed coefficients of θ = ‖φ‖ (shared with SE(3) exp).
+    #[inline]
+    pub(crate) fn from_coefficients(phi: &Vector3<f64>, k: &series::ExpCoefficients) -> Self {
+        let (c, a, b) = (k.cos, k.a, k.b);
         let (x, y, z) = (phi.x, phi.y, phi.z);
         let matrix = Matrix3::new(
             c + b * x * x,
@@ -299,11 +312,9 @@ impl std::ops::Mul<Vector3<f64>> for SO3 {
 /// J_l(φ) = I + ((1 − cos θ)/θ²) φ^ + ((θ − sin θ)/θ³) φ^² (Barfoot eq. 7.77a).
 #[inline]
 pub fn left_jacobian(phi: &Vector3<f64>) -> Matrix3<f64> {
-    let theta = phi.norm();
+    let k = series::ExpCoefficients::new(phi.norm());
     let p = hat(phi);
-    Matrix3::identity()
-        + series::one_minus_cos_over_t2(theta) * p
-        + series::t_minus_sin_over_t3(theta) * p * p
+    Matrix3::identity() + k.b * p + k.c * p * p
 }
 
 /// J_r(φ) = J_l(−φ).
