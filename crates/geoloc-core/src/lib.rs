@@ -7,10 +7,13 @@
 //! * perturbations are on the **right**, T ⊞ δ = T·exp(δ^); pose covariances live there;
 //! * metres and radians.
 
+pub mod camera;
 pub mod error;
 pub mod lie;
+pub mod optim;
 pub mod parallel;
 pub mod testing;
+pub mod triangulate;
 
 pub use error::{GeolocError, Result};
 

@@ -48,3 +48,45 @@ pub fn relative_error<const R: usize, const C: usize>(
 ) -> f64 {
     (a - b).abs().max() / b.abs().max().max(1.0)
 }
+
+use geoloc_core::camera::{Camera, project};
+use geoloc_core::lie::{SE3, SO3};
+use geoloc_core::testing::SplitMix64;
+use nalgebra::{Vector2, Vector3};
+
+/// A world_from_cam pose at `centre` whose optical axis (z) points at `target`, y down.
+pub fn look_at(centre: &Vector3<f64>, target: &Vector3<f64>) -> SE3 {
+    let z = (target - centre).normalize();
+    let up = if z.y.abs() > 0.9 { Vector3::x() } else { Vector3::y() };
+    let x = up.cross(&z).normalize();
+    let y = z.cross(&x);
+    let r = nalgebra::Matrix3::from_columns(&[x, y, z]);
+    SE3::new(SO3::from_matrix_unchecked(r), *centre)
+}
+
+/// `n_cams` cameras on a 1 m arc around the origin looking at a cloud of `n_points` points
+/// 4–6 m away; returns (camera, poses, points).
+pub fn arc_scene(rng: &mut SplitMix64, n_cams: usize, n_points: usize) -> (Camera, Vec<SE3>, Vec<Vector3<f64>>) {
+    let camera = Camera::new(525.0, 525.0, 320.0, 240.0).expect("valid intrinsics");
+    let target = Vector3::new(0.0, 0.0, 5.0);
+    let poses = (0..n_cams)
+        .map(|i| {
+            let a = (i as f64 / (n_cams.max(2) - 1) as f64 - 0.5) * 0.4;
+            let c = Vector3::new(a * 2.5, rng.uniform_in(-0.1, 0.1), rng.uniform_in(-0.1, 0.1));
+            look_at(&c, &target)
+        })
+        .collect();
+    let points = (0..n_points)
+        .map(|_| Vector3::new(rng.uniform_in(-1.5, 1.5), rng.uniform_in(-1.0, 1.0), rng.uniform_in(4.0, 6.0)))
+        .collect();
+    (camera, poses, points)
+}
+
+/// Pixel of `x` in `pose`, plus isotropic Gaussian noise of `sigma` px.
+pub fn observe(rng: &mut SplitMix64, camera: &Camera, pose: &SE3, x: &Vector3<f64>, sigma: f64) -> Vector2<f64> {
+    project(camera, pose, x).uv + Vector2::new(rng.normal(), rng.normal()) * sigma
+}
+
+/// χ² quantiles at 95 %.
+pub const CHI2_95_DOF3: f64 = 7.814_727_903_251_178;
+pub const CHI2_95_DOF6: f64 = 12.591_587_243_743_977;

@@ -1,0 +1,510 @@
+//! Forward intersection: triangulating tracks seen by cameras of known pose (the paper's
+//! Eq. forward_intersection), with a per-point covariance.
+//!
+//! For each track: an N-view DLT on centred coordinates, then LM on X with a robust kernel
+//! (Huber by default) on r_k = (π(T_k, X) − z_k)/σ. Observations whose residual exceeds
+//! `max_residual_px` are dropped and X re-solved; when they spoil the all-view start, every
+//! two-view DLT is tried and the one with the largest consensus wins (an LO-RANSAC over the
+//! few views of a track). A point is rejected when fewer than two views remain, when it is
+//! behind an inlier camera, when its mean inlier residual exceeds `max_residual_px` (the
+//! paper's ε_r) or when its largest triangulation angle is below `min_angle_rad`.
+//!
+//! Covariance (first-order propagation at the optimum, H = Σ_k J_kᵀ (w_k/σ²) J_k):
+//! * pixel noise σ in the training images: Σ_pix = H⁻¹ (Σ_k J_kᵀ (w_k²/σ²) J_k) H⁻¹;
+//! * keyframe pose noise (covariance C_k of the right perturbation of world_from_cam T_k):
+//!   δX = Σ_k D_k δ_k with D_k = −H⁻¹ J_kᵀ (w_k/σ²) ∂r_k/∂δ_k, so Σ_X = Σ_pix + Σ_k D_k C_k D_kᵀ.
+//!
+//! The D_k are returned too: pose errors are shared by every point a keyframe sees, so a
+//! later PnP must propagate them jointly (see `pnp`), not as independent point errors.
+
+use nalgebra::{Matrix3, Matrix3x6, Matrix4, Matrix6, Vector2, Vector3, Vector4};
+use rayon::prelude::*;
+
+use crate::camera::{Camera, j_uv_point, j_uv_pose, project};
+use crate::error::{GeolocError, Result};
+use crate::lie::SE3;
+use crate::optim::{LeastSquares, LmOptions, RobustLoss, levenberg_marquardt};
+
+/// Options of [`triangulate`]; defaults follow the paper.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TriangulationOptions {
+    /// Robust kernel on residuals in units of σ (default Huber, width 1).
+    pub loss: RobustLoss,
+    /// Pixel noise σ of the keypoints (default 1 px, as in the paper).
+    pub pixel_sigma: f64,
+    /// ε_r: an observation with a larger residual is an outlier, and a point whose mean
+    /// inlier residual is larger is rejected (default 5 px).
+    pub max_residual_px: f64,
+    /// A point whose largest ray angle is smaller is rejected (default 1°).
+    pub min_angle_rad: f64,
+    /// LM settings.
+    pub lm: LmOptions,
+}
+
+impl Default for TriangulationOptions {
+    fn default() -> Self {
+        Self {
+            loss: RobustLoss::Huber { width: 1.0 },
+            pixel_sigma: 1.0,
+            max_residual_px: 5.0,
+            min_angle_rad: 1f64.to_radians(),
+            lm: LmOptions::default(),
+        }
+    }
+}
+
+/// Why a track did or did not give a point.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[repr(u8)]
+pub enum TrackStatus {
+    /// A valid point.
+    Valid = 0,
+    /// Fewer than two (inlier) views.
+    TooFewViews = 1,
+    /// The rays do not meet in a finite point (parallel rays, zero baseline).
+    Degenerate = 2,
+    /// Behind one of its inlier cameras.
+    BehindCamera = 3,
+    /// Mean inlier residual above ε_r.
+    LargeResidual = 4,
+    /// Largest triangulation angle below the minimum.
+    SmallAngle = 5,
+}
+
+impl TrackStatus {
+    /// A short human-readable reason.
+    pub fn reason(self) -> &'static str {
+        match self {
+            Self::Valid => "ok",
+            Self::TooFewViews => "fewer than two inlier views",
+            Self::Degenerate => "rays do not intersect (zero baseline or parallel rays)",
+            Self::BehindCamera => "point behind an observing camera",
+            Self::LargeResidual => "mean residual above max_residual",
+            Self::SmallAngle => "triangulation angle below min_angle",
+        }
+    }
+}
+
+/// One triangulated track.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TriangulatedPoint {
+    /// X in world coordinates (meaningful when `status` is valid; else the best attempt or 0).
+    pub point: Vector3<f64>,
+    /// Valid or why not.
+    pub status: TrackStatus,
+    /// Mean reprojection residual of the inlier observations (pixels).
+    pub mean_residual_px: f64,
+    /// Largest angle between two inlier rays (radians).
+    pub max_angle_rad: f64,
+    /// Marginal covariance of X: pixel noise plus keyframe-pose noise (m²).
+    pub covariance: Matrix3<f64>,
+    /// The part of `covariance` due to pixel noise alone (independent between points).
+    pub pixel_covariance: Matrix3<f64>,
+    /// (camera index, D_k = ∂X/∂δ_k) for each camera with inlier observations.
+    pub pose_jacobians: Vec<(usize, Matrix3x6<f64>)>,
+    /// Per observation of the track (in input order): kept as inlier.
+    pub inliers: Vec<bool>,
+}
+
+/// The whole triangulation of many tracks.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Triangulation {
+    /// One entry per track id 0..P.
+    pub points: Vec<TriangulatedPoint>,
+    /// Per input observation: kept as inlier of its track.
+    pub observation_inliers: Vec<bool>,
+}
+
+/// Triangulates every track; observation o says "track `track_ids[o]` is seen by camera
+/// `camera_ids[o]` at undistorted pixel `pixels[o]`". Tracks are 0..=max(track_ids).
+///
+/// `pose_covariances`, when given, has one 6×6 covariance per pose (right perturbation of
+/// world_from_cam, translation first).
+///
+/// # Errors
+/// Mismatched lengths, out-of-range camera ids, non-finite input, bad options.
+pub fn triangulate(
+    camera: &Camera,
+    world_from_cams: &[SE3],
+    pose_covariances: Option<&[Matrix6<f64>]>,
+    camera_ids: &[usize],
+    track_ids: &[usize],
+    pixels: &[Vector2<f64>],
+    options: &TriangulationOptions,
+) -> Result<Triangulation> {
+    check_options(options)?;
+    let n_obs = pixels.len();
+    for (name, len) in [("cam_ids", camera_ids.len()), ("track_ids", track_ids.len())] {
+        if len != n_obs {
+            return Err(GeolocError::invalid(name, format!("has {len} entries but pixels has {n_obs}")));
+        }
+    }
+    if let Some(covs) = pose_covariances
+        && covs.len() != world_from_cams.len()
+    {
+        return Err(GeolocError::invalid(
+            "pose_covariances",
+            format!("has {} entries but poses has {}", covs.len(), world_from_cams.len()),
+        ));
+    }
+    if let Some(o) = camera_ids.iter().position(|&c| c >= world_from_cams.len()) {
+        return Err(GeolocError::invalid(
+            "cam_ids",
+            format!("cam_ids[{o}] = {} but there are {} poses", camera_ids[o], world_from_cams.len()),
+        ));
+    }
+    if let Some(o) = pixels.iter().position(|p| !p.iter().all(|v| v.is_finite())) {
+        return Err(GeolocError::NonFinite { name: "pixels".into(), index: o });
+    }
+    let n_tracks = track_ids.iter().max().map_or(0, |m| m + 1);
+    let mut by_track: Vec<Vec<usize>> = vec![Vec::new(); n_tracks];
+    for (o, &t) in track_ids.iter().enumerate() {
+        by_track[t].push(o);
+    }
+    let points: Vec<TriangulatedPoint> = by_track
+        .par_iter()
+        .map(|obs| {
+            let views: Vec<View> = obs
+                .iter()
+                .map(|&o| View { camera: camera_ids[o], uv: pixels[o] })
+                .collect();
+            triangulate_track(camera, world_from_cams, pose_covariances, &views, options)
+        })
+        .collect();
+    let mut observation_inliers = vec![false; n_obs];
+    for (track, obs) in points.iter().zip(&by_track) {
+        for (&o, &inlier) in obs.iter().zip(&track.inliers) {
+            observation_inliers[o] = inlier && track.status == TrackStatus::Valid;
+        }
+    }
+    Ok(Triangulation { points, observation_inliers })
+}
+
+fn check_options(options: &TriangulationOptions) -> Result<()> {
+    let positive = |name: &str, v: f64| {
+        if v.is_finite() && v > 0.0 {
+            Ok(())
+        } else {
+            Err(GeolocError::invalid(name, format!("must be finite and > 0, got {v}")))
+        }
+    };
+    positive("pixel_sigma", options.pixel_sigma)?;
+    positive("max_residual", options.max_residual_px)?;
+    if !(options.min_angle_rad.is_finite() && options.min_angle_rad >= 0.0) {
+        return Err(GeolocError::invalid("min_angle", "must be finite and ≥ 0"));
+    }
+    Ok(())
+}
+
+/// One observation of a track.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct View {
+    /// Index of the observing camera pose.
+    pub camera: usize,
+    /// Undistorted pixel.
+    pub uv: Vector2<f64>,
+}
+
+/// Triangulates one track (see the module doc).
+pub fn triangulate_track(
+    camera: &Camera,
+    poses: &[SE3],
+    pose_covariances: Option<&[Matrix6<f64>]>,
+    views: &[View],
+    options: &TriangulationOptions,
+) -> TriangulatedPoint {
+    let mut result = TriangulatedPoint {
+        point: Vector3::zeros(),
+        status: TrackStatus::TooFewViews,
+        mean_residual_px: f64::INFINITY,
+        max_angle_rad: 0.0,
+        covariance: Matrix3::zeros(),
+        pixel_covariance: Matrix3::zeros(),
+        pose_jacobians: Vec::new(),
+        inliers: vec![false; views.len()],
+    };
+    if distinct_cameras(views.iter()) < 2 {
+        return result;
+    }
+    if max_baseline(poses, views) <= MIN_BASELINE_M {
+        result.status = TrackStatus::Degenerate;
+        return result;
+    }
+    let threshold = options.max_residual_px;
+    let all: Vec<usize> = (0..views.len()).collect();
+    // 1. all views: DLT + robust LM; done if every observation fits.
+    let mut start = dlt(camera, poses, views, &all).map(|x| refine(camera, poses, views, &all, x, options));
+    let mut inliers = start.map(|x| inlier_set(camera, poses, views, &x, threshold)).unwrap_or_default();
+    // 2. otherwise the best two-view DLT seeds the consensus.
+    if inliers.len() < views.len() && views.len() >= 3 {
+        if let Some((x, set)) = best_pair(camera, poses, views, threshold) {
+            if set.len() > inliers.len() {
+                start = Some(x);
+                inliers = set;
+            }
+        }
+    }
+    let Some(mut x) = start else {
+        result.status = TrackStatus::Degenerate;
+        return result;
+    };
+    // 3. re-solve on the consensus until it is stable (at most a few rounds).
+    for _ in 0..3 {
+        if distinct_cameras(inliers.iter().map(|&i| &views[i])) < 2 {
+            break;
+        }
+        x = refine(camera, poses, views, &inliers, x, options);
+        let next = inlier_set(camera, poses, views, &x, threshold);
+        if next == inliers {
+            break;
+        }
+        inliers = next;
+    }
+    result.point = x;
+    for &i in &inliers {
+        result.inliers[i] = true;
+    }
+    if distinct_cameras(inliers.iter().map(|&i| &views[i])) < 2 {
+        result.status = TrackStatus::TooFewViews;
+        return result;
+    }
+    let residuals: Vec<f64> = inliers.iter().map(|&i| residual_px(camera, poses, &views[i], &x)).collect();
+    result.mean_residual_px = residuals.iter().sum::<f64>() / residuals.len() as f64;
+    result.max_angle_rad = max_ray_angle(poses, views, &inliers, &x);
+    result.status = if inliers.iter().any(|&i| depth(poses, &views[i], &x) <= 0.0) {
+        TrackStatus::BehindCamera
+    } else if result.mean_residual_px > threshold {
+        TrackStatus::LargeResidual
+    } else if result.max_angle_rad < options.min_angle_rad {
+        TrackStatus::SmallAngle
+    } else {
+        TrackStatus::Valid
+    };
+    if result.status == TrackStatus::Valid {
+        propagate_covariance(camera, poses, pose_covariances, views, &inliers, options, &mut result);
+    }
+    result
+}
+
+/// Camera centres closer than this are one centre: no baseline, no triangulation.
+const MIN_BASELINE_M: f64 = 1e-9;
+
+fn max_baseline(poses: &[SE3], views: &[View]) -> f64 {
+    let mut best = 0.0_f64;
+    for a in views {
+        for b in views {
+            best = best.max((poses[a.camera].translation - poses[b.camera].translation).norm());
+        }
+    }
+    best
+}
+
+fn distinct_cameras<'a>(views: impl Iterator<Item = &'a View>) -> usize {
+    let mut cams: Vec<usize> = views.map(|v| v.camera).collect();
+    cams.sort_unstable();
+    cams.dedup();
+    cams.len()
+}
+
+fn depth(poses: &[SE3], view: &View, x: &Vector3<f64>) -> f64 {
+    let pose = &poses[view.camera];
+    pose.rotation.matrix().column(2).dot(&(x - pose.translation))
+}
+
+fn residual_px(camera: &Camera, poses: &[SE3], view: &View, x: &Vector3<f64>) -> f64 {
+    (project(camera, &poses[view.camera], x).uv - view.uv).norm()
+}
+
+/// Observations that fit X: in front of the camera and within `threshold` pixels.
+fn inlier_set(camera: &Camera, poses: &[SE3], views: &[View], x: &Vector3<f64>, threshold: f64) -> Vec<usize> {
+    (0..views.len())
+        .filter(|&i| depth(poses, &views[i], x) > 0.0 && residual_px(camera, poses, &views[i], x) <= threshold)
+        .collect()
+}
+
+/// Every pair of views of distinct cameras seeds a two-view DLT; the largest consensus
+/// (ties: smallest truncated squared error) wins.
+fn best_pair(camera: &Camera, poses: &[SE3], views: &[View], threshold: f64) -> Option<(Vector3<f64>, Vec<usize>)> {
+    let mut best: Option<(Vector3<f64>, Vec<usize>, f64)> = None;
+    for i in 0..views.len() {
+        for j in i + 1..views.len() {
+            if views[i].camera == views[j].camera {
+                continue;
+            }
+            let Some(x) = dlt(camera, poses, views, &[i, j]) else { continue };
+            let set = inlier_set(camera, poses, views, &x, threshold);
+            if set.len() < 2 {
+                continue;
+            }
+            let score: f64 = views
+                .iter()
+                .map(|v| residual_px(camera, poses, v, &x).powi(2).min(threshold * threshold))
+                .sum();
+            let better = match &best {
+                None => true,
+                Some((_, b, s)) => set.len() > b.len() || (set.len() == b.len() && score < *s),
+            };
+            if better {
+                best = Some((x, set, score));
+            }
+        }
+    }
+    best.map(|(x, set, _)| (x, set))
+}
+
+/// Homogeneous N-view DLT in normalized camera coordinates, centred on the mean camera
+/// centre (for conditioning); None when the solution is at infinity.
+fn dlt(camera: &Camera, poses: &[SE3], views: &[View], subset: &[usize]) -> Option<Vector3<f64>> {
+    let centre = subset.iter().map(|&i| poses[views[i].camera].translation).sum::<Vector3<f64>>()
+        / subset.len() as f64;
+    let mut ata = Matrix4::<f64>::zeros();
+    for &i in subset {
+        let pose = &poses[views[i].camera];
+        let rt = pose.rotation.matrix().transpose();
+        let t = -(rt * (pose.translation - centre));
+        let xn = camera.unproject(&views[i].uv);
+        let row = |k: usize| Vector4::new(rt[(k, 0)], rt[(k, 1)], rt[(k, 2)], t[k]);
+        let (p1, p2, p3) = (row(0), row(1), row(2));
+        for a in [xn.x * p3 - p1, xn.y * p3 - p2] {
+            let a = a.normalize();
+            ata += a * a.transpose();
+        }
+    }
+    let eig = ata.symmetric_eigen();
+    let (k, _) = eig.eigenvalues.iter().enumerate().min_by(|a, b| a.1.total_cmp(b.1))?;
+    let h = eig.eigenvectors.column(k);
+    let scale = h.fixed_rows::<3>(0).norm().max(f64::MIN_POSITIVE);
+    if h[3].abs() <= DLT_INFINITY_RATIO * scale {
+        return None;
+    }
+    let x = h.fixed_rows::<3>(0) / h[3] + centre;
+    x.iter().all(|v| v.is_finite()).then_some(x)
+}
+
+/// |w| below this fraction of |(x, y, z)| puts the DLT solution at infinity.
+const DLT_INFINITY_RATIO: f64 = 1e-10;
+
+struct PointProblem<'a> {
+    camera: &'a Camera,
+    poses: &'a [SE3],
+    views: &'a [View],
+    subset: &'a [usize],
+    loss: RobustLoss,
+    inv_sigma: f64,
+}
+
+impl LeastSquares<3> for PointProblem<'_> {
+    type State = Vector3<f64>;
+
+    fn cost(&self, x: &Vector3<f64>) -> f64 {
+        self.subset
+            .iter()
+            .map(|&i| {
+                let v = &self.views[i];
+                let r = (project(self.camera, &self.poses[v.camera], x).uv - v.uv) * self.inv_sigma;
+                self.loss.cost(r.norm_squared())
+            })
+            .sum()
+    }
+
+    fn normal_equations(&self, x: &Vector3<f64>) -> (Matrix3<f64>, Vector3<f64>, f64) {
+        let mut h = Matrix3::zeros();
+        let mut g = Vector3::zeros();
+        let mut cost = 0.0;
+        for &i in self.subset {
+            let v = &self.views[i];
+            let pose = &self.poses[v.camera];
+            let p = project(self.camera, pose, x);
+            let r = (p.uv - v.uv) * self.inv_sigma;
+            let s = r.norm_squared();
+            let w = self.loss.weight(s);
+            let j = j_uv_point(self.camera, pose, &p) * self.inv_sigma;
+            h += w * j.transpose() * j;
+            g += w * j.transpose() * r;
+            cost += self.loss.cost(s);
+        }
+        (h, g, cost)
+    }
+
+    fn retract(&self, x: &Vector3<f64>, d: &Vector3<f64>) -> Vector3<f64> {
+        x + d
+    }
+}
+
+fn refine(
+    camera: &Camera,
+    poses: &[SE3],
+    views: &[View],
+    subset: &[usize],
+    x: Vector3<f64>,
+    options: &TriangulationOptions,
+) -> Vector3<f64> {
+    let problem = PointProblem {
+        camera,
+        poses,
+        views,
+        subset,
+        loss: options.loss,
+        inv_sigma: 1.0 / options.pixel_sigma,
+    };
+    levenberg_marquardt(&problem, x, &options.lm).0
+}
+
+fn max_ray_angle(poses: &[SE3], views: &[View], subset: &[usize], x: &Vector3<f64>) -> f64 {
+    let rays: Vec<Vector3<f64>> = subset.iter().map(|&i| (x - poses[views[i].camera].translation).normalize()).collect();
+    let mut best = 0.0_f64;
+    for a in 0..rays.len() {
+        for b in a + 1..rays.len() {
+            let cross = rays[a].cross(&rays[b]).norm();
+            best = best.max(cross.atan2(rays[a].dot(&rays[b])));
+        }
+    }
+    best
+}
+
+fn propagate_covariance(
+    camera: &Camera,
+    poses: &[SE3],
+    pose_covariances: Option<&[Matrix6<f64>]>,
+    views: &[View],
+    inliers: &[usize],
+    options: &TriangulationOptions,
+    result: &mut TriangulatedPoint,
+) {
+    let inv_var = 1.0 / (options.pixel_sigma * options.pixel_sigma);
+    let x = result.point;
+    let mut h = Matrix3::zeros();
+    let mut meat = Matrix3::zeros();
+    let mut terms = Vec::with_capacity(inliers.len());
+    for &i in inliers {
+        let v = &views[i];
+        let pose = &poses[v.camera];
+        let p = project(camera, pose, &x);
+        let s = (p.uv - v.uv).norm_squared() * inv_var;
+        let w = options.loss.weight(s);
+        let j_x = j_uv_point(camera, pose, &p);
+        h += (w * inv_var) * j_x.transpose() * j_x;
+        meat += (w * w * inv_var) * j_x.transpose() * j_x;
+        terms.push((v.camera, w, j_x, p));
+    }
+    let Some(h_inv) = h.try_inverse() else {
+        result.status = TrackStatus::Degenerate;
+        return;
+    };
+    result.pixel_covariance = h_inv * meat * h_inv;
+    result.covariance = result.pixel_covariance;
+    let mut jacobians: Vec<(usize, Matrix3x6<f64>)> = Vec::new();
+    for (cam, w, j_x, p) in terms {
+        let d = -(h_inv * j_x.transpose() * (w * inv_var)) * j_uv_pose(camera, &p);
+        match jacobians.iter_mut().find(|(c, _)| *c == cam) {
+            Some((_, acc)) => *acc += d,
+            None => jacobians.push((cam, d)),
+        }
+    }
+    if let Some(covs) = pose_covariances {
+        for (cam, d) in &jacobians {
+            result.covariance += d * covs[*cam] * d.transpose();
+        }
+    }
+    result.pose_jacobians = jacobians;
+}
