@@ -12,6 +12,7 @@ pub mod error;
 pub mod lie;
 pub mod optim;
 pub mod parallel;
+pub mod pnp;
 pub mod testing;
 pub mod triangulate;
 

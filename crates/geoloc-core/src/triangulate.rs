@@ -9,15 +9,17 @@
 //! behind an inlier camera, when its mean inlier residual exceeds `max_residual_px` (the
 //! paper's ε_r) or when its largest triangulation angle is below `min_angle_rad`.
 //!
-//! Covariance (first-order propagation at the optimum, H = Σ_k J_kᵀ (w_k/σ²) J_k):
-//! * pixel noise σ in the training images: Σ_pix = H⁻¹ (Σ_k J_kᵀ (w_k²/σ²) J_k) H⁻¹;
+//! Covariance (first-order propagation at the optimum, H = Σ_k J_kᵀ M_k J_k with M_k the
+//! exact robust curvature of ρ(‖r_k‖²/σ²), see `RobustLoss::curvature`):
+//! * pixel noise σ in the training images: Σ_pix = H⁻¹ (Σ_k J_kᵀ (w_k²/σ²) J_k) H⁻¹,
+//!   w_k = ρ'(s_k);
 //! * keyframe pose noise (covariance C_k of the right perturbation of world_from_cam T_k):
-//!   δX = Σ_k D_k δ_k with D_k = −H⁻¹ J_kᵀ (w_k/σ²) ∂r_k/∂δ_k, so Σ_X = Σ_pix + Σ_k D_k C_k D_kᵀ.
+//!   δX = Σ_k D_k δ_k with D_k = −H⁻¹ J_kᵀ M_k ∂r_k/∂δ_k, so Σ_X = Σ_pix + Σ_k D_k C_k D_kᵀ.
 //!
 //! The D_k are returned too: pose errors are shared by every point a keyframe sees, so a
 //! later PnP must propagate them jointly (see `pnp`), not as independent point errors.
 
-use nalgebra::{Matrix3, Matrix3x6, Matrix4, Matrix6, Vector2, Vector3, Vector4};
+use nalgebra::{Matrix2, Matrix3, Matrix3x6, Matrix4, Matrix6, Vector2, Vector3, Vector4};
 use rayon::prelude::*;
 
 use crate::camera::{Camera, j_uv_point, j_uv_pose, project};
@@ -236,13 +238,13 @@ pub fn triangulate_track(
     let mut start = dlt(camera, poses, views, &all).map(|x| refine(camera, poses, views, &all, x, options));
     let mut inliers = start.map(|x| inlier_set(camera, poses, views, &x, threshold)).unwrap_or_default();
     // 2. otherwise the best two-view DLT seeds the consensus.
-    if inliers.len() < views.len() && views.len() >= 3 {
-        if let Some((x, set)) = best_pair(camera, poses, views, threshold) {
-            if set.len() > inliers.len() {
-                start = Some(x);
-                inliers = set;
-            }
-        }
+    if inliers.len() < views.len()
+        && views.len() >= 3
+        && let Some((x, set)) = best_pair(camera, poses, views, threshold)
+        && set.len() > inliers.len()
+    {
+        start = Some(x);
+        inliers = set;
     }
     let Some(mut x) = start else {
         result.status = TrackStatus::Degenerate;
@@ -480,12 +482,13 @@ fn propagate_covariance(
         let v = &views[i];
         let pose = &poses[v.camera];
         let p = project(camera, pose, &x);
-        let s = (p.uv - v.uv).norm_squared() * inv_var;
-        let w = options.loss.weight(s);
+        let r = p.uv - v.uv;
+        let w = options.loss.weight(r.norm_squared() * inv_var);
+        let curvature = options.loss.curvature(&(Matrix2::identity() * inv_var), &r);
         let j_x = j_uv_point(camera, pose, &p);
-        h += (w * inv_var) * j_x.transpose() * j_x;
+        h += j_x.transpose() * curvature * j_x;
         meat += (w * w * inv_var) * j_x.transpose() * j_x;
-        terms.push((v.camera, w, j_x, p));
+        terms.push((v.camera, curvature, j_x, p));
     }
     let Some(h_inv) = h.try_inverse() else {
         result.status = TrackStatus::Degenerate;
@@ -494,8 +497,8 @@ fn propagate_covariance(
     result.pixel_covariance = h_inv * meat * h_inv;
     result.covariance = result.pixel_covariance;
     let mut jacobians: Vec<(usize, Matrix3x6<f64>)> = Vec::new();
-    for (cam, w, j_x, p) in terms {
-        let d = -(h_inv * j_x.transpose() * (w * inv_var)) * j_uv_pose(camera, &p);
+    for (cam, curvature, j_x, p) in terms {
+        let d = -(h_inv * j_x.transpose() * curvature) * j_uv_pose(camera, &p);
         match jacobians.iter_mut().find(|(c, _)| *c == cam) {
             Some((_, acc)) => *acc += d,
             None => jacobians.push((cam, d)),

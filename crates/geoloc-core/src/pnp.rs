@@ -1,0 +1,686 @@
+//! Backward intersection: the world_from_cam pose of a camera from 2D–3D correspondences
+//! (the paper's Eq. back_projection), with a 6×6 covariance in the right-perturbation
+//! tangent space (translation first).
+//!
+//! 1. Start: the given `init` pose, or P3P RANSAC ([`p3p`]) with MSAC scoring, an adaptive
+//!    iteration count (confidence 0.9999 by default) and local optimization of every new
+//!    best hypothesis (LO-RANSAC).
+//! 2. LM on SE(3) (T ⊞ δ = T exp(δ^)) with a robust kernel on the Mahalanobis residual
+//!    sⱼ = rⱼᵀWⱼrⱼ, rⱼ = π(T, Xⱼ) − zⱼ; correspondences with ‖rⱼ‖ > η_r are dropped and the
+//!    pose re-solved until the inlier set is stable. When the points carry uncertainty the
+//!    gate is rⱼᵀSⱼ⁻¹rⱼ ≤ (η_r/σ)² instead (the same for Sⱼ = σ²I), so points whose
+//!    predicted error exceeds η_r are not thrown away for it. With the propagated
+//!    covariance, a last solve on the stable inlier set is plain weighted least squares
+//!    (outliers are gone; it is the efficient estimator, and the one the covariance is for).
+//! 3. Covariance, one of [`CovarianceModel`]:
+//!    * `Paper`: C = σ̂² (Σ wⱼ JⱼᵀJⱼ)⁻¹ with σ̂² = Σ‖rⱼ‖²/(2p − 1) — the paper's formula; it
+//!      ignores the error of the points and is over-confident.
+//!    * `Propagated` (default): the residual of correspondence j has covariance
+//!      Sⱼ = σ²I + J_X,j Σⱼ J_X,jᵀ (σ: the query's pixel noise; Σⱼ: the point's covariance),
+//!      the LM weights are Wⱼ = Sⱼ⁻¹, and with H = Σ wⱼ JⱼᵀWⱼJⱼ the first-order covariance
+//!      of the estimate is the sandwich
+//!        C = H⁻¹ (Σ wⱼ² JⱼᵀWⱼ Sⱼ^ind WⱼJⱼ) H⁻¹ + Σ_k M_k C_k M_kᵀ,
+//!        M_k = −H⁻¹ Σⱼ Jⱼᵀ Mⱼ J_X,j D_jk,   H = Σⱼ Jⱼᵀ Mⱼ Jⱼ,
+//!      with wⱼ = ρ'(sⱼ) and Mⱼ the exact robust curvature ρ'Wⱼ + 2ρ''(Wⱼrⱼ)(Wⱼrⱼ)ᵀ
+//!      (`RobustLoss::curvature`; with Huber k = 1σ most 2D residuals sit in the linear
+//!      zone, and IRLS weights alone would claim least-squares efficiency);
+//!      where Sⱼ^ind holds the errors independent between points (pixels) and the M_k terms
+//!      the keyframe-pose errors C_k that all points share (D_jk = ∂Xⱼ/∂δ_k from
+//!      triangulation).
+//!
+//! Geometry that is merely bad (too few points, no consensus, a singular information
+//! matrix) gives `success = false` with a reason, never an error.
+
+pub mod p3p;
+
+use nalgebra::{Matrix2, Matrix2x3, Matrix2x6, Matrix3, Matrix3x6, Matrix6, Vector2, Vector3, Vector6};
+
+use crate::camera::{Camera, j_uv_point, j_uv_pose, project};
+use crate::error::{GeolocError, Result};
+use crate::lie::{SE3, SO3};
+use crate::optim::{LeastSquares, LmOptions, LmReport, RobustLoss, levenberg_marquardt};
+use crate::testing::SplitMix64;
+
+/// How the returned covariance is computed.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum CovarianceModel {
+    /// Point errors (and keyframe-pose errors) propagated; calibrated. The default.
+    Propagated,
+    /// The paper's σ̂²(ΣJᵀJ)⁻¹ with σ̂² = ‖r‖²/(2p − 1); for comparison.
+    Paper,
+}
+
+/// RANSAC settings.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RansacOptions {
+    /// At least this many samples (default 100).
+    pub min_iterations: usize,
+    /// At most this many samples (default 10 000).
+    pub max_iterations: usize,
+    /// Probability of having drawn one all-inlier sample before stopping (default 0.9999).
+    pub confidence: f64,
+    /// Seed of the sampler (default 0): results are reproducible.
+    pub seed: u64,
+}
+
+impl Default for RansacOptions {
+    fn default() -> Self {
+        Self { min_iterations: 100, max_iterations: 10_000, confidence: 0.9999, seed: 0 }
+    }
+}
+
+/// Options of [`solve_pnp`]; defaults follow the paper (Huber 1 px, η_r = 5 px).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PnpOptions {
+    /// Robust kernel on the Mahalanobis residual (default Huber, width 1).
+    pub loss: RobustLoss,
+    /// Pixel noise σ of the query keypoints (default 1 px).
+    pub pixel_sigma: f64,
+    /// η_r: correspondences with a larger residual are outliers (default 5 px); also the
+    /// RANSAC inlier threshold.
+    pub max_residual_px: f64,
+    /// RANSAC settings (used when no initial pose is given).
+    pub ransac: RansacOptions,
+    /// Covariance model (default propagated).
+    pub covariance: CovarianceModel,
+    /// LM settings.
+    pub lm: LmOptions,
+    /// Rounds of drop-outliers-and-re-solve (default 5).
+    pub max_refits: usize,
+}
+
+impl Default for PnpOptions {
+    fn default() -> Self {
+        Self {
+            loss: RobustLoss::Huber { width: 1.0 },
+            pixel_sigma: 1.0,
+            max_residual_px: 5.0,
+            ransac: RansacOptions::default(),
+            covariance: CovarianceModel::Propagated,
+            lm: LmOptions::default(),
+            max_refits: 5,
+        }
+    }
+}
+
+/// Uncertainty of the 3D points, as triangulation provides it.
+#[derive(Clone, Copy, Debug)]
+pub struct PointUncertainty<'a> {
+    /// Per point: the covariance part independent between points (pixel noise), m².
+    pub covariances: &'a [Matrix3<f64>],
+    /// Errors shared through the keyframe poses, if known.
+    pub shared: Option<SharedPoseUncertainty<'a>>,
+}
+
+/// Keyframe-pose errors shared by the points.
+#[derive(Clone, Copy, Debug)]
+pub struct SharedPoseUncertainty<'a> {
+    /// Row-major N × K: `jacobians[j * K + k]` = D_jk = ∂X_j/∂δ_k.
+    pub jacobians: &'a [Matrix3x6<f64>],
+    /// The K keyframe-pose covariances C_k (right perturbation of world_from_cam).
+    pub pose_covariances: &'a [Matrix6<f64>],
+}
+
+/// The outcome of [`solve_pnp`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct PnpResult {
+    /// Whether a pose was found.
+    pub success: bool,
+    /// "ok" or why not.
+    pub reason: String,
+    /// The estimate (identity when nothing was found).
+    pub world_from_cam: SE3,
+    /// 6×6 covariance in the right-perturbation tangent space, translation first.
+    pub covariance: Matrix6<f64>,
+    /// Per correspondence: used in the final solve.
+    pub inliers: Vec<bool>,
+    /// RMS reprojection error of the inliers (pixels).
+    pub rms_px: f64,
+    /// The paper's isometric position σ: mean of √diag(C_ρ) (m).
+    pub sigma_p: f64,
+    /// The paper's isometric rotation σ: Θ(exp(√diag(C_φ))) (rad).
+    pub sigma_r: f64,
+    /// RANSAC samples drawn (0 with an initial pose).
+    pub ransac_iterations: usize,
+    /// The last LM run.
+    pub lm: Option<LmReport>,
+}
+
+impl PnpResult {
+    fn failure(n: usize, reason: impl Into<String>, ransac_iterations: usize) -> Self {
+        Self {
+            success: false,
+            reason: reason.into(),
+            world_from_cam: SE3::identity(),
+            covariance: Matrix6::zeros(),
+            inliers: vec![false; n],
+            rms_px: f64::NAN,
+            sigma_p: f64::NAN,
+            sigma_r: f64::NAN,
+            ransac_iterations,
+            lm: None,
+        }
+    }
+}
+
+/// Fewest correspondences RANSAC needs (a 3-point sample plus one to check it).
+pub const MIN_POINTS_RANSAC: usize = 4;
+/// Fewest inliers a pose (6 DoF) is accepted from.
+pub const MIN_INLIERS: usize = 4;
+/// Reciprocal condition number of the information matrix below which the pose is
+/// unobservable (collinear points, a single point cluster seen head-on, …).
+const MIN_RECIPROCAL_CONDITION: f64 = 1e-12;
+
+/// Estimates world_from_cam from `points` (world) and their undistorted `pixels`; see the
+/// module doc.
+///
+/// # Errors
+/// Only for invalid input: mismatched lengths, non-finite values, bad options or
+/// uncertainty arrays of the wrong size.
+pub fn solve_pnp(
+    camera: &Camera,
+    points: &[Vector3<f64>],
+    pixels: &[Vector2<f64>],
+    init: Option<&SE3>,
+    uncertainty: Option<&PointUncertainty<'_>>,
+    options: &PnpOptions,
+) -> Result<PnpResult> {
+    validate(points, pixels, uncertainty, options)?;
+    let n = points.len();
+    let (start, ransac_iterations) = match init {
+        Some(pose) => (*pose, 0),
+        None => {
+            if n < MIN_POINTS_RANSAC {
+                return Ok(PnpResult::failure(n, format!("too few correspondences: {n} < {MIN_POINTS_RANSAC}"), 0));
+            }
+            match ransac(camera, points, pixels, options) {
+                (Some(pose), iterations) => (pose, iterations),
+                (None, iterations) => {
+                    return Ok(PnpResult::failure(n, "RANSAC found no pose with enough inliers", iterations));
+                }
+            }
+        }
+    };
+    if n < MIN_INLIERS {
+        return Ok(PnpResult::failure(n, format!("too few correspondences: {n} < {MIN_INLIERS}"), ransac_iterations));
+    }
+    // With an initial pose the first solve is robust over everything; after RANSAC it
+    // starts from the consensus set.
+    let mut subset: Vec<usize> = if init.is_some() {
+        (0..n).filter(|&j| project(camera, &start, &points[j]).p_cam.z > 0.0).collect()
+    } else {
+        inlier_indices(camera, points, pixels, &start, options.max_residual_px)
+    };
+    let mut pose = start;
+    let mut report = None;
+    for _ in 0..options.max_refits.max(1) {
+        if subset.len() < MIN_INLIERS {
+            break;
+        }
+        let weights = information(camera, points, &pose, &subset, uncertainty, options.pixel_sigma);
+        let problem = PoseProblem { camera, points, pixels, subset: &subset, weights: &weights, loss: options.loss };
+        let (next, r) = levenberg_marquardt(&problem, pose, &options.lm);
+        pose = next;
+        report = Some(r);
+        let next_subset = gated_indices(camera, points, pixels, &pose, uncertainty, options);
+        if next_subset == subset {
+            break;
+        }
+        subset = next_subset;
+    }
+    if subset.len() < MIN_INLIERS {
+        return Ok(PnpResult::failure(n, format!("too few inliers: {} < {MIN_INLIERS}", subset.len()), ransac_iterations));
+    }
+    if options.covariance == CovarianceModel::Propagated {
+        // Outliers are gone: the efficient estimator for the remaining Gaussian errors is
+        // plain weighted least squares, whose covariance the propagation below is exact for.
+        let weights = information(camera, points, &pose, &subset, uncertainty, options.pixel_sigma);
+        let problem = PoseProblem { camera, points, pixels, subset: &subset, weights: &weights, loss: RobustLoss::None };
+        let (next, r) = levenberg_marquardt(&problem, pose, &options.lm);
+        pose = next;
+        report = Some(r);
+    }
+    let mut inliers = vec![false; n];
+    for &j in &subset {
+        inliers[j] = true;
+    }
+    let sum_sq: f64 = subset.iter().map(|&j| (project(camera, &pose, &points[j]).uv - pixels[j]).norm_squared()).sum();
+    let rms_px = (sum_sq / subset.len() as f64).sqrt();
+    let covariance = match options.covariance {
+        CovarianceModel::Paper => paper_covariance(camera, points, pixels, &pose, &subset, options.loss),
+        CovarianceModel::Propagated => {
+            propagated_covariance(camera, points, pixels, &pose, &subset, uncertainty, options.pixel_sigma, RobustLoss::None)
+        }
+    };
+    let Some(covariance) = covariance else {
+        let mut failed = PnpResult::failure(n, "degenerate geometry: the pose is not observable from these points", ransac_iterations);
+        failed.world_from_cam = pose;
+        failed.inliers = inliers;
+        return Ok(failed);
+    };
+    let (sigma_p, sigma_r) = isometric_sigmas(&covariance);
+    let converged = report.is_some_and(|r| r.converged());
+    Ok(PnpResult {
+        success: true,
+        reason: if converged { "ok".into() } else { "ok (LM stopped at its iteration cap)".into() },
+        world_from_cam: pose,
+        covariance,
+        inliers,
+        rms_px,
+        sigma_p,
+        sigma_r,
+        ransac_iterations,
+        lm: report,
+    })
+}
+
+/// σ_p = mean √diag(C_ρ), σ_r = Θ(exp(√diag(C_φ))) (the paper's isometric σ).
+pub fn isometric_sigmas(c: &Matrix6<f64>) -> (f64, f64) {
+    let sd = Vector6::from_fn(|i, _| c[(i, i)].max(0.0).sqrt());
+    let sigma_p = (sd[0] + sd[1] + sd[2]) / 3.0;
+    let sigma_r = SO3::exp(&Vector3::new(sd[3], sd[4], sd[5])).angle();
+    (sigma_p, sigma_r)
+}
+
+fn validate(
+    points: &[Vector3<f64>],
+    pixels: &[Vector2<f64>],
+    uncertainty: Option<&PointUncertainty<'_>>,
+    options: &PnpOptions,
+) -> Result<()> {
+    let n = points.len();
+    if pixels.len() != n {
+        return Err(GeolocError::invalid("pixels", format!("has {} entries but points3d has {n}", pixels.len())));
+    }
+    if let Some(j) = points.iter().position(|p| !p.iter().all(|v| v.is_finite())) {
+        return Err(GeolocError::NonFinite { name: "points3d".into(), index: j });
+    }
+    if let Some(j) = pixels.iter().position(|p| !p.iter().all(|v| v.is_finite())) {
+        return Err(GeolocError::NonFinite { name: "pixels".into(), index: j });
+    }
+    for (name, v) in [("pixel_sigma", options.pixel_sigma), ("max_residual", options.max_residual_px)] {
+        if !(v.is_finite() && v > 0.0) {
+            return Err(GeolocError::invalid(name, format!("must be finite and > 0, got {v}")));
+        }
+    }
+    let r = &options.ransac;
+    if !(r.confidence > 0.0 && r.confidence < 1.0) {
+        return Err(GeolocError::invalid("confidence", format!("must be in (0, 1), got {}", r.confidence)));
+    }
+    if r.max_iterations == 0 || r.min_iterations > r.max_iterations {
+        return Err(GeolocError::invalid("max_iterations", "need 0 < min_iterations ≤ max_iterations"));
+    }
+    if let Some(u) = uncertainty {
+        if u.covariances.len() != n {
+            return Err(GeolocError::invalid("point_covariances", format!("has {} entries for {n} points", u.covariances.len())));
+        }
+        if let Some(s) = &u.shared
+            && s.jacobians.len() != n * s.pose_covariances.len()
+        {
+            return Err(GeolocError::invalid(
+                "point_pose_jacobians",
+                format!("has {} entries; expected points × poses = {n} × {}", s.jacobians.len(), s.pose_covariances.len()),
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// Correspondences kept by the refits: in front of the camera with rᵀS⁻¹r ≤ (η_r/σ)², S the
+/// predicted residual covariance — exactly ‖r‖ ≤ η_r when the points carry no uncertainty,
+/// and no stricter than the points' own uncertainty allows when they do.
+fn gated_indices(
+    camera: &Camera,
+    points: &[Vector3<f64>],
+    pixels: &[Vector2<f64>],
+    pose: &SE3,
+    uncertainty: Option<&PointUncertainty<'_>>,
+    options: &PnpOptions,
+) -> Vec<usize> {
+    if uncertainty.is_none() {
+        return inlier_indices(camera, points, pixels, pose, options.max_residual_px);
+    }
+    let sigma = options.pixel_sigma;
+    let gate = (options.max_residual_px / sigma).powi(2);
+    (0..points.len())
+        .filter(|&j| {
+            let p = project(camera, pose, &points[j]);
+            if p.p_cam.z <= 0.0 {
+                return false;
+            }
+            let r = p.uv - pixels[j];
+            let s = residual_covariance(camera, points, pose, j, uncertainty, sigma, true) / (sigma * sigma);
+            s.try_inverse().is_some_and(|s_inv| r.dot(&(s_inv * r)) / (sigma * sigma) <= gate)
+        })
+        .collect()
+}
+
+fn inlier_indices(camera: &Camera, points: &[Vector3<f64>], pixels: &[Vector2<f64>], pose: &SE3, threshold: f64) -> Vec<usize> {
+    let t2 = threshold * threshold;
+    (0..points.len())
+        .filter(|&j| {
+            let p = project(camera, pose, &points[j]);
+            p.p_cam.z > 0.0 && (p.uv - pixels[j]).norm_squared() <= t2
+        })
+        .collect()
+}
+
+/// W_j = S_j⁻¹ for the correspondences in `subset` (Sⱼ = σ²I + J_X Σⱼ J_Xᵀ, marginal).
+fn information(
+    camera: &Camera,
+    points: &[Vector3<f64>],
+    pose: &SE3,
+    subset: &[usize],
+    uncertainty: Option<&PointUncertainty<'_>>,
+    sigma: f64,
+) -> Vec<Matrix2<f64>> {
+    subset
+        .iter()
+        .map(|&j| {
+            let s = residual_covariance(camera, points, pose, j, uncertainty, sigma, true);
+            s.try_inverse().unwrap_or_else(|| Matrix2::identity() / (sigma * sigma))
+        })
+        .collect()
+}
+
+/// Covariance of the residual of correspondence j: σ²I + J_X Σⱼ J_Xᵀ, where Σⱼ is the
+/// independent point covariance plus, if `marginal`, the shared keyframe-pose part.
+fn residual_covariance(
+    camera: &Camera,
+    points: &[Vector3<f64>],
+    pose: &SE3,
+    j: usize,
+    uncertainty: Option<&PointUncertainty<'_>>,
+    sigma: f64,
+    marginal: bool,
+) -> Matrix2<f64> {
+    let mut s = Matrix2::identity() * (sigma * sigma);
+    if let Some(u) = uncertainty {
+        let mut cov = u.covariances[j];
+        if marginal && let Some(shared) = &u.shared {
+            let k_count = shared.pose_covariances.len();
+            for (k, c_k) in shared.pose_covariances.iter().enumerate() {
+                let d = &shared.jacobians[j * k_count + k];
+                cov += d * c_k * d.transpose();
+            }
+        }
+        let p = project(camera, pose, &points[j]);
+        let j_x = j_uv_point(camera, pose, &p);
+        s += j_x * cov * j_x.transpose();
+    }
+    s
+}
+
+struct PoseProblem<'a> {
+    camera: &'a Camera,
+    points: &'a [Vector3<f64>],
+    pixels: &'a [Vector2<f64>],
+    subset: &'a [usize],
+    weights: &'a [Matrix2<f64>],
+    loss: RobustLoss,
+}
+
+impl LeastSquares<6> for PoseProblem<'_> {
+    type State = SE3;
+
+    fn cost(&self, pose: &SE3) -> f64 {
+        self.subset
+            .iter()
+            .zip(self.weights)
+            .map(|(&j, w)| {
+                let r = project(self.camera, pose, &self.points[j]).uv - self.pixels[j];
+                self.loss.cost((r.transpose() * w * r)[0])
+            })
+            .sum()
+    }
+
+    fn normal_equations(&self, pose: &SE3) -> (Matrix6<f64>, Vector6<f64>, f64) {
+        let mut h = Matrix6::zeros();
+        let mut g = Vector6::zeros();
+        let mut cost = 0.0;
+        for (&j, w) in self.subset.iter().zip(self.weights) {
+            let p = project(self.camera, pose, &self.points[j]);
+            let r = p.uv - self.pixels[j];
+            let wr = w * r;
+            let s = r.dot(&wr);
+            let robust = self.loss.weight(s);
+            let jac: Matrix2x6<f64> = j_uv_pose(self.camera, &p);
+            let jt_w = jac.transpose() * w;
+            h += robust * jt_w * jac;
+            g += robust * jac.transpose() * wr;
+            cost += self.loss.cost(s);
+        }
+        (h, g, cost)
+    }
+
+    fn retract(&self, pose: &SE3, delta: &Vector6<f64>) -> SE3 {
+        *pose * SE3::exp(delta)
+    }
+}
+
+/// H = Σ w JᵀWJ with its inverse, if the pose is observable.
+fn inverse_information(h: &Matrix6<f64>) -> Option<Matrix6<f64>> {
+    let eig = h.symmetric_eigen();
+    let (lo, hi) = eig.eigenvalues.iter().fold((f64::INFINITY, 0.0_f64), |(lo, hi), &v| (lo.min(v), hi.max(v)));
+    if !(lo > MIN_RECIPROCAL_CONDITION * hi) {
+        return None;
+    }
+    h.try_inverse()
+}
+
+fn paper_covariance(
+    camera: &Camera,
+    points: &[Vector3<f64>],
+    pixels: &[Vector2<f64>],
+    pose: &SE3,
+    subset: &[usize],
+    loss: RobustLoss,
+) -> Option<Matrix6<f64>> {
+    let mut info = Matrix6::zeros();
+    let mut sum_sq = 0.0;
+    for &j in subset {
+        let p = project(camera, pose, &points[j]);
+        let r = p.uv - pixels[j];
+        let jac = j_uv_pose(camera, &p);
+        info += loss.weight(r.norm_squared()) * jac.transpose() * jac;
+        sum_sq += r.norm_squared();
+    }
+    let sigma2 = sum_sq / (2.0 * subset.len() as f64 - 1.0);
+    inverse_information(&info).map(|c| c * sigma2)
+}
+
+fn propagated_covariance(
+    camera: &Camera,
+    points: &[Vector3<f64>],
+    pixels: &[Vector2<f64>],
+    pose: &SE3,
+    subset: &[usize],
+    uncertainty: Option<&PointUncertainty<'_>>,
+    sigma: f64,
+    loss: RobustLoss,
+) -> Option<Matrix6<f64>> {
+    let mut h = Matrix6::zeros();
+    let mut meat = Matrix6::zeros();
+    // Σⱼ wⱼ JⱼᵀWⱼ J_X,j per point, needed for the shared part
+    let mut couplings: Vec<(usize, nalgebra::Matrix6x3<f64>)> = Vec::new();
+    for &j in subset {
+        let p = project(camera, pose, &points[j]);
+        let r = p.uv - pixels[j];
+        let s_marginal = residual_covariance(camera, points, pose, j, uncertainty, sigma, true);
+        let w = s_marginal.try_inverse()?;
+        let robust = loss.weight(r.dot(&(w * r)));
+        let curvature = loss.curvature(&w, &r);
+        let jac = j_uv_pose(camera, &p);
+        h += jac.transpose() * curvature * jac;
+        let jt_w = jac.transpose() * w;
+        let s_ind = residual_covariance(camera, points, pose, j, uncertainty, sigma, false);
+        meat += (robust * robust) * jt_w * s_ind * jt_w.transpose();
+        if uncertainty.is_some_and(|u| u.shared.is_some()) {
+            let j_x: Matrix2x3<f64> = j_uv_point(camera, pose, &p);
+            couplings.push((j, jac.transpose() * curvature * j_x));
+        }
+    }
+    let h_inv = inverse_information(&h)?;
+    let mut c = h_inv * meat * h_inv;
+    if let Some(shared) = uncertainty.and_then(|u| u.shared.as_ref()) {
+        let k_count = shared.pose_covariances.len();
+        for (k, c_k) in shared.pose_covariances.iter().enumerate() {
+            let mut m = Matrix6::zeros();
+            for (j, coupling) in &couplings {
+                m -= coupling * shared.jacobians[j * k_count + k];
+            }
+            let m = h_inv * m;
+            c += m * c_k * m.transpose();
+        }
+    }
+    Some(0.5 * (c + c.transpose()))
+}
+
+/// P3P RANSAC with MSAC scoring and local optimization; returns the best pose (if it has
+/// at least [`MIN_INLIERS`] inliers) and the number of samples drawn.
+fn ransac(camera: &Camera, points: &[Vector3<f64>], pixels: &[Vector2<f64>], options: &PnpOptions) -> (Option<SE3>, usize) {
+    let n = points.len();
+    let opts = &options.ransac;
+    let t2 = options.max_residual_px * options.max_residual_px;
+    let bearings: Vec<Vector3<f64>> = pixels.iter().map(|uv| camera.unproject(uv).normalize()).collect();
+    let mut rng = SplitMix64::new(opts.seed);
+    let mut best: Option<(SE3, f64, usize)> = None;
+    let mut needed = opts.max_iterations;
+    let mut iterations = 0;
+    while iterations < opts.max_iterations && (iterations < opts.min_iterations || iterations < needed) {
+        iterations += 1;
+        let sample = sample_three(&mut rng, n);
+        let world = sample.map(|j| points[j]);
+        if (world[1] - world[0]).cross(&(world[2] - world[0])).norm_squared() <= f64::EPSILON {
+            continue;
+        }
+        let bear = sample.map(|j| bearings[j]);
+        for hypothesis in p3p::p3p(&bear, &world) {
+            let bound = best.as_ref().map_or(f64::INFINITY, |b| b.1);
+            let Some((score, count)) = msac_score(camera, points, pixels, &hypothesis, t2, bound) else { continue };
+            if count < 3 {
+                continue;
+            }
+            let (pose, score, count) = locally_optimize(camera, points, pixels, hypothesis, score, count, options);
+            best = Some((pose, score, count));
+            let inlier_ratio = count as f64 / n as f64;
+            needed = required_iterations(inlier_ratio, opts.confidence, opts.max_iterations);
+        }
+    }
+    (best.filter(|b| b.2 >= MIN_INLIERS).map(|b| b.0), iterations)
+}
+
+/// Samples needed so that P(some all-inlier 3-sample) ≥ `confidence`.
+fn required_iterations(inlier_ratio: f64, confidence: f64, cap: usize) -> usize {
+    let all_good = inlier_ratio.powi(3);
+    if all_good >= 1.0 {
+        return 1;
+    }
+    if all_good <= 0.0 {
+        return cap;
+    }
+    let k = (1.0 - confidence).ln() / (1.0 - all_good).ln();
+    if k.is_finite() { (k.ceil() as usize).clamp(1, cap) } else { cap }
+}
+
+fn sample_three(rng: &mut SplitMix64, n: usize) -> [usize; 3] {
+    let pick = |rng: &mut SplitMix64, m: usize| ((rng.next_u64() >> 11) as usize) % m;
+    let a = pick(rng, n);
+    let mut b = pick(rng, n - 1);
+    if b >= a {
+        b += 1;
+    }
+    let (lo, hi) = if a < b { (a, b) } else { (b, a) };
+    let mut c = pick(rng, n - 2);
+    if c >= lo {
+        c += 1;
+    }
+    if c >= hi {
+        c += 1;
+    }
+    [a, b, c]
+}
+
+/// MSAC score Σ min(‖r‖², t²) (behind-camera points count t²) and inlier count; None as
+/// soon as the partial score exceeds `bound` (cannot beat the best).
+fn msac_score(
+    camera: &Camera,
+    points: &[Vector3<f64>],
+    pixels: &[Vector2<f64>],
+    world_from_cam: &SE3,
+    t2: f64,
+    bound: f64,
+) -> Option<(f64, usize)> {
+    let cam_from_world = world_from_cam.inverse();
+    let r = *cam_from_world.rotation.matrix();
+    let t = cam_from_world.translation;
+    let mut score = 0.0;
+    let mut count = 0;
+    for (x, uv) in points.iter().zip(pixels) {
+        let p = r * x + t;
+        let e = if p.z > 0.0 { (camera.project_cam(&p) - uv).norm_squared().min(t2) } else { t2 };
+        if e < t2 {
+            count += 1;
+        }
+        score += e;
+        if score >= bound {
+            return None;
+        }
+    }
+    Some((score, count))
+}
+
+/// LO step: plain least squares on the hypothesis' inliers, kept if it scores better.
+fn locally_optimize(
+    camera: &Camera,
+    points: &[Vector3<f64>],
+    pixels: &[Vector2<f64>],
+    hypothesis: SE3,
+    score: f64,
+    count: usize,
+    options: &PnpOptions,
+) -> (SE3, f64, usize) {
+    let t2 = options.max_residual_px * options.max_residual_px;
+    let subset = inlier_indices(camera, points, pixels, &hypothesis, options.max_residual_px);
+    if subset.len() < MIN_INLIERS {
+        return (hypothesis, score, count);
+    }
+    let weights = vec![Matrix2::identity(); subset.len()];
+    let problem = PoseProblem { camera, points, pixels, subset: &subset, weights: &weights, loss: RobustLoss::None };
+    let lm = LmOptions { max_iterations: 10, ..options.lm };
+    let (refined, _) = levenberg_marquardt(&problem, hypothesis, &lm);
+    match msac_score(camera, points, pixels, &refined, t2, score) {
+        Some((s, c)) => (refined, s, c),
+        None => (hypothesis, score, count),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn iteration_count_formula() {
+        // w = 0.5: P(good sample) = 1/8; ln(1e-4)/ln(7/8) = 68.97 → 69
+        assert_eq!(required_iterations(0.5, 0.9999, 10_000), 69);
+        assert_eq!(required_iterations(1.0, 0.9999, 10_000), 1);
+        assert_eq!(required_iterations(0.0, 0.9999, 500), 500);
+    }
+
+    #[test]
+    fn samples_are_distinct_and_cover_the_range() {
+        let mut rng = SplitMix64::new(1);
+        let mut seen = [0usize; 5];
+        for _ in 0..10_000 {
+            let s = sample_three(&mut rng, 5);
+            assert!(s[0] != s[1] && s[1] != s[2] && s[0] != s[2]);
+            for j in s {
+                seen[j] += 1;
+            }
+        }
+        // each index is in 3/5 of the samples
+        for count in seen {
+            assert!((count as f64 / 10_000.0 - 0.6).abs() < 0.03, "{seen:?}");
+        }
+    }
+}
