@@ -9,28 +9,29 @@
 //!    sⱼ = rⱼᵀWⱼrⱼ, rⱼ = π(T, Xⱼ) − zⱼ; correspondences with ‖rⱼ‖ > η_r are dropped and the
 //!    pose re-solved until the inlier set is stable. When the points carry uncertainty the
 //!    gate is rⱼᵀSⱼ⁻¹rⱼ ≤ (η_r/σ)² instead (the same for Sⱼ = σ²I), so points whose
-//!    predicted error exceeds η_r are not thrown away for it. With the propagated
+//!    predicted error exceeds η_r are not thrown away for it. Either gate is widened to
+//!    4.29σ ([`gate_px`]) when the pixel noise is too large for η_r. With the propagated
 //!    covariance, a last solve on the stable inlier set is plain weighted least squares
 //!    (outliers are gone; it is the efficient estimator, and the one the covariance is for).
 //! 3. Covariance, one of [`CovarianceModel`]:
-//!    * `Paper`: C = σ̂² (Σ wⱼ JⱼᵀJⱼ)⁻¹ with σ̂² = Σ‖rⱼ‖²/(2p − 1) — the paper's formula; it
-//!      ignores the error of the points and is over-confident.
-//!    * `Propagated` (default): the residual of correspondence j has covariance
-//!      Sⱼ = σ²I + J_X,j Σⱼ J_X,jᵀ (σ: the query's pixel noise; Σⱼ: the point's covariance),
-//!      the LM weights are Wⱼ = Sⱼ⁻¹, and with H = Σ wⱼ JⱼᵀWⱼJⱼ the first-order covariance
-//!      of the estimate is the sandwich
-//!        C = H⁻¹ (Σ wⱼ² JⱼᵀWⱼ Sⱼ^ind WⱼJⱼ) H⁻¹ + Σ_k M_k C_k M_kᵀ,
-//!        M_k = −H⁻¹ Σⱼ Jⱼᵀ Mⱼ J_X,j D_jk,   H = Σⱼ Jⱼᵀ Mⱼ Jⱼ,
-//!      with wⱼ = ρ'(sⱼ) and Mⱼ the exact robust curvature ρ'Wⱼ + 2ρ''(Wⱼrⱼ)(Wⱼrⱼ)ᵀ
-//!      (`RobustLoss::curvature`; with Huber k = 1σ most 2D residuals sit in the linear
-//!      zone, and IRLS weights alone would claim least-squares efficiency);
-//!      where Sⱼ^ind holds the errors independent between points (pixels) and the M_k terms
-//!      the keyframe-pose errors C_k that all points share (D_jk = ∂Xⱼ/∂δ_k from
-//!      triangulation).
+//!    * `Paper`: C = σ̂² (Σ wⱼ JⱼᵀJⱼ)⁻¹ with σ̂² = Σ‖rⱼ‖²/(2p − 1) and Huber weights wⱼ — the
+//!      paper's formula; it ignores the error of the points and is over-confident.
+//!    * `Propagated` (default; σ is the query's known pixel noise). Without point
+//!      uncertainty: a last least-squares solve on the inliers and C = σ²(ΣJⱼᵀJⱼ)⁻¹.
+//!      With independent point covariances Σⱼ: maximum likelihood over the pose and the
+//!      point corrections jointly (`joint`), C the pose block of its inverse information.
+//!      With keyframe-pose errors shared by the points (D_jk = ∂Xⱼ/∂δ_k, C_k): weighted
+//!      least squares with Wⱼ = Sⱼ⁻¹, Sⱼ = σ²I + J_X,j Σⱼ^marg J_X,jᵀ, residuals corrected
+//!      by the second-order projection bias bⱼ = ½ tr(∇²π Σⱼ^marg), and the sandwich
+//!        C = H⁻¹ (Σⱼ JⱼᵀWⱼ Sⱼ^ind WⱼJⱼ) H⁻¹ + Σ_k M_k C_k M_kᵀ,
+//!        H = Σⱼ JⱼᵀWⱼJⱼ,  M_k = −H⁻¹ Σⱼ JⱼᵀWⱼ J_X,j D_jk,
+//!      where Sⱼ^ind holds the errors independent between points and the M_k terms those
+//!      all points share.
 //!
 //! Geometry that is merely bad (too few points, no consensus, a singular information
 //! matrix) gives `success = false` with a reason, never an error.
 
+mod joint;
 pub mod p3p;
 
 use nalgebra::{Matrix2, Matrix2x3, Matrix2x6, Matrix3, Matrix3x6, Matrix6, Vector2, Vector3, Vector6};
@@ -217,8 +218,8 @@ pub fn solve_pnp(
         if subset.len() < MIN_INLIERS {
             break;
         }
-        let weights = information(camera, points, &pose, &subset, uncertainty, options.pixel_sigma);
-        let problem = PoseProblem { camera, points, pixels, subset: &subset, weights: &weights, loss: options.loss };
+        let w = weighting(camera, points, &pose, &subset, uncertainty, options.pixel_sigma);
+        let problem = PoseProblem { camera, points, pixels, subset: &subset, weights: &w.weights, biases: &w.biases, loss: options.loss };
         let (next, r) = levenberg_marquardt(&problem, pose, &options.lm);
         pose = next;
         report = Some(r);
@@ -231,11 +232,21 @@ pub fn solve_pnp(
     if subset.len() < MIN_INLIERS {
         return Ok(PnpResult::failure(n, format!("too few inliers: {} < {MIN_INLIERS}", subset.len()), ransac_iterations));
     }
-    if options.covariance == CovarianceModel::Propagated {
+    let mut joint_covariance = None;
+    if options.covariance == CovarianceModel::Propagated
+        && let Some(u) = uncertainty.filter(|u| u.shared.is_none())
+    {
+        let problem = joint::JointProblem::new(camera, points, pixels, &subset, u, options.pixel_sigma);
+        // Outliers are gone: maximum likelihood over the pose and the point corrections.
+        let (next, cov, r) = problem.solve(pose, &options.lm);
+        pose = next;
+        report = Some(r);
+        joint_covariance = Some(cov);
+    } else if options.covariance == CovarianceModel::Propagated {
         // Outliers are gone: the efficient estimator for the remaining Gaussian errors is
         // plain weighted least squares, whose covariance the propagation below is exact for.
-        let weights = information(camera, points, &pose, &subset, uncertainty, options.pixel_sigma);
-        let problem = PoseProblem { camera, points, pixels, subset: &subset, weights: &weights, loss: RobustLoss::None };
+        let w = weighting(camera, points, &pose, &subset, uncertainty, options.pixel_sigma);
+        let problem = PoseProblem { camera, points, pixels, subset: &subset, weights: &w.weights, biases: &w.biases, loss: RobustLoss::None };
         let (next, r) = levenberg_marquardt(&problem, pose, &options.lm);
         pose = next;
         report = Some(r);
@@ -248,9 +259,10 @@ pub fn solve_pnp(
     let rms_px = (sum_sq / subset.len() as f64).sqrt();
     let covariance = match options.covariance {
         CovarianceModel::Paper => paper_covariance(camera, points, pixels, &pose, &subset, options.loss),
-        CovarianceModel::Propagated => {
-            propagated_covariance(camera, points, pixels, &pose, &subset, uncertainty, options.pixel_sigma, RobustLoss::None)
-        }
+        CovarianceModel::Propagated => match joint_covariance {
+            Some(cov) => cov.filter(|c| inverse_information(c).is_some()),
+            None => propagated_covariance(camera, points, &pose, &subset, uncertainty, options.pixel_sigma),
+        },
     };
     let Some(covariance) = covariance else {
         let mut failed = PnpResult::failure(n, "degenerate geometry: the pose is not observable from these points", ransac_iterations);
@@ -326,6 +338,16 @@ fn validate(
     Ok(())
 }
 
+/// √χ²₂(0.9999): a correct 2D residual exceeds this many σ with probability 1e-4.
+pub const CHI2_2DOF_9999_SQRT: f64 = 4.291_932_052_578_985;
+
+/// The refit gate: η_r, widened to 4.29σ when σ is large enough that η_r would cut into
+/// correct correspondences — a hard cut at ~2.5σ inflates the estimator's variance beyond
+/// what its covariance says (a "skipped" M-estimator).
+pub fn gate_px(max_residual_px: f64, sigma: f64) -> f64 {
+    max_residual_px.max(CHI2_2DOF_9999_SQRT * sigma)
+}
+
 /// Correspondences kept by the refits: in front of the camera with rᵀS⁻¹r ≤ (η_r/σ)², S the
 /// predicted residual covariance — exactly ‖r‖ ≤ η_r when the points carry no uncertainty,
 /// and no stricter than the points' own uncertainty allows when they do.
@@ -337,20 +359,21 @@ fn gated_indices(
     uncertainty: Option<&PointUncertainty<'_>>,
     options: &PnpOptions,
 ) -> Vec<usize> {
-    if uncertainty.is_none() {
-        return inlier_indices(camera, points, pixels, pose, options.max_residual_px);
-    }
     let sigma = options.pixel_sigma;
-    let gate = (options.max_residual_px / sigma).powi(2);
+    let eta = gate_px(options.max_residual_px, sigma);
+    if uncertainty.is_none() {
+        return inlier_indices(camera, points, pixels, pose, eta);
+    }
+    let gate = (eta / sigma).powi(2);
     (0..points.len())
         .filter(|&j| {
             let p = project(camera, pose, &points[j]);
             if p.p_cam.z <= 0.0 {
                 return false;
             }
-            let r = p.uv - pixels[j];
-            let s = residual_covariance(camera, points, pose, j, uncertainty, sigma, true) / (sigma * sigma);
-            s.try_inverse().is_some_and(|s_inv| r.dot(&(s_inv * r)) / (sigma * sigma) <= gate)
+            let (s, bias) = residual_moments(camera, points, pose, j, uncertainty, sigma, true);
+            let r = p.uv - bias - pixels[j];
+            s.try_inverse().is_some_and(|s_inv| r.dot(&(s_inv * r)) <= gate)
         })
         .collect()
 }
@@ -365,27 +388,55 @@ fn inlier_indices(camera: &Camera, points: &[Vector3<f64>], pixels: &[Vector2<f6
         .collect()
 }
 
-/// W_j = S_j⁻¹ for the correspondences in `subset` (Sⱼ = σ²I + J_X Σⱼ J_Xᵀ, marginal).
-fn information(
+/// Per correspondence of a subset: the weight Wⱼ = Sⱼ⁻¹ and the projection bias bⱼ.
+struct Weighting {
+    weights: Vec<Matrix2<f64>>,
+    biases: Vec<Vector2<f64>>,
+}
+
+/// Wⱼ and bⱼ for the correspondences in `subset` at `pose` (marginal point covariances).
+fn weighting(
     camera: &Camera,
     points: &[Vector3<f64>],
     pose: &SE3,
     subset: &[usize],
     uncertainty: Option<&PointUncertainty<'_>>,
     sigma: f64,
-) -> Vec<Matrix2<f64>> {
-    subset
+) -> Weighting {
+    let (weights, biases) = subset
         .iter()
         .map(|&j| {
-            let s = residual_covariance(camera, points, pose, j, uncertainty, sigma, true);
-            s.try_inverse().unwrap_or_else(|| Matrix2::identity() / (sigma * sigma))
+            let (s, bias) = residual_moments(camera, points, pose, j, uncertainty, sigma, true);
+            (s.try_inverse().unwrap_or_else(|| Matrix2::identity() / (sigma * sigma)), bias)
         })
-        .collect()
+        .unzip();
+    Weighting { weights, biases }
 }
 
-/// Covariance of the residual of correspondence j: σ²I + J_X Σⱼ J_Xᵀ, where Σⱼ is the
-/// independent point covariance plus, if `marginal`, the shared keyframe-pose part.
-fn residual_covariance(
+/// Point j's covariance: the independent part, plus (if `marginal`) the shared
+/// keyframe-pose part Σ_k D_jk C_k D_jkᵀ. None without uncertainty.
+fn point_covariance(j: usize, uncertainty: Option<&PointUncertainty<'_>>, marginal: bool) -> Option<Matrix3<f64>> {
+    let u = uncertainty?;
+    let mut cov = u.covariances[j];
+    if marginal && let Some(shared) = &u.shared {
+        let k_count = shared.pose_covariances.len();
+        for (k, c_k) in shared.pose_covariances.iter().enumerate() {
+            let d = &shared.jacobians[j * k_count + k];
+            cov += d * c_k * d.transpose();
+        }
+    }
+    Some(cov)
+}
+
+/// Mean and covariance of correspondence j's residual π(T, X̂ⱼ) − zⱼ when X̂ⱼ = Xⱼ + e,
+/// e ~ N(0, Σⱼ) and the pixel has noise σ:
+///   Sⱼ = σ²I + J_X Σⱼ J_Xᵀ,
+///   bⱼ = ½ tr(∇²π Σⱼ) = (f_x (x Σ_zz/z − Σ_xz), f_y (y Σ_zz/z − Σ_yz)) / z²
+/// with Σ in camera coordinates. The bias is the second-order effect of the perspective
+/// division on an uncertain point; it has the same sign for many points, so unlike their
+/// noise it does not average out, and ignoring it leaves the pose covariance over-confident
+/// along the translation–rotation ambiguity.
+fn residual_moments(
     camera: &Camera,
     points: &[Vector3<f64>],
     pose: &SE3,
@@ -393,22 +444,20 @@ fn residual_covariance(
     uncertainty: Option<&PointUncertainty<'_>>,
     sigma: f64,
     marginal: bool,
-) -> Matrix2<f64> {
+) -> (Matrix2<f64>, Vector2<f64>) {
     let mut s = Matrix2::identity() * (sigma * sigma);
-    if let Some(u) = uncertainty {
-        let mut cov = u.covariances[j];
-        if marginal && let Some(shared) = &u.shared {
-            let k_count = shared.pose_covariances.len();
-            for (k, c_k) in shared.pose_covariances.iter().enumerate() {
-                let d = &shared.jacobians[j * k_count + k];
-                cov += d * c_k * d.transpose();
-            }
-        }
-        let p = project(camera, pose, &points[j]);
-        let j_x = j_uv_point(camera, pose, &p);
-        s += j_x * cov * j_x.transpose();
-    }
-    s
+    let Some(cov) = point_covariance(j, uncertainty, marginal) else { return (s, Vector2::zeros()) };
+    let p = project(camera, pose, &points[j]);
+    let j_x = j_uv_point(camera, pose, &p);
+    s += j_x * cov * j_x.transpose();
+    let r = pose.rotation.matrix();
+    let c = r.transpose() * cov * r;
+    let (x, y, z) = (p.p_cam.x, p.p_cam.y, p.p_cam.z);
+    let bias = Vector2::new(
+        camera.fx * (x * c[(2, 2)] / z - c[(0, 2)]),
+        camera.fy * (y * c[(2, 2)] / z - c[(1, 2)]),
+    ) / (z * z);
+    (s, bias)
 }
 
 struct PoseProblem<'a> {
@@ -417,6 +466,8 @@ struct PoseProblem<'a> {
     pixels: &'a [Vector2<f64>],
     subset: &'a [usize],
     weights: &'a [Matrix2<f64>],
+    /// Projection biases, aligned with `subset` (zeros when points are exact).
+    biases: &'a [Vector2<f64>],
     loss: RobustLoss,
 }
 
@@ -426,10 +477,10 @@ impl LeastSquares<6> for PoseProblem<'_> {
     fn cost(&self, pose: &SE3) -> f64 {
         self.subset
             .iter()
-            .zip(self.weights)
-            .map(|(&j, w)| {
-                let r = project(self.camera, pose, &self.points[j]).uv - self.pixels[j];
-                self.loss.cost((r.transpose() * w * r)[0])
+            .zip(self.weights.iter().zip(self.biases))
+            .map(|(&j, (w, b))| {
+                let r = project(self.camera, pose, &self.points[j]).uv - b - self.pixels[j];
+                self.loss.cost(r.dot(&(w * r)))
             })
             .sum()
     }
@@ -438,9 +489,9 @@ impl LeastSquares<6> for PoseProblem<'_> {
         let mut h = Matrix6::zeros();
         let mut g = Vector6::zeros();
         let mut cost = 0.0;
-        for (&j, w) in self.subset.iter().zip(self.weights) {
+        for (&j, (w, b)) in self.subset.iter().zip(self.weights.iter().zip(self.biases)) {
             let p = project(self.camera, pose, &self.points[j]);
-            let r = p.uv - self.pixels[j];
+            let r = p.uv - b - self.pixels[j];
             let wr = w * r;
             let s = r.dot(&wr);
             let robust = self.loss.weight(s);
@@ -462,7 +513,7 @@ impl LeastSquares<6> for PoseProblem<'_> {
 fn inverse_information(h: &Matrix6<f64>) -> Option<Matrix6<f64>> {
     let eig = h.symmetric_eigen();
     let (lo, hi) = eig.eigenvalues.iter().fold((f64::INFINITY, 0.0_f64), |(lo, hi), &v| (lo.min(v), hi.max(v)));
-    if !(lo > MIN_RECIPROCAL_CONDITION * hi) {
+    if lo.is_nan() || lo <= MIN_RECIPROCAL_CONDITION * hi {
         return None;
     }
     h.try_inverse()
@@ -492,32 +543,27 @@ fn paper_covariance(
 fn propagated_covariance(
     camera: &Camera,
     points: &[Vector3<f64>],
-    pixels: &[Vector2<f64>],
     pose: &SE3,
     subset: &[usize],
     uncertainty: Option<&PointUncertainty<'_>>,
     sigma: f64,
-    loss: RobustLoss,
 ) -> Option<Matrix6<f64>> {
     let mut h = Matrix6::zeros();
     let mut meat = Matrix6::zeros();
-    // Σⱼ wⱼ JⱼᵀWⱼ J_X,j per point, needed for the shared part
+    // JⱼᵀWⱼ J_X,j per point, needed for the shared part
     let mut couplings: Vec<(usize, nalgebra::Matrix6x3<f64>)> = Vec::new();
     for &j in subset {
         let p = project(camera, pose, &points[j]);
-        let r = p.uv - pixels[j];
-        let s_marginal = residual_covariance(camera, points, pose, j, uncertainty, sigma, true);
+        let (s_marginal, _) = residual_moments(camera, points, pose, j, uncertainty, sigma, true);
         let w = s_marginal.try_inverse()?;
-        let robust = loss.weight(r.dot(&(w * r)));
-        let curvature = loss.curvature(&w, &r);
         let jac = j_uv_pose(camera, &p);
-        h += jac.transpose() * curvature * jac;
         let jt_w = jac.transpose() * w;
-        let s_ind = residual_covariance(camera, points, pose, j, uncertainty, sigma, false);
-        meat += (robust * robust) * jt_w * s_ind * jt_w.transpose();
+        h += jt_w * jac;
+        let (s_ind, _) = residual_moments(camera, points, pose, j, uncertainty, sigma, false);
+        meat += jt_w * s_ind * jt_w.transpose();
         if uncertainty.is_some_and(|u| u.shared.is_some()) {
             let j_x: Matrix2x3<f64> = j_uv_point(camera, pose, &p);
-            couplings.push((j, jac.transpose() * curvature * j_x));
+            couplings.push((j, jt_w * j_x));
         }
     }
     let h_inv = inverse_information(&h)?;
@@ -646,7 +692,8 @@ fn locally_optimize(
         return (hypothesis, score, count);
     }
     let weights = vec![Matrix2::identity(); subset.len()];
-    let problem = PoseProblem { camera, points, pixels, subset: &subset, weights: &weights, loss: RobustLoss::None };
+    let biases = vec![Vector2::zeros(); subset.len()];
+    let problem = PoseProblem { camera, points, pixels, subset: &subset, weights: &weights, biases: &biases, loss: RobustLoss::None };
     let lm = LmOptions { max_iterations: 10, ..options.lm };
     let (refined, _) = levenberg_marquardt(&problem, hypothesis, &lm);
     match msac_score(camera, points, pixels, &refined, t2, score) {

@@ -9,12 +9,17 @@
 //! behind an inlier camera, when its mean inlier residual exceeds `max_residual_px` (the
 //! paper's ε_r) or when its largest triangulation angle is below `min_angle_rad`.
 //!
-//! Covariance (first-order propagation at the optimum, H = Σ_k J_kᵀ M_k J_k with M_k the
-//! exact robust curvature of ρ(‖r_k‖²/σ²), see `RobustLoss::curvature`):
-//! * pixel noise σ in the training images: Σ_pix = H⁻¹ (Σ_k J_kᵀ (w_k²/σ²) J_k) H⁻¹,
-//!   w_k = ρ'(s_k);
-//! * keyframe pose noise (covariance C_k of the right perturbation of world_from_cam T_k):
-//!   δX = Σ_k D_k δ_k with D_k = −H⁻¹ J_kᵀ M_k ∂r_k/∂δ_k, so Σ_X = Σ_pix + Σ_k D_k C_k D_kᵀ.
+//! When keyframe pose covariances C_k are given, view k's residual has covariance
+//! S_k = σ²I + J_T,k C_k J_T,kᵀ (J_T,k = ∂r_k/∂δ_k, right perturbation of world_from_cam
+//! T_k): the LM is then generalized least squares with W_k = S_k⁻¹, and the outlier gate and
+//! ε_r apply to σ·√(rᵀW_k r) — a view is not an outlier for an error its pose explains.
+//! After the inlier set is stable a last plain (weighted) least-squares solve removes the
+//! Huber kernel's loss of efficiency.
+//!
+//! Covariance (first-order propagation at the optimum, H = Σ_k J_kᵀ W_k J_k):
+//! * pixel noise σ in the training images: Σ_pix = H⁻¹ (Σ_k J_kᵀ W_k σ² W_k J_k) H⁻¹;
+//! * keyframe pose noise: δX = Σ_k D_k δ_k with D_k = −H⁻¹ J_kᵀ W_k J_T,k, so
+//!   Σ_X = Σ_pix + Σ_k D_k C_k D_kᵀ.
 //!
 //! The D_k are returned too: pose errors are shared by every point a keyframe sees, so a
 //! later PnP must propagate them jointly (see `pnp`), not as independent point errors.
@@ -232,15 +237,15 @@ pub fn triangulate_track(
         result.status = TrackStatus::Degenerate;
         return result;
     }
-    let threshold = options.max_residual_px;
+    let track = Track { camera, poses, pose_covariances, views, options };
     let all: Vec<usize> = (0..views.len()).collect();
     // 1. all views: DLT + robust LM; done if every observation fits.
-    let mut start = dlt(camera, poses, views, &all).map(|x| refine(camera, poses, views, &all, x, options));
-    let mut inliers = start.map(|x| inlier_set(camera, poses, views, &x, threshold)).unwrap_or_default();
+    let mut start = dlt(camera, poses, views, &all).map(|x| track.refine(&all, x, options.loss));
+    let mut inliers = start.map(|x| track.inlier_set(&x)).unwrap_or_default();
     // 2. otherwise the best two-view DLT seeds the consensus.
     if inliers.len() < views.len()
         && views.len() >= 3
-        && let Some((x, set)) = best_pair(camera, poses, views, threshold)
+        && let Some((x, set)) = best_pair(camera, poses, views, options.max_residual_px)
         && set.len() > inliers.len()
     {
         start = Some(x);
@@ -250,32 +255,44 @@ pub fn triangulate_track(
         result.status = TrackStatus::Degenerate;
         return result;
     };
-    // 3. re-solve on the consensus until it is stable (at most a few rounds).
+    // 3. re-solve on the consensus until it is stable (at most a few rounds), then a last
+    //    plain (weighted) least-squares solve: the outliers are gone, and it is the
+    //    estimator the covariance below is exact for.
     for _ in 0..3 {
         if distinct_cameras(inliers.iter().map(|&i| &views[i])) < 2 {
             break;
         }
-        x = refine(camera, poses, views, &inliers, x, options);
-        let next = inlier_set(camera, poses, views, &x, threshold);
+        x = track.refine(&inliers, x, options.loss);
+        let next = track.inlier_set(&x);
         if next == inliers {
             break;
         }
         inliers = next;
     }
+    if distinct_cameras(inliers.iter().map(|&i| &views[i])) < 2 {
+        result.point = x;
+        result.status = TrackStatus::TooFewViews;
+        return result;
+    }
+    x = track.refine(&inliers, x, RobustLoss::None);
     result.point = x;
     for &i in &inliers {
         result.inliers[i] = true;
     }
-    if distinct_cameras(inliers.iter().map(|&i| &views[i])) < 2 {
-        result.status = TrackStatus::TooFewViews;
-        return result;
-    }
-    let residuals: Vec<f64> = inliers.iter().map(|&i| residual_px(camera, poses, &views[i], &x)).collect();
-    result.mean_residual_px = residuals.iter().sum::<f64>() / residuals.len() as f64;
+    let weights = track.weights(&x);
+    let sigma = options.pixel_sigma;
+    let normalized: f64 = inliers
+        .iter()
+        .map(|&i| {
+            let r = project(camera, &poses[views[i].camera], &x).uv - views[i].uv;
+            sigma * r.dot(&(weights[i] * r)).sqrt()
+        })
+        .sum();
+    result.mean_residual_px = normalized / inliers.len() as f64;
     result.max_angle_rad = max_ray_angle(poses, views, &inliers, &x);
     result.status = if inliers.iter().any(|&i| depth(poses, &views[i], &x) <= 0.0) {
         TrackStatus::BehindCamera
-    } else if result.mean_residual_px > threshold {
+    } else if result.mean_residual_px > options.max_residual_px {
         TrackStatus::LargeResidual
     } else if result.max_angle_rad < options.min_angle_rad {
         TrackStatus::SmallAngle
@@ -283,9 +300,105 @@ pub fn triangulate_track(
         TrackStatus::Valid
     };
     if result.status == TrackStatus::Valid {
-        propagate_covariance(camera, poses, pose_covariances, views, &inliers, options, &mut result);
+        track.propagate_covariance(&inliers, &weights, &mut result);
     }
     result
+}
+
+/// One track's data and options, with the per-view weights of its generalized least squares.
+struct Track<'a> {
+    camera: &'a Camera,
+    poses: &'a [SE3],
+    pose_covariances: Option<&'a [Matrix6<f64>]>,
+    views: &'a [View],
+    options: &'a TriangulationOptions,
+}
+
+impl Track<'_> {
+    /// Wₖ = Sₖ⁻¹, Sₖ = σ²I + J_T,k C_k J_T,kᵀ: the covariance of view k's residual at X when
+    /// its keyframe pose has covariance C_k (σ²I alone without pose covariances).
+    fn weights(&self, x: &Vector3<f64>) -> Vec<Matrix2<f64>> {
+        let var = self.options.pixel_sigma * self.options.pixel_sigma;
+        self.views
+            .iter()
+            .map(|v| {
+                let Some(covs) = self.pose_covariances else { return Matrix2::identity() / var };
+                let p = project(self.camera, &self.poses[v.camera], x);
+                let j_t = j_uv_pose(self.camera, &p);
+                let s = Matrix2::identity() * var + j_t * covs[v.camera] * j_t.transpose();
+                s.try_inverse().unwrap_or_else(|| Matrix2::identity() / var)
+            })
+            .collect()
+    }
+
+    /// Observations that fit X: in front of the camera with rᵀWr ≤ (ε_r/σ)² — exactly
+    /// ‖r‖ ≤ ε_r without pose covariances (ε_r widened to 4.29σ for large σ, see
+    /// `pnp::gate_px`).
+    fn inlier_set(&self, x: &Vector3<f64>) -> Vec<usize> {
+        let weights = self.weights(x);
+        let sigma = self.options.pixel_sigma;
+        let gate = (crate::pnp::gate_px(self.options.max_residual_px, sigma) / sigma).powi(2);
+        (0..self.views.len())
+            .filter(|&i| {
+                let v = &self.views[i];
+                let r = project(self.camera, &self.poses[v.camera], x).uv - v.uv;
+                depth(self.poses, v, x) > 0.0 && r.dot(&(weights[i] * r)) <= gate
+            })
+            .collect()
+    }
+
+    fn refine(&self, subset: &[usize], x: Vector3<f64>, loss: RobustLoss) -> Vector3<f64> {
+        let weights = self.weights(&x);
+        let problem = PointProblem {
+            camera: self.camera,
+            poses: self.poses,
+            views: self.views,
+            subset,
+            weights: &weights,
+            loss,
+        };
+        levenberg_marquardt(&problem, x, &self.options.lm).0
+    }
+
+    /// Σ_pix = H⁻¹(Σ J_XᵀW σ² W J_X)H⁻¹, D_k = −H⁻¹ J_XᵀW_k J_T,k, Σ_X = Σ_pix + Σ D_k C_k D_kᵀ
+    /// with H = Σ J_XᵀW J_X over the inliers (see the module doc).
+    fn propagate_covariance(&self, inliers: &[usize], weights: &[Matrix2<f64>], result: &mut TriangulatedPoint) {
+        let var = self.options.pixel_sigma * self.options.pixel_sigma;
+        let x = result.point;
+        let mut h = Matrix3::zeros();
+        let mut meat = Matrix3::zeros();
+        let mut terms = Vec::with_capacity(inliers.len());
+        for &i in inliers {
+            let v = &self.views[i];
+            let pose = &self.poses[v.camera];
+            let p = project(self.camera, pose, &x);
+            let j_x = j_uv_point(self.camera, pose, &p);
+            let jt_w = j_x.transpose() * weights[i];
+            h += jt_w * j_x;
+            meat += var * jt_w * jt_w.transpose();
+            terms.push((v.camera, jt_w, p));
+        }
+        let Some(h_inv) = h.try_inverse() else {
+            result.status = TrackStatus::Degenerate;
+            return;
+        };
+        result.pixel_covariance = h_inv * meat * h_inv;
+        result.covariance = result.pixel_covariance;
+        let mut jacobians: Vec<(usize, Matrix3x6<f64>)> = Vec::new();
+        for (cam, jt_w, p) in terms {
+            let d = -(h_inv * jt_w) * j_uv_pose(self.camera, &p);
+            match jacobians.iter_mut().find(|(c, _)| *c == cam) {
+                Some((_, acc)) => *acc += d,
+                None => jacobians.push((cam, d)),
+            }
+        }
+        if let Some(covs) = self.pose_covariances {
+            for (cam, d) in &jacobians {
+                result.covariance += d * covs[*cam] * d.transpose();
+            }
+        }
+        result.pose_jacobians = jacobians;
+    }
 }
 
 /// Camera centres closer than this are one centre: no baseline, no triangulation.
@@ -317,13 +430,6 @@ fn residual_px(camera: &Camera, poses: &[SE3], view: &View, x: &Vector3<f64>) ->
     (project(camera, &poses[view.camera], x).uv - view.uv).norm()
 }
 
-/// Observations that fit X: in front of the camera and within `threshold` pixels.
-fn inlier_set(camera: &Camera, poses: &[SE3], views: &[View], x: &Vector3<f64>, threshold: f64) -> Vec<usize> {
-    (0..views.len())
-        .filter(|&i| depth(poses, &views[i], x) > 0.0 && residual_px(camera, poses, &views[i], x) <= threshold)
-        .collect()
-}
-
 /// Every pair of views of distinct cameras seeds a two-view DLT; the largest consensus
 /// (ties: smallest truncated squared error) wins.
 fn best_pair(camera: &Camera, poses: &[SE3], views: &[View], threshold: f64) -> Option<(Vector3<f64>, Vec<usize>)> {
@@ -334,7 +440,9 @@ fn best_pair(camera: &Camera, poses: &[SE3], views: &[View], threshold: f64) -> 
                 continue;
             }
             let Some(x) = dlt(camera, poses, views, &[i, j]) else { continue };
-            let set = inlier_set(camera, poses, views, &x, threshold);
+            let set: Vec<usize> = (0..views.len())
+                .filter(|&k| depth(poses, &views[k], &x) > 0.0 && residual_px(camera, poses, &views[k], &x) <= threshold)
+                .collect();
             if set.len() < 2 {
                 continue;
             }
@@ -391,8 +499,9 @@ struct PointProblem<'a> {
     poses: &'a [SE3],
     views: &'a [View],
     subset: &'a [usize],
+    /// Per view (indexed like `views`): W = S⁻¹.
+    weights: &'a [Matrix2<f64>],
     loss: RobustLoss,
-    inv_sigma: f64,
 }
 
 impl LeastSquares<3> for PointProblem<'_> {
@@ -403,8 +512,8 @@ impl LeastSquares<3> for PointProblem<'_> {
             .iter()
             .map(|&i| {
                 let v = &self.views[i];
-                let r = (project(self.camera, &self.poses[v.camera], x).uv - v.uv) * self.inv_sigma;
-                self.loss.cost(r.norm_squared())
+                let r = project(self.camera, &self.poses[v.camera], x).uv - v.uv;
+                self.loss.cost(r.dot(&(self.weights[i] * r)))
             })
             .sum()
     }
@@ -417,12 +526,13 @@ impl LeastSquares<3> for PointProblem<'_> {
             let v = &self.views[i];
             let pose = &self.poses[v.camera];
             let p = project(self.camera, pose, x);
-            let r = (p.uv - v.uv) * self.inv_sigma;
-            let s = r.norm_squared();
-            let w = self.loss.weight(s);
-            let j = j_uv_point(self.camera, pose, &p) * self.inv_sigma;
-            h += w * j.transpose() * j;
-            g += w * j.transpose() * r;
+            let r = p.uv - v.uv;
+            let wr = self.weights[i] * r;
+            let s = r.dot(&wr);
+            let robust = self.loss.weight(s);
+            let j = j_uv_point(self.camera, pose, &p);
+            h += robust * j.transpose() * self.weights[i] * j;
+            g += robust * j.transpose() * wr;
             cost += self.loss.cost(s);
         }
         (h, g, cost)
@@ -431,25 +541,6 @@ impl LeastSquares<3> for PointProblem<'_> {
     fn retract(&self, x: &Vector3<f64>, d: &Vector3<f64>) -> Vector3<f64> {
         x + d
     }
-}
-
-fn refine(
-    camera: &Camera,
-    poses: &[SE3],
-    views: &[View],
-    subset: &[usize],
-    x: Vector3<f64>,
-    options: &TriangulationOptions,
-) -> Vector3<f64> {
-    let problem = PointProblem {
-        camera,
-        poses,
-        views,
-        subset,
-        loss: options.loss,
-        inv_sigma: 1.0 / options.pixel_sigma,
-    };
-    levenberg_marquardt(&problem, x, &options.lm).0
 }
 
 fn max_ray_angle(poses: &[SE3], views: &[View], subset: &[usize], x: &Vector3<f64>) -> f64 {
@@ -462,52 +553,4 @@ fn max_ray_angle(poses: &[SE3], views: &[View], subset: &[usize], x: &Vector3<f6
         }
     }
     best
-}
-
-fn propagate_covariance(
-    camera: &Camera,
-    poses: &[SE3],
-    pose_covariances: Option<&[Matrix6<f64>]>,
-    views: &[View],
-    inliers: &[usize],
-    options: &TriangulationOptions,
-    result: &mut TriangulatedPoint,
-) {
-    let inv_var = 1.0 / (options.pixel_sigma * options.pixel_sigma);
-    let x = result.point;
-    let mut h = Matrix3::zeros();
-    let mut meat = Matrix3::zeros();
-    let mut terms = Vec::with_capacity(inliers.len());
-    for &i in inliers {
-        let v = &views[i];
-        let pose = &poses[v.camera];
-        let p = project(camera, pose, &x);
-        let r = p.uv - v.uv;
-        let w = options.loss.weight(r.norm_squared() * inv_var);
-        let curvature = options.loss.curvature(&(Matrix2::identity() * inv_var), &r);
-        let j_x = j_uv_point(camera, pose, &p);
-        h += j_x.transpose() * curvature * j_x;
-        meat += (w * w * inv_var) * j_x.transpose() * j_x;
-        terms.push((v.camera, curvature, j_x, p));
-    }
-    let Some(h_inv) = h.try_inverse() else {
-        result.status = TrackStatus::Degenerate;
-        return;
-    };
-    result.pixel_covariance = h_inv * meat * h_inv;
-    result.covariance = result.pixel_covariance;
-    let mut jacobians: Vec<(usize, Matrix3x6<f64>)> = Vec::new();
-    for (cam, curvature, j_x, p) in terms {
-        let d = -(h_inv * j_x.transpose() * curvature) * j_uv_pose(camera, &p);
-        match jacobians.iter_mut().find(|(c, _)| *c == cam) {
-            Some((_, acc)) => *acc += d,
-            None => jacobians.push((cam, d)),
-        }
-    }
-    if let Some(covs) = pose_covariances {
-        for (cam, d) in &jacobians {
-            result.covariance += d * covs[*cam] * d.transpose();
-        }
-    }
-    result.pose_jacobians = jacobians;
 }

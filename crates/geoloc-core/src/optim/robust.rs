@@ -68,38 +68,6 @@ impl RobustLoss {
         }
     }
 
-    /// ρ''(s), for the exact Hessian of a robust cost (see [`RobustLoss::curvature`]).
-    #[inline]
-    pub fn second_derivative(&self, s: f64) -> f64 {
-        match *self {
-            Self::None => 0.0,
-            Self::Huber { width: k } => {
-                if s <= k * k {
-                    0.0
-                } else {
-                    -0.5 * k / (s * s.sqrt())
-                }
-            }
-            Self::Cauchy { width: k } => {
-                let d = 1.0 + s / (k * k);
-                -1.0 / (k * k * d * d)
-            }
-        }
-    }
-
-    /// The 2×2 weight of the exact (robust) Gauss–Newton Hessian of ρ(rᵀWr) in r:
-    /// ρ'(s) W + 2ρ''(s) (Wr)(Wr)ᵀ (Triggs et al. 2000, §4.3). Along r it is the slope of
-    /// the influence function — 0 in Huber's linear zone — so a covariance built on it is
-    /// the M-estimator's first-order covariance, where IRLS weights alone would claim the
-    /// efficiency of plain least squares. Falls back to ρ'(s) W if the result is not
-    /// positive semi-definite (Cauchy far out).
-    pub fn curvature(&self, w: &nalgebra::Matrix2<f64>, r: &nalgebra::Vector2<f64>) -> nalgebra::Matrix2<f64> {
-        let wr = w * r;
-        let s = r.dot(&wr);
-        let m = self.weight(s) * w + 2.0 * self.second_derivative(s) * wr * wr.transpose();
-        if m.determinant() >= 0.0 && m.trace() >= 0.0 { m } else { self.weight(s) * w }
-    }
-
     /// The IRLS weight w(s) = ρ'(s) ∈ (0, 1].
     #[inline]
     pub fn weight(&self, s: f64) -> f64 {
@@ -132,37 +100,6 @@ mod tests {
                 }
                 let numeric = (loss.cost(s + h) - loss.cost(s - h)) / (2.0 * h);
                 assert!((numeric - loss.weight(s)).abs() < 1e-7, "{loss:?} at {s}");
-            }
-        }
-    }
-
-    #[test]
-    fn second_derivative_matches_central_differences() {
-        let h = 1e-6;
-        for loss in [RobustLoss::Huber { width: 1.3 }, RobustLoss::Cauchy { width: 0.7 }] {
-            for &s in &[0.01, 0.5, 2.5, 10.0, 400.0] {
-                let numeric = (loss.weight(s + h) - loss.weight(s - h)) / (2.0 * h);
-                assert!((numeric - loss.second_derivative(s)).abs() < 1e-6, "{loss:?} at {s}");
-            }
-        }
-    }
-
-    /// The curvature is the Hessian of ρ(rᵀWr)/2 in r, by central differences of the gradient ρ'(s) W r.
-    #[test]
-    fn curvature_is_the_hessian_of_the_robust_cost() {
-        use nalgebra::{Matrix2, Vector2};
-        let w = Matrix2::new(2.0, 0.3, 0.3, 0.5);
-        let h = 1e-6;
-        for loss in [RobustLoss::None, RobustLoss::Huber { width: 1.0 }] {
-            for r in [Vector2::new(0.1, 0.2), Vector2::new(2.0, -1.0), Vector2::new(-4.0, 3.0)] {
-                let grad = |r: &Vector2<f64>| loss.weight(r.dot(&(w * r))) * (w * r);
-                let mut numeric = Matrix2::zeros();
-                for i in 0..2 {
-                    let mut e = Vector2::zeros();
-                    e[i] = h;
-                    numeric.set_column(i, &((grad(&(r + e)) - grad(&(r - e))) / (2.0 * h)));
-                }
-                assert!((loss.curvature(&w, &r) - numeric).abs().max() < 1e-6, "{loss:?} {r}");
             }
         }
     }

@@ -52,7 +52,7 @@ pub fn p3p(bearings: &[Vector3<f64>; 3], points: &[Vector3<f64>; 3]) -> Vec<SE3>
         }
         let u = ((-1.0 + amc) * v * v - 2.0 * amc * cb * v + 1.0 + amc) / denom;
         let s1_sq = b2 / (1.0 + v * v - 2.0 * v * cb);
-        if !(s1_sq > 0.0) || u <= 0.0 || v <= 0.0 {
+        if s1_sq.is_nan() || s1_sq <= 0.0 || u <= 0.0 || v <= 0.0 {
             continue;
         }
         let s1 = s1_sq.sqrt();

@@ -1,0 +1,176 @@
+//! PnP with uncertain points as one maximum-likelihood problem (errors in variables).
+//!
+//! The map points are not known exactly: X̂ⱼ = Xⱼ + εⱼ with εⱼ ~ N(0, Σⱼ) independent
+//! between points (the keyframes' pixel noise, from triangulation). The pose T is estimated
+//! jointly with the corrections:
+//!
+//!   min_{T, ε}  Σⱼ ‖π(T, X̂ⱼ + εⱼ) − zⱼ‖²/σ² + Σⱼ εⱼᵀΣⱼ⁻¹εⱼ
+//!
+//! by Levenberg–Marquardt with the points' 3×3 blocks eliminated (Schur complement, as in
+//! bundle adjustment): S = H_TT − Σⱼ H_Tj H_jj⁻¹ H_jT. The pose covariance S⁻¹ is the
+//! first-order marginal — equal to the weighted-PnP propagation — but the Jacobians are
+//! evaluated at corrected points. A weighted PnP on the fixed X̂ⱼ takes Jacobians and
+//! weights at the noisy points; their correlation with the point errors biases the pose by
+//! an amount that does not average out over many points (measured: per-axis coverage of
+//! the 95 % interval 92–93 % at σ = 1 px and 86 % at 2 px, against 94–96 % here).
+//!
+//! Keyframe-pose errors shared by all points are *not* modelled here: the first-order
+//! sensitivity D_jk of triangulation is only accurate to a few per cent at realistic label
+//! noise, and a joint estimate that trusts it exactly is over-confident; the weighted PnP with
+//! the sandwich covariance (`pnp`) is robust to that and is used instead.
+
+use nalgebra::{Matrix2x3, Matrix3, Matrix3x6, Matrix6, Vector2, Vector3, Vector6};
+
+use crate::camera::{Camera, j_uv_point, j_uv_pose, project};
+use crate::lie::SE3;
+use crate::optim::{LmOptions, LmReport, Termination};
+
+use super::PointUncertainty;
+
+/// One correspondence: X̂ⱼ, zⱼ and Σⱼ⁻¹ (None for an exact point, which gets no ε).
+struct Correspondence {
+    point: Vector3<f64>,
+    pixel: Vector2<f64>,
+    information: Option<Matrix3<f64>>,
+}
+
+/// The joint problem over an inlier subset.
+pub(super) struct JointProblem<'a> {
+    camera: &'a Camera,
+    items: Vec<Correspondence>,
+    inv_var: f64,
+}
+
+/// Per point, for the back-substitution: H_jj⁻¹, H_jT and g_j.
+type BackSubstitution = Option<(Matrix3<f64>, Matrix3x6<f64>, Vector3<f64>)>;
+
+const MAX_LAMBDA: f64 = 1e12;
+const MIN_LAMBDA: f64 = 1e-12;
+
+impl<'a> JointProblem<'a> {
+    pub(super) fn new(
+        camera: &'a Camera,
+        points: &[Vector3<f64>],
+        pixels: &[Vector2<f64>],
+        subset: &[usize],
+        uncertainty: &PointUncertainty<'_>,
+        sigma: f64,
+    ) -> Self {
+        let items = subset
+            .iter()
+            .map(|&j| Correspondence {
+                point: points[j],
+                pixel: pixels[j],
+                information: uncertainty.covariances[j].cholesky().map(|c| c.inverse()),
+            })
+            .collect();
+        Self { camera, items, inv_var: 1.0 / (sigma * sigma) }
+    }
+
+    fn cost(&self, pose: &SE3, eps: &[Vector3<f64>]) -> f64 {
+        self.items
+            .iter()
+            .zip(eps)
+            .map(|(item, e)| {
+                let r = project(self.camera, pose, &(item.point + e)).uv - item.pixel;
+                r.norm_squared() * self.inv_var + item.information.map_or(0.0, |info| e.dot(&(info * e)))
+            })
+            .sum()
+    }
+
+    /// The reduced (Schur) system S δ = b in the pose, damped by λ, and the back-substitution
+    /// terms; None if a point block is singular.
+    fn reduced(&self, pose: &SE3, eps: &[Vector3<f64>], lambda: f64) -> Option<(Matrix6<f64>, Vector6<f64>, Vec<BackSubstitution>)> {
+        let mut s = Matrix6::zeros();
+        let mut b = Vector6::zeros();
+        let mut back = Vec::with_capacity(self.items.len());
+        for (item, e) in self.items.iter().zip(eps) {
+            let p = project(self.camera, pose, &(item.point + e));
+            let r = p.uv - item.pixel;
+            let j_t = j_uv_pose(self.camera, &p);
+            let j_x: Matrix2x3<f64> = j_uv_point(self.camera, pose, &p);
+            s += j_t.transpose() * j_t * self.inv_var;
+            b -= j_t.transpose() * r * self.inv_var;
+            let Some(info) = &item.information else {
+                back.push(None);
+                continue;
+            };
+            let mut h_jj = j_x.transpose() * j_x * self.inv_var + info;
+            for i in 0..3 {
+                h_jj[(i, i)] *= 1.0 + lambda;
+            }
+            let h_jj_inv = h_jj.try_inverse()?;
+            let h_jt = j_x.transpose() * j_t * self.inv_var;
+            let g_j = j_x.transpose() * r * self.inv_var + info * e;
+            s -= h_jt.transpose() * h_jj_inv * h_jt;
+            b += h_jt.transpose() * (h_jj_inv * g_j);
+            back.push(Some((h_jj_inv, h_jt, g_j)));
+        }
+        for i in 0..6 {
+            s[(i, i)] *= 1.0 + lambda;
+        }
+        Some((s, b, back))
+    }
+
+    /// Minimizes the joint cost from `pose`; returns the pose, its marginal covariance
+    /// (None if the reduced information is singular) and the report.
+    pub(super) fn solve(&self, pose: SE3, options: &LmOptions) -> (SE3, Option<Matrix6<f64>>, LmReport) {
+        let mut pose = pose;
+        let mut eps = vec![Vector3::zeros(); self.items.len()];
+        let mut cost = self.cost(&pose, &eps);
+        let initial_cost = cost;
+        let mut lambda = options.initial_lambda;
+        let mut termination = Termination::MaxIterations;
+        let mut iterations = 0;
+        while iterations < options.max_iterations {
+            iterations += 1;
+            let Some((s, b, back)) = self.reduced(&pose, &eps, lambda) else {
+                termination = Termination::NonFinite;
+                break;
+            };
+            let Some(chol) = s.cholesky() else {
+                lambda *= 10.0;
+                if lambda > MAX_LAMBDA {
+                    termination = Termination::NoDescent;
+                    break;
+                }
+                continue;
+            };
+            let step = chol.solve(&b);
+            if step.norm() < options.step_tolerance {
+                termination = Termination::StepConverged;
+                break;
+            }
+            let candidate_pose = pose * SE3::exp(&step);
+            let candidate_eps: Vec<Vector3<f64>> = eps
+                .iter()
+                .zip(&back)
+                .map(|(e, bs)| match bs {
+                    Some((h_inv, h_jt, g_j)) => e - h_inv * (g_j + h_jt * step),
+                    None => *e,
+                })
+                .collect();
+            let new_cost = self.cost(&candidate_pose, &candidate_eps);
+            if new_cost.is_finite() && new_cost < cost {
+                let decrease = (cost - new_cost) / cost.max(f64::MIN_POSITIVE);
+                (pose, eps, cost) = (candidate_pose, candidate_eps, new_cost);
+                lambda = (lambda * 0.1).max(MIN_LAMBDA);
+                if decrease < options.cost_tolerance {
+                    termination = Termination::CostConverged;
+                    break;
+                }
+            } else {
+                lambda *= 10.0;
+                if lambda > MAX_LAMBDA {
+                    termination = Termination::NoDescent;
+                    break;
+                }
+            }
+        }
+        let covariance = self
+            .reduced(&pose, &eps, 0.0)
+            .and_then(|(s, _, _)| s.try_inverse())
+            .map(|c| 0.5 * (c + c.transpose()));
+        (pose, covariance, LmReport { iterations, initial_cost, final_cost: cost, termination })
+    }
+}
