@@ -6,14 +6,17 @@ translation first; perturbations and covariances are on the right (``T @ exp(δ^
 
 from __future__ import annotations
 
-from . import lie
+from . import geometry, lie
 from ._core import __version__
+from .camera import Camera
 from .exceptions import GeolocError, InvalidInputError, NotARotationError
 
 __all__ = [
+    "Camera",
     "GeolocError",
     "InvalidInputError",
     "NotARotationError",
     "__version__",
+    "geometry",
     "lie",
 ]

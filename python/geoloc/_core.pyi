@@ -1,6 +1,8 @@
 # Stub of the compiled module geoloc._core (crates/geoloc-py); checked against the built
 # module by mypy.stubtest in tests/test_stubs.py. Every function maps rows: (N, in) float64,
 # C-contiguous, finite → (N, out) float64; matrices are flattened row-major.
+from typing import Any
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -39,3 +41,34 @@ def se3_interpolate(
 def se3_transform_points(
     pose: NDArray[np.float64], points: NDArray[np.float64]
 ) -> NDArray[np.float64]: ...
+def triangulate(
+    poses_wc: NDArray[np.float64],
+    intrinsics: tuple[float, float, float, float],
+    cam_ids: NDArray[np.int64],
+    track_ids: NDArray[np.int64],
+    pixels: NDArray[np.float64],
+    pose_covariances: NDArray[np.float64] | None,
+    loss: str,
+    loss_width: float,
+    pixel_sigma: float,
+    max_residual: float,
+    min_angle: float,
+) -> dict[str, Any]: ...
+def solve_pnp(
+    points3d: NDArray[np.float64],
+    pixels: NDArray[np.float64],
+    intrinsics: tuple[float, float, float, float],
+    init_pose: NDArray[np.float64] | None,
+    point_covariances: NDArray[np.float64] | None,
+    point_pose_jacobians: NDArray[np.float64] | None,
+    pose_covariances: NDArray[np.float64] | None,
+    loss: str,
+    loss_width: float,
+    pixel_sigma: float,
+    max_residual: float,
+    covariance: str,
+    min_iterations: int,
+    max_iterations: int,
+    confidence: float,
+    seed: int,
+) -> dict[str, Any]: ...

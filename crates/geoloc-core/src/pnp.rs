@@ -23,8 +23,8 @@
 //!      With keyframe-pose errors shared by the points (D_jk = ∂Xⱼ/∂δ_k, C_k): weighted
 //!      least squares with Wⱼ = Sⱼ⁻¹, Sⱼ = σ²I + J_X,j Σⱼ^marg J_X,jᵀ, residuals corrected
 //!      by the second-order projection bias bⱼ = ½ tr(∇²π Σⱼ^marg), and the sandwich
-//!        C = H⁻¹ (Σⱼ JⱼᵀWⱼ Sⱼ^ind WⱼJⱼ) H⁻¹ + Σ_k M_k C_k M_kᵀ,
-//!        H = Σⱼ JⱼᵀWⱼJⱼ,  M_k = −H⁻¹ Σⱼ JⱼᵀWⱼ J_X,j D_jk,
+//!      C = H⁻¹ (Σⱼ JⱼᵀWⱼ Sⱼ^ind WⱼJⱼ) H⁻¹ + Σ_k M_k C_k M_kᵀ with
+//!      H = Σⱼ JⱼᵀWⱼJⱼ and M_k = −H⁻¹ Σⱼ JⱼᵀWⱼ J_X,j D_jk,
 //!      where Sⱼ^ind holds the errors independent between points and the M_k terms those
 //!      all points share.
 //!

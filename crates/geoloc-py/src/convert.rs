@@ -92,3 +92,45 @@ pub fn batch_len(names_and_lengths: &[(&str, usize)]) -> PyResult<usize> {
     }
     Ok(n)
 }
+
+/// Each row of an (N, R·C) array as an R×C matrix (rows of the array are row-major).
+pub fn matrices<const R: usize, const C: usize, const W: usize>(
+    name: &str,
+    array: &PyReadonlyArray2<'_, f64>,
+) -> PyResult<Vec<SMatrix<f64, R, C>>> {
+    let values = rows::<W>(name, array)?;
+    Ok(values.chunks_exact(W).map(matrix_from_row::<R, C>).collect())
+}
+
+/// Each row of an (N, 16) array as a rigid transform, strictly checked (errors name `name[i]`).
+pub fn poses(name: &str, array: &PyReadonlyArray2<'_, f64>) -> PyResult<Vec<geoloc_core::lie::SE3>> {
+    matrices::<4, 4, 16>(name, array)?
+        .iter()
+        .enumerate()
+        .map(|(i, m)| geoloc_core::lie::SE3::from_matrix(m).map_err(|e| to_py_err(e.at(name, i))))
+        .collect()
+}
+
+/// A 1-D integer array as indices (refusing negative values, naming the first).
+pub fn indices(name: &str, array: &numpy::PyReadonlyArray1<'_, i64>) -> PyResult<Vec<usize>> {
+    let values = array.as_slice().map_err(|_| invalid(name, "array must be contiguous"))?;
+    values
+        .iter()
+        .enumerate()
+        .map(|(i, &v)| usize::try_from(v).map_err(|_| invalid(name, format!("{name}[{i}] = {v} is negative"))))
+        .collect()
+}
+
+/// Matrices as an (N, R·C) array, each row-major.
+pub fn matrices_to_array<'py, const R: usize, const C: usize>(
+    py: Python<'py>,
+    items: &[SMatrix<f64, R, C>],
+) -> Bound<'py, PyArray2<f64>> {
+    let mut flat = vec![0.0; items.len() * R * C];
+    for (m, out) in items.iter().zip(flat.chunks_exact_mut(R * C)) {
+        write_matrix(m, out);
+    }
+    let array = numpy::ndarray::Array2::from_shape_vec((items.len(), R * C), flat)
+        .expect("invariant: the buffer has items × R·C values");
+    numpy::IntoPyArray::into_pyarray(array, py)
+}

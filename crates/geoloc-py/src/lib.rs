@@ -5,6 +5,7 @@
 
 mod convert;
 mod errors;
+mod geometry;
 mod lie;
 
 use pyo3::prelude::*;
@@ -15,5 +16,6 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     m.add("PARALLEL_MIN_ITEMS", geoloc_core::parallel::PARALLEL_MIN_ITEMS)?;
     lie::register(m)?;
+    geometry::register(m)?;
     Ok(())
 }

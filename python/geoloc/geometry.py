@@ -1,0 +1,331 @@
+"""The single-image geometric locator: forward intersection (triangulation), backward
+intersection (PnP) and the keyframe helpers, with calibrated uncertainty.
+
+Conventions: poses are **world_from_cam** 4×4 float64; pixels are *undistorted*;
+covariances of poses are 6×6 in the **right**-perturbation tangent space ``T @ exp(δ^)``,
+translation first; point covariances are 3×3 in world coordinates (m²).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from . import _core
+from ._validation import as_batch, as_float64
+from .camera import Camera
+from .exceptions import InvalidInputError
+
+__all__ = [
+    "PnPResult",
+    "PointUncertainty",
+    "TRACK_STATUS",
+    "TriangulationResult",
+    "solve_pnp",
+    "triangulate",
+]
+
+Array = NDArray[np.float64]
+
+#: Meaning of :attr:`TriangulationResult.status` codes.
+TRACK_STATUS = {
+    0: "ok",
+    1: "fewer than two inlier views",
+    2: "rays do not intersect (zero baseline or parallel rays)",
+    3: "point behind an observing camera",
+    4: "mean residual above max_residual",
+    5: "triangulation angle below min_angle",
+}
+
+_LOSSES = ("huber", "cauchy", "none")
+
+
+@dataclass(frozen=True)
+class PointUncertainty:
+    """What a PnP needs to know about the errors of its 3D points.
+
+    ``covariances`` (N, 3, 3): the part of each point's covariance independent between
+    points (pixel noise of the keyframes). ``pose_jacobians`` (N, K, 3, 6) and
+    ``pose_covariances`` (K, 6, 6), optional: keyframe-pose errors, shared by all points
+    (D_jk = ∂X_j/∂δ_k for the right perturbation of keyframe k's world_from_cam).
+    """
+
+    covariances: Array
+    pose_jacobians: Array | None = None
+    pose_covariances: Array | None = None
+
+
+@dataclass(frozen=True)
+class TriangulationResult:
+    """Per track: the point, whether it is valid and why, and its uncertainty."""
+
+    points: Array
+    """(P, 3) world coordinates (meaningful where ``valid``)."""
+    status: NDArray[np.uint8]
+    """(P,) 0 = ok, else a code of :data:`TRACK_STATUS`."""
+    mean_residual: Array
+    """(P,) mean reprojection residual of the inlier observations (px)."""
+    max_angle: Array
+    """(P,) largest angle between two inlier rays (rad)."""
+    covariances: Array
+    """(P, 3, 3) marginal covariance of each point: pixel noise plus keyframe-pose noise."""
+    pixel_covariances: Array
+    """(P, 3, 3) the part due to pixel noise only (independent between points)."""
+    pose_jacobians: Array
+    """(P, C, 3, 6) D = ∂X/∂δ for each pose (zeros where the pose does not see the point)."""
+    observation_inliers: NDArray[np.bool_]
+    """(O,) per input observation: used by its (valid) track."""
+    pose_covariances: Array | None
+    """(C, 6, 6) the keyframe-pose covariances that were given, if any."""
+
+    @property
+    def valid(self) -> NDArray[np.bool_]:
+        """(P,) the tracks that gave a point."""
+        return np.asarray(self.status == 0)
+
+    def reasons(self) -> list[str]:
+        """A human-readable status per track."""
+        return [TRACK_STATUS[int(s)] for s in self.status]
+
+    def uncertainty(self, indices: ArrayLike | None = None) -> PointUncertainty:
+        """The :class:`PointUncertainty` of the points ``indices`` (default: all), for
+        :func:`solve_pnp`."""
+        idx = slice(None) if indices is None else np.asarray(indices)
+        if self.pose_covariances is None:
+            return PointUncertainty(self.pixel_covariances[idx])
+        return PointUncertainty(
+            self.pixel_covariances[idx], self.pose_jacobians[idx], self.pose_covariances
+        )
+
+
+@dataclass(frozen=True)
+class PnPResult:
+    """The pose of a camera from 2D–3D correspondences, or why there is none."""
+
+    success: bool
+    reason: str
+    pose: Array
+    """(4, 4) world_from_cam (identity when ``success`` is False)."""
+    covariance: Array
+    """(6, 6) right-perturbation covariance, translation first (zeros on failure)."""
+    inliers: NDArray[np.bool_]
+    rms: float
+    """RMS reprojection error of the inliers (px)."""
+    sigma_p: float
+    """The paper's isometric position σ: mean of √diag(C_ρ) (m)."""
+    sigma_r: float
+    """The paper's isometric rotation σ: Θ(exp(√diag(C_φ))) (rad)."""
+    ransac_iterations: int
+    lm_iterations: int
+    lm_converged: bool
+
+
+def _check_positive(value: float, name: str) -> float:
+    if not isinstance(value, (int, float, np.floating, np.integer)) or not np.isfinite(value) or value <= 0:
+        raise InvalidInputError(f"{name}: expected a finite number > 0, got {value!r}")
+    return float(value)
+
+
+def _check_loss(loss: str) -> str:
+    if loss not in _LOSSES:
+        raise InvalidInputError(f"loss: expected one of {_LOSSES}, got {loss!r}")
+    return loss
+
+
+def _index_array(x: ArrayLike, name: str, n: int) -> NDArray[np.int64]:
+    arr = np.asarray(x)
+    if arr.dtype.kind not in "iu" and not (arr.dtype.kind == "f" and arr.size == 0):
+        raise InvalidInputError(f"{name}: expected integer indices, got dtype {arr.dtype}")
+    arr = arr.astype(np.int64, copy=False)
+    if arr.shape != (n,):
+        raise InvalidInputError(f"{name}: expected shape ({n},) like pixels, got {arr.shape}")
+    return np.ascontiguousarray(arr)
+
+
+def _pose_stack(poses: ArrayLike, name: str) -> Array:
+    flat, lead = as_batch(poses, name, (4, 4))
+    if len(lead) != 1:
+        raise InvalidInputError(f"{name}: expected shape (C, 4, 4), got {np.shape(poses)}")
+    return flat
+
+
+def _covariance_stack(cov: ArrayLike, name: str, n: int, d: int) -> Array:
+    arr = as_float64(cov, name)
+    if arr.shape != (n, d, d):
+        raise InvalidInputError(f"{name}: expected shape ({n}, {d}, {d}), got {arr.shape}")
+    if not np.allclose(arr, np.swapaxes(arr, 1, 2), rtol=1e-9, atol=1e-15):
+        raise InvalidInputError(f"{name}: covariances must be symmetric")
+    return np.ascontiguousarray(arr.reshape(n, d * d))
+
+
+def triangulate(
+    poses: ArrayLike,
+    cam: Camera,
+    cam_ids: ArrayLike,
+    track_ids: ArrayLike,
+    pixels: ArrayLike,
+    *,
+    huber: float = 1.0,
+    loss: Literal["huber", "cauchy", "none"] = "huber",
+    max_residual: float = 5.0,
+    pixel_sigma: float = 1.0,
+    min_angle: float = np.radians(1.0),
+    pose_covariances: ArrayLike | None = None,
+) -> TriangulationResult:
+    """Forward intersection: triangulate tracks seen by cameras of known pose.
+
+    Observation ``o`` says: track ``track_ids[o]`` is seen by camera ``cam_ids[o]`` (an index
+    into ``poses``, world_from_cam (C, 4, 4)) at undistorted pixel ``pixels[o]``. Tracks are
+    numbered 0..max(track_ids). Per track: N-view DLT, LM with a robust kernel (``loss``,
+    width ``huber`` in units of ``pixel_sigma``), outlier views beyond ``max_residual`` px
+    dropped (the paper's ε_r; widened to 4.29σ for large σ), and rejection by residual,
+    cheirality and ``min_angle`` (rad). Runs in parallel without the GIL.
+
+    ``pose_covariances`` (C, 6, 6): covariances of the poses (right perturbation,
+    translation first); when given, they weight the views and are propagated into each
+    point's covariance and into the shared sensitivities used by :func:`solve_pnp`.
+    """
+    if not isinstance(cam, Camera):
+        raise InvalidInputError(f"cam: expected a geoloc.Camera, got {type(cam).__name__}")
+    poses_flat = _pose_stack(poses, "poses")
+    px = as_float64(pixels, "pixels")
+    if px.ndim != 2 or px.shape[1] != 2:
+        raise InvalidInputError(f"pixels: expected shape (O, 2), got {px.shape}")
+    n_obs = px.shape[0]
+    cams = _index_array(cam_ids, "cam_ids", n_obs)
+    tracks = _index_array(track_ids, "track_ids", n_obs)
+    n_cams = poses_flat.shape[0]
+    covs = None if pose_covariances is None else _covariance_stack(pose_covariances, "pose_covariances", n_cams, 6)
+    raw: dict[str, Any] = _core.triangulate(
+        poses_flat,
+        cam.intrinsics,
+        cams,
+        tracks,
+        np.ascontiguousarray(px),
+        covs,
+        _check_loss(loss),
+        _check_positive(huber, "huber"),
+        _check_positive(pixel_sigma, "pixel_sigma"),
+        _check_positive(max_residual, "max_residual"),
+        float(min_angle),
+    )
+    p = raw["points"].shape[0]
+    return TriangulationResult(
+        points=raw["points"],
+        status=raw["status"],
+        mean_residual=raw["mean_residual"],
+        max_angle=raw["max_angle"],
+        covariances=raw["covariances"].reshape(p, 3, 3),
+        pixel_covariances=raw["pixel_covariances"].reshape(p, 3, 3),
+        pose_jacobians=raw["pose_jacobians"].reshape(p, n_cams, 3, 6),
+        observation_inliers=raw["observation_inliers"],
+        pose_covariances=None if covs is None else covs.reshape(n_cams, 6, 6),
+    )
+
+
+def solve_pnp(
+    points3d: ArrayLike,
+    pixels: ArrayLike,
+    cam: Camera,
+    init_pose: ArrayLike | None = None,
+    ransac: bool = True,
+    huber: float = 1.0,
+    max_residual: float = 5.0,
+    *,
+    loss: Literal["huber", "cauchy", "none"] = "huber",
+    pixel_sigma: float = 1.0,
+    covariance: Literal["propagated", "paper"] = "propagated",
+    uncertainty: PointUncertainty | None = None,
+    point_covariances: ArrayLike | None = None,
+    min_iterations: int = 100,
+    max_iterations: int = 10_000,
+    confidence: float = 0.9999,
+    seed: int = 0,
+) -> PnPResult:
+    """Backward intersection: the world_from_cam pose of a camera seeing ``points3d`` (N, 3)
+    at undistorted ``pixels`` (N, 2), with a 6×6 covariance.
+
+    Without ``init_pose``, P3P RANSAC (MSAC scoring, adaptive iterations to ``confidence``,
+    local optimization) finds the start; then LM on SE(3) with a robust kernel (Huber of
+    width ``huber`` σ by default), dropping correspondences beyond ``max_residual`` px (the
+    paper's η_r) and re-solving. ``covariance="propagated"`` (default) propagates the query's
+    ``pixel_sigma`` and the points' uncertainty (``uncertainty`` from
+    :meth:`TriangulationResult.uncertainty`, or independent ``point_covariances`` (N, 3, 3));
+    ``"paper"`` is the paper's σ̂²(ΣJᵀJ)⁻¹ with σ̂² = ‖r‖²/(2p − 1), for comparison.
+
+    Geometry that cannot give a pose (too few points, no consensus, collinear points)
+    returns ``success=False`` with a ``reason``; invalid arguments raise
+    :class:`geoloc.InvalidInputError`.
+    """
+    if not isinstance(cam, Camera):
+        raise InvalidInputError(f"cam: expected a geoloc.Camera, got {type(cam).__name__}")
+    pts = as_float64(points3d, "points3d")
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise InvalidInputError(f"points3d: expected shape (N, 3), got {pts.shape}")
+    px = as_float64(pixels, "pixels")
+    if px.shape != (pts.shape[0], 2):
+        raise InvalidInputError(f"pixels: expected shape ({pts.shape[0]}, 2) like points3d, got {px.shape}")
+    n = pts.shape[0]
+    if covariance not in ("propagated", "paper"):
+        raise InvalidInputError(f"covariance: expected 'propagated' or 'paper', got {covariance!r}")
+    if not ransac and init_pose is None:
+        raise InvalidInputError("init_pose: required when ransac=False")
+    init = None
+    if init_pose is not None:
+        init_flat, lead = as_batch(init_pose, "init_pose", (4, 4))
+        if lead != ():
+            raise InvalidInputError(f"init_pose: expected shape (4, 4), got {np.shape(init_pose)}")
+        init = init_flat
+    if uncertainty is not None and point_covariances is not None:
+        raise InvalidInputError("point_covariances: give either uncertainty or point_covariances, not both")
+    if point_covariances is not None:
+        uncertainty = PointUncertainty(np.asarray(point_covariances))
+    covs = jacs = pose_covs = None
+    if uncertainty is not None:
+        covs = _covariance_stack(uncertainty.covariances, "point_covariances", n, 3)
+        if (uncertainty.pose_jacobians is None) != (uncertainty.pose_covariances is None):
+            raise InvalidInputError("uncertainty: pose_jacobians and pose_covariances go together")
+        if uncertainty.pose_jacobians is not None and uncertainty.pose_covariances is not None:
+            k = np.shape(uncertainty.pose_covariances)[0]
+            pose_covs = _covariance_stack(uncertainty.pose_covariances, "pose_covariances", k, 6)
+            j = as_float64(uncertainty.pose_jacobians, "pose_jacobians")
+            if j.shape != (n, k, 3, 6):
+                raise InvalidInputError(f"pose_jacobians: expected shape ({n}, {k}, 3, 6), got {j.shape}")
+            jacs = np.ascontiguousarray(j.reshape(n * k, 18))
+    for name, value in (("min_iterations", min_iterations), ("max_iterations", max_iterations), ("seed", seed)):
+        if not isinstance(value, (int, np.integer)) or value < 0:
+            raise InvalidInputError(f"{name}: expected a non-negative integer, got {value!r}")
+    raw: dict[str, Any] = _core.solve_pnp(
+        np.ascontiguousarray(pts),
+        np.ascontiguousarray(px),
+        cam.intrinsics,
+        init,
+        covs,
+        jacs,
+        pose_covs,
+        _check_loss(loss),
+        _check_positive(huber, "huber"),
+        _check_positive(pixel_sigma, "pixel_sigma"),
+        _check_positive(max_residual, "max_residual"),
+        covariance,
+        int(min_iterations),
+        int(max_iterations),
+        float(confidence),
+        int(seed),
+    )
+    return PnPResult(
+        success=bool(raw["success"]),
+        reason=str(raw["reason"]),
+        pose=raw["pose"].reshape(4, 4),
+        covariance=raw["covariance"].reshape(6, 6),
+        inliers=raw["inliers"],
+        rms=float(raw["rms"]),
+        sigma_p=float(raw["sigma_p"]),
+        sigma_r=float(raw["sigma_r"]),
+        ransac_iterations=int(raw["ransac_iterations"]),
+        lm_iterations=int(raw["lm_iterations"]),
+        lm_converged=bool(raw["lm_converged"]),
+    )
