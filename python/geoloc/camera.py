@@ -78,7 +78,7 @@ class Camera:
 
 def _import_cv2() -> Any:
     try:
-        import cv2
+        import cv2  # type: ignore[import-not-found,unused-ignore]
     except ImportError as exc:  # pragma: no cover - depends on the environment
         raise ImportError(
             "undistorting points needs OpenCV: pip install opencv-python"

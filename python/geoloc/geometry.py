@@ -298,7 +298,32 @@ def solve_pnp(
     for name, value in (("min_iterations", min_iterations), ("max_iterations", max_iterations), ("seed", seed)):
         if not isinstance(value, (int, np.integer)) or value < 0:
             raise InvalidInputError(f"{name}: expected a non-negative integer, got {value!r}")
-    raw: dict[str, Any] = _core.solve_pnp(
+    try:
+        raw = _solve_pnp_core(pts, px, cam, init, covs, jacs, pose_covs, loss, huber, pixel_sigma,
+                              max_residual, covariance, min_iterations, max_iterations, confidence, seed)
+    except InvalidInputError as exc:  # one init pose: "init_pose[0] is not…" → "init_pose is not…"
+        raise type(exc)(str(exc).replace("init_pose[0]", "init_pose")) from None
+    return PnPResult(
+        success=bool(raw["success"]),
+        reason=str(raw["reason"]),
+        pose=raw["pose"].reshape(4, 4),
+        covariance=raw["covariance"].reshape(6, 6),
+        inliers=raw["inliers"],
+        rms=float(raw["rms"]),
+        sigma_p=float(raw["sigma_p"]),
+        sigma_r=float(raw["sigma_r"]),
+        ransac_iterations=int(raw["ransac_iterations"]),
+        lm_iterations=int(raw["lm_iterations"]),
+        lm_converged=bool(raw["lm_converged"]),
+    )
+
+
+def _solve_pnp_core(
+    pts: Array, px: Array, cam: Camera, init: Array | None, covs: Array | None, jacs: Array | None,
+    pose_covs: Array | None, loss: str, huber: float, pixel_sigma: float, max_residual: float,
+    covariance: str, min_iterations: int, max_iterations: int, confidence: float, seed: int,
+) -> dict[str, Any]:
+    result: dict[str, Any] = _core.solve_pnp(
         np.ascontiguousarray(pts),
         np.ascontiguousarray(px),
         cam.intrinsics,
@@ -316,16 +341,4 @@ def solve_pnp(
         float(confidence),
         int(seed),
     )
-    return PnPResult(
-        success=bool(raw["success"]),
-        reason=str(raw["reason"]),
-        pose=raw["pose"].reshape(4, 4),
-        covariance=raw["covariance"].reshape(6, 6),
-        inliers=raw["inliers"],
-        rms=float(raw["rms"]),
-        sigma_p=float(raw["sigma_p"]),
-        sigma_r=float(raw["sigma_r"]),
-        ransac_iterations=int(raw["ransac_iterations"]),
-        lm_iterations=int(raw["lm_iterations"]),
-        lm_converged=bool(raw["lm_converged"]),
-    )
+    return result

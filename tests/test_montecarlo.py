@@ -1,0 +1,50 @@
+"""The montecarlo experiment and command (small trial counts: the full run is a benchmark)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from geoloc import montecarlo
+
+
+def test_columns_and_scores_are_sane() -> None:
+    cols = montecarlo.montecarlo(trials=40, sigmas=(1.0,), label_noise=((0.0, 0.0), (0.01, 0.5)), seed=1)
+    assert [(c.model, c.label_noise_m) for c in cols] == [
+        ("paper", 0.0), ("propagated", 0.0), ("paper", 0.01), ("propagated", 0.01)
+    ]
+    for c in cols:
+        assert c.trials + c.failures == 40
+        assert len(c.per_axis) == 6
+        assert 0.0 <= c.nees <= 1.0
+    # the paper's formula ignores label noise; the propagated model does not
+    paper_label, propagated_label = cols[2], cols[3]
+    assert propagated_label.nees > paper_label.nees + 0.3
+
+
+def test_bad_arguments() -> None:
+    with pytest.raises(ValueError, match="trials"):
+        montecarlo.montecarlo(trials=0)
+    with pytest.raises(ValueError, match="scene"):
+        montecarlo.montecarlo(trials=1, scene="moon")
+    with pytest.raises(ValueError, match="models"):
+        montecarlo.montecarlo(trials=1, models=("exact",))
+
+
+def test_command_prints_the_table_and_writes_json(tmp_path: Path) -> None:
+    out = tmp_path / "mc.json"
+    result = subprocess.run(
+        [sys.executable, "-m", "geoloc", "montecarlo", "--trials", "10", "--scene", "random", "--json", str(out)],
+        capture_output=True, text=True,
+    )
+    assert result.returncode == 0, result.stderr
+    assert "NEES χ²₆ ≤ 12.59" in result.stdout and "covariance=propagated" in result.stdout
+    assert "paper, as published: angular" in result.stdout
+    data = json.loads(out.read_text())
+    assert len(data["columns"]) == 12 and data["trials"] == 10
+    bad = subprocess.run([sys.executable, "-m", "geoloc", "montecarlo", "--trials", "0"], capture_output=True, text=True)
+    assert bad.returncode == 2 and "--trials must be at least 1" in bad.stderr
