@@ -110,7 +110,11 @@ def test_triangulate_reasons_and_outputs() -> None:
     px = np.vstack([_project(poses[c], pts[t][None]) for c, t in zip(cam_ids, track_ids)])
     tri = geometry.triangulate(poses, CAM, cam_ids, track_ids, px)
     assert tri.points.shape == (3, 3) and tri.covariances.shape == (3, 3, 3)
-    assert tri.pose_jacobians.shape == (3, 3, 3, 6)
+    assert tri.pose_jacobians is None
+    with_covs = geometry.triangulate(poses, CAM, cam_ids, track_ids, px, pose_covariances=np.tile(np.eye(6) * 1e-6, (3, 1, 1)))
+    assert with_covs.pose_jacobians is not None and with_covs.pose_jacobians.shape == (3, 3, 3, 6)
+    assert np.abs(with_covs.pose_jacobians[0]).max() > 0 and not with_covs.pose_jacobians[1].any()
+    assert with_covs.uncertainty([0]).pose_jacobians is not None
     np.testing.assert_allclose(tri.points[0], pts[0], atol=1e-9)
     assert tri.reasons() == ["ok", "fewer than two inlier views", "triangulation angle below min_angle"]
     assert list(tri.valid) == [True, False, False]

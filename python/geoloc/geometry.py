@@ -74,8 +74,9 @@ class TriangulationResult:
     """(P, 3, 3) marginal covariance of each point: pixel noise plus keyframe-pose noise."""
     pixel_covariances: Array
     """(P, 3, 3) the part due to pixel noise only (independent between points)."""
-    pose_jacobians: Array
-    """(P, C, 3, 6) D = ∂X/∂δ for each pose (zeros where the pose does not see the point)."""
+    pose_jacobians: Array | None
+    """(P, C, 3, 6) D = ∂X/∂δ for each pose (zeros where the pose does not see the point);
+    computed only when ``pose_covariances`` were given, else None."""
     observation_inliers: NDArray[np.bool_]
     """(O,) per input observation: used by its (valid) track."""
     pose_covariances: Array | None
@@ -94,7 +95,7 @@ class TriangulationResult:
         """The :class:`PointUncertainty` of the points ``indices`` (default: all), for
         :func:`solve_pnp`."""
         idx = slice(None) if indices is None else np.asarray(indices)
-        if self.pose_covariances is None:
+        if self.pose_covariances is None or self.pose_jacobians is None:
             return PointUncertainty(self.pixel_covariances[idx])
         return PointUncertainty(
             self.pixel_covariances[idx], self.pose_jacobians[idx], self.pose_covariances
@@ -220,7 +221,7 @@ def triangulate(
         max_angle=raw["max_angle"],
         covariances=raw["covariances"].reshape(p, 3, 3),
         pixel_covariances=raw["pixel_covariances"].reshape(p, 3, 3),
-        pose_jacobians=raw["pose_jacobians"].reshape(p, n_cams, 3, 6),
+        pose_jacobians=raw["pose_jacobians"].reshape(p, n_cams, 3, 6) if "pose_jacobians" in raw else None,
         observation_inliers=raw["observation_inliers"],
         pose_covariances=None if covs is None else covs.reshape(n_cams, 6, 6),
     )

@@ -34,7 +34,7 @@
 mod joint;
 pub mod p3p;
 
-use nalgebra::{Matrix2, Matrix2x3, Matrix2x6, Matrix3, Matrix3x6, Matrix6, Vector2, Vector3, Vector6};
+use nalgebra::{Matrix2, Matrix2x3, Matrix3, Matrix3x6, Matrix6, Vector2, Vector3, Vector6};
 
 use crate::camera::{Camera, j_uv_point, j_uv_pose, project};
 use crate::error::{GeolocError, Result};
@@ -164,6 +164,9 @@ impl PnpResult {
     }
 }
 
+/// Relative cost decrease that ends a robust round when a final least-squares solve follows.
+const ROBUST_ROUND_COST_TOLERANCE: f64 = 1e-4;
+
 /// Fewest correspondences RANSAC needs (a 3-point sample plus one to check it).
 pub const MIN_POINTS_RANSAC: usize = 4;
 /// Fewest inliers a pose (6 DoF) is accepted from.
@@ -220,7 +223,13 @@ pub fn solve_pnp(
         }
         let w = weighting(camera, points, &pose, &subset, uncertainty, options.pixel_sigma);
         let problem = PoseProblem { camera, points, pixels, subset: &subset, weights: &w.weights, biases: &w.biases, loss: options.loss };
-        let (next, r) = levenberg_marquardt(&problem, pose, &options.lm);
+        // with the propagated model a final least-squares solve follows: the robust rounds
+        // only have to settle the inlier set
+        let lm = match options.covariance {
+            CovarianceModel::Propagated => LmOptions { cost_tolerance: ROBUST_ROUND_COST_TOLERANCE, ..options.lm },
+            CovarianceModel::Paper => options.lm,
+        };
+        let (next, r) = levenberg_marquardt(&problem, pose, &lm);
         pose = next;
         report = Some(r);
         let next_subset = gated_indices(camera, points, pixels, &pose, uncertainty, options);
@@ -261,6 +270,13 @@ pub fn solve_pnp(
         CovarianceModel::Paper => paper_covariance(camera, points, pixels, &pose, &subset, options.loss),
         CovarianceModel::Propagated => match joint_covariance {
             Some(cov) => cov.filter(|c| inverse_information(c).is_some()),
+            None if uncertainty.is_none() => {
+                // exact points: C = (Σ JⱼᵀJⱼ/σ²)⁻¹, the information of the last solve
+                let weights = vec![Matrix2::identity() / (options.pixel_sigma * options.pixel_sigma); subset.len()];
+                let biases = vec![Vector2::zeros(); subset.len()];
+                let problem = PoseProblem { camera, points, pixels, subset: &subset, weights: &weights, biases: &biases, loss: RobustLoss::None };
+                inverse_information(&problem.normal_equations(&pose).0)
+            }
             None => propagated_covariance(camera, points, &pose, &subset, uncertainty, options.pixel_sigma),
         },
     };
@@ -474,32 +490,49 @@ struct PoseProblem<'a> {
 impl LeastSquares<6> for PoseProblem<'_> {
     type State = SE3;
 
-    fn cost(&self, pose: &SE3) -> f64 {
-        self.subset
-            .iter()
-            .zip(self.weights.iter().zip(self.biases))
-            .map(|(&j, (w, b))| {
-                let r = project(self.camera, pose, &self.points[j]).uv - b - self.pixels[j];
-                self.loss.cost(r.dot(&(w * r)))
-            })
-            .sum()
-    }
 
     fn normal_equations(&self, pose: &SE3) -> (Matrix6<f64>, Vector6<f64>, f64) {
-        let mut h = Matrix6::zeros();
+        // The hot loop of every PnP: the two rows of ∂π/∂δ in closed form and only the upper
+        // triangle of H accumulated (H is symmetric).
+        let cam_from_world = pose.inverse();
+        let r_cw = cam_from_world.rotation.matrix();
+        let t_cw = cam_from_world.translation;
+        let (fx, fy) = (self.camera.fx, self.camera.fy);
+        let mut upper = [0.0_f64; 21];
         let mut g = Vector6::zeros();
         let mut cost = 0.0;
         for (&j, (w, b)) in self.subset.iter().zip(self.weights.iter().zip(self.biases)) {
-            let p = project(self.camera, pose, &self.points[j]);
-            let r = p.uv - b - self.pixels[j];
+            let p = r_cw * self.points[j] + t_cw;
+            let inv_z = 1.0 / p.z;
+            let (xz, yz) = (p.x * inv_z, p.y * inv_z);
+            let r = Vector2::new(fx * xz + self.camera.cx, fy * yz + self.camera.cy) - b - self.pixels[j];
             let wr = w * r;
             let s = r.dot(&wr);
             let robust = self.loss.weight(s);
-            let jac: Matrix2x6<f64> = j_uv_pose(self.camera, &p);
-            let jt_w = jac.transpose() * w;
-            h += robust * jt_w * jac;
-            g += robust * jac.transpose() * wr;
             cost += self.loss.cost(s);
+            let (a, c) = (fx * inv_z, fy * inv_z);
+            // ∂u/∂δ and ∂v/∂δ for the right perturbation of world_from_cam (camera::j_uv_pose)
+            let ju = [-a, 0.0, a * xz, a * xz * p.y, -a * (p.z + p.x * xz), a * p.y];
+            let jv = [0.0, -c, c * yz, c * (p.z + p.y * yz), -c * p.x * yz, -c * p.x];
+            let (w00, w01, w11) = (robust * w[(0, 0)], robust * w[(0, 1)], robust * w[(1, 1)]);
+            let mut k = 0;
+            for i in 0..6 {
+                let (ui, vi) = (w00 * ju[i] + w01 * jv[i], w01 * ju[i] + w11 * jv[i]);
+                g[i] += ju[i] * wr[0] * robust + jv[i] * wr[1] * robust;
+                for l in i..6 {
+                    upper[k] += ui * ju[l] + vi * jv[l];
+                    k += 1;
+                }
+            }
+        }
+        let mut h = Matrix6::zeros();
+        let mut k = 0;
+        for i in 0..6 {
+            for l in i..6 {
+                h[(i, l)] = upper[k];
+                h[(l, i)] = upper[k];
+                k += 1;
+            }
         }
         (h, g, cost)
     }

@@ -24,7 +24,7 @@
 //! The D_k are returned too: pose errors are shared by every point a keyframe sees, so a
 //! later PnP must propagate them jointly (see `pnp`), not as independent point errors.
 
-use nalgebra::{Matrix2, Matrix3, Matrix3x6, Matrix4, Matrix6, Vector2, Vector3, Vector4};
+use nalgebra::{Matrix2, Matrix3, Matrix3x6, Matrix6, Vector2, Vector3, Vector4};
 use rayon::prelude::*;
 
 use crate::camera::{Camera, j_uv_point, j_uv_pose, project};
@@ -107,7 +107,8 @@ pub struct TriangulatedPoint {
     pub covariance: Matrix3<f64>,
     /// The part of `covariance` due to pixel noise alone (independent between points).
     pub pixel_covariance: Matrix3<f64>,
-    /// (camera index, D_k = ∂X/∂δ_k) for each camera with inlier observations.
+    /// (camera index, D_k = ∂X/∂δ_k) for each camera with inlier observations; computed only
+    /// when pose covariances are given (empty otherwise).
     pub pose_jacobians: Vec<(usize, Matrix3x6<f64>)>,
     /// Per observation of the track (in input order): kept as inlier.
     pub inliers: Vec<bool>,
@@ -239,11 +240,19 @@ pub fn triangulate_track(
     }
     let track = Track { camera, poses, pose_covariances, views, options };
     let all: Vec<usize> = (0..views.len()).collect();
-    // 1. all views: DLT + robust LM; done if every observation fits.
-    let mut start = dlt(camera, poses, views, &all).map(|x| track.refine(&all, x, options.loss));
+    // 1. all views: DLT (+ robust LM unless every observation already fits).
+    let mut start = dlt(camera, poses, views, &all);
     let mut inliers = start.map(|x| track.inlier_set(&x)).unwrap_or_default();
-    // 2. otherwise the best two-view DLT seeds the consensus.
-    if inliers.len() < views.len()
+    if let Some(x) = start
+        && inliers.len() < views.len()
+    {
+        let refined = track.refine(&all, x, options.loss);
+        start = Some(refined);
+        inliers = track.inlier_set(&refined);
+    }
+    // 2. if that left more than one view out, the best two-view DLT seeds the consensus
+    //    (a single bad view is what the robust start handles by itself).
+    if inliers.len() + 1 < views.len()
         && views.len() >= 3
         && let Some((x, set)) = best_pair(camera, poses, views, options.max_residual_px)
         && set.len() > inliers.len()
@@ -384,6 +393,8 @@ impl Track<'_> {
         };
         result.pixel_covariance = h_inv * meat * h_inv;
         result.covariance = result.pixel_covariance;
+        // D_k is only needed (and only returned) when the poses carry covariances
+        let Some(covs) = self.pose_covariances else { return };
         let mut jacobians: Vec<(usize, Matrix3x6<f64>)> = Vec::new();
         for (cam, jt_w, p) in terms {
             let d = -(h_inv * jt_w) * j_uv_pose(self.camera, &p);
@@ -392,10 +403,8 @@ impl Track<'_> {
                 None => jacobians.push((cam, d)),
             }
         }
-        if let Some(covs) = self.pose_covariances {
-            for (cam, d) in &jacobians {
-                result.covariance += d * covs[*cam] * d.transpose();
-            }
+        for (cam, d) in &jacobians {
+            result.covariance += d * covs[*cam] * d.transpose();
         }
         result.pose_jacobians = jacobians;
     }
@@ -462,37 +471,47 @@ fn best_pair(camera: &Camera, poses: &[SE3], views: &[View], threshold: f64) -> 
     best.map(|(x, set, _)| (x, set))
 }
 
-/// Homogeneous N-view DLT in normalized camera coordinates, centred on the mean camera
-/// centre (for conditioning); None when the solution is at infinity.
+/// N-view DLT in normalized camera coordinates, centred on the mean camera centre and solved
+/// in inhomogeneous form: each view gives the rows aₖ = x̂ₖ P₃ − P₁, ŷₖ P₃ − P₂ of
+/// A (X, 1)ᵀ = 0 (normalized to unit length), and X = −(Σaₓᵧᵤaₓᵧᵤᵀ)⁻¹ Σ aₓᵧᵤ a_w is a 3×3
+/// solve (centring keeps the point away from w = 0). None when the rays are (nearly)
+/// parallel, i.e. the solution is at infinity.
 fn dlt(camera: &Camera, poses: &[SE3], views: &[View], subset: &[usize]) -> Option<Vector3<f64>> {
     let centre = subset.iter().map(|&i| poses[views[i].camera].translation).sum::<Vector3<f64>>()
         / subset.len() as f64;
-    let mut ata = Matrix4::<f64>::zeros();
+    let mut ata = Matrix3::<f64>::zeros();
+    let mut atb = Vector3::<f64>::zeros();
     for &i in subset {
         let pose = &poses[views[i].camera];
         let rt = pose.rotation.matrix().transpose();
         let t = -(rt * (pose.translation - centre));
         let xn = camera.unproject(&views[i].uv);
-        let row = |k: usize| Vector4::new(rt[(k, 0)], rt[(k, 1)], rt[(k, 2)], t[k]);
-        let (p1, p2, p3) = (row(0), row(1), row(2));
-        for a in [xn.x * p3 - p1, xn.y * p3 - p2] {
-            let a = a.normalize();
-            ata += a * a.transpose();
+        for (coord, k) in [(xn.x, 0), (xn.y, 1)] {
+            let a = Vector4::new(
+                coord * rt[(2, 0)] - rt[(k, 0)],
+                coord * rt[(2, 1)] - rt[(k, 1)],
+                coord * rt[(2, 2)] - rt[(k, 2)],
+                coord * t[2] - t[k],
+            );
+            let a = a / a.norm();
+            let axyz = a.fixed_rows::<3>(0);
+            ata += axyz * axyz.transpose();
+            atb -= axyz * a[3];
         }
     }
-    let eig = ata.symmetric_eigen();
-    let (k, _) = eig.eigenvalues.iter().enumerate().min_by(|a, b| a.1.total_cmp(b.1))?;
-    let h = eig.eigenvectors.column(k);
-    let scale = h.fixed_rows::<3>(0).norm().max(f64::MIN_POSITIVE);
-    if h[3].abs() <= DLT_INFINITY_RATIO * scale {
+    // λ_min ≥ det/(λ_max λ_mid) ≥ 4 det/tr²; compared with λ_max ≤ tr
+    let trace = ata.trace();
+    let lower_bound = 4.0 * ata.determinant() / (trace * trace);
+    if lower_bound.is_nan() || lower_bound <= DLT_MIN_RECIPROCAL_CONDITION * trace {
         return None;
     }
-    let x = h.fixed_rows::<3>(0) / h[3] + centre;
+    let x = ata.cholesky()?.solve(&atb) + centre;
     x.iter().all(|v| v.is_finite()).then_some(x)
 }
 
-/// |w| below this fraction of |(x, y, z)| puts the DLT solution at infinity.
-const DLT_INFINITY_RATIO: f64 = 1e-10;
+/// Reciprocal condition number of the DLT's 3×3 normal matrix below which the rays are
+/// parallel (the point is at infinity).
+const DLT_MIN_RECIPROCAL_CONDITION: f64 = 1e-12;
 
 struct PointProblem<'a> {
     camera: &'a Camera,
@@ -507,16 +526,6 @@ struct PointProblem<'a> {
 impl LeastSquares<3> for PointProblem<'_> {
     type State = Vector3<f64>;
 
-    fn cost(&self, x: &Vector3<f64>) -> f64 {
-        self.subset
-            .iter()
-            .map(|&i| {
-                let v = &self.views[i];
-                let r = project(self.camera, &self.poses[v.camera], x).uv - v.uv;
-                self.loss.cost(r.dot(&(self.weights[i] * r)))
-            })
-            .sum()
-    }
 
     fn normal_equations(&self, x: &Vector3<f64>) -> (Matrix3<f64>, Vector3<f64>, f64) {
         let mut h = Matrix3::zeros();
@@ -544,13 +553,16 @@ impl LeastSquares<3> for PointProblem<'_> {
 }
 
 fn max_ray_angle(poses: &[SE3], views: &[View], subset: &[usize], x: &Vector3<f64>) -> f64 {
+    // the largest angle is the smallest cosine: one atan2 at the end, not one per pair
     let rays: Vec<Vector3<f64>> = subset.iter().map(|&i| (x - poses[views[i].camera].translation).normalize()).collect();
-    let mut best = 0.0_f64;
+    let mut widest: Option<(f64, usize, usize)> = None;
     for a in 0..rays.len() {
         for b in a + 1..rays.len() {
-            let cross = rays[a].cross(&rays[b]).norm();
-            best = best.max(cross.atan2(rays[a].dot(&rays[b])));
+            let cos = rays[a].dot(&rays[b]);
+            if widest.is_none_or(|(c, _, _)| cos < c) {
+                widest = Some((cos, a, b));
+            }
         }
     }
-    best
+    widest.map_or(0.0, |(cos, a, b)| rays[a].cross(&rays[b]).norm().atan2(cos))
 }

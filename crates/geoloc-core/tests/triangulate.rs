@@ -141,7 +141,10 @@ fn pose_jacobians_match_central_differences() {
     let h = 1e-4; // O(h²) truncation ≪ tolerance; LM's stopping noise ≪ h
     for x in &points {
         let views: Vec<View> = (0..poses.len()).map(|c| View { camera: c, uv: observe(&mut rng, &camera, &poses[c], x, 0.0) }).collect();
-        let base = triangulate_track(&camera, &poses, None, &views, &options);
+        // D is computed when pose covariances are given; tiny ones leave the weights ≈ 1/σ²
+        let covs = vec![Matrix6::identity() * 1e-12; poses.len()];
+        let base = triangulate_track(&camera, &poses, Some(&covs), &views, &options);
+        assert_eq!(base.pose_jacobians.len(), poses.len());
         for (cam, d) in &base.pose_jacobians {
             for axis in 0..6 {
                 let mut delta = Twist::zeros();
@@ -150,8 +153,8 @@ fn pose_jacobians_match_central_differences() {
                 plus[*cam] = poses[*cam] * SE3::exp(&delta);
                 let mut minus = poses.clone();
                 minus[*cam] = poses[*cam] * SE3::exp(&-delta);
-                let xp = triangulate_track(&camera, &plus, None, &views, &options).point;
-                let xm = triangulate_track(&camera, &minus, None, &views, &options).point;
+                let xp = triangulate_track(&camera, &plus, Some(&covs), &views, &options).point;
+                let xm = triangulate_track(&camera, &minus, Some(&covs), &views, &options).point;
                 let numeric = (xp - xm) / (2.0 * h);
                 let analytic = d.column(axis);
                 assert!((numeric - analytic).norm() < 1e-4 * analytic.norm().max(1e-3), "cam {cam} axis {axis}: {numeric} vs {analytic}");

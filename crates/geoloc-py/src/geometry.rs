@@ -60,22 +60,23 @@ pub fn triangulate<'py>(
     let tri = py
         .detach(|| core_triangulate(&cam, &poses, covs.as_deref(), &cam_ids, &track_ids, &pixels, &options))
         .map_err(to_py_err)?;
-    let n_cams = poses.len();
-    let n = tri.points.len();
-    let mut jacobians = vec![Matrix3x6::<f64>::zeros(); n * n_cams];
-    for (j, p) in tri.points.iter().enumerate() {
-        for (k, d) in &p.pose_jacobians {
-            jacobians[j * n_cams + k] = *d;
-        }
-    }
     let out = PyDict::new(py);
+    if covs.is_some() {
+        let (n_cams, n) = (poses.len(), tri.points.len());
+        let mut jacobians = vec![Matrix3x6::<f64>::zeros(); n * n_cams];
+        for (j, p) in tri.points.iter().enumerate() {
+            for (k, d) in &p.pose_jacobians {
+                jacobians[j * n_cams + k] = *d;
+            }
+        }
+        out.set_item("pose_jacobians", matrices_to_array(py, &jacobians))?;
+    }
     out.set_item("points", matrices_to_array(py, &tri.points.iter().map(|p| p.point).collect::<Vec<_>>()))?;
     out.set_item("status", tri.points.iter().map(|p| p.status as u8).collect::<Vec<_>>().into_pyarray(py))?;
     out.set_item("mean_residual", tri.points.iter().map(|p| p.mean_residual_px).collect::<Vec<_>>().into_pyarray(py))?;
     out.set_item("max_angle", tri.points.iter().map(|p| p.max_angle_rad).collect::<Vec<_>>().into_pyarray(py))?;
     out.set_item("covariances", matrices_to_array(py, &tri.points.iter().map(|p| p.covariance).collect::<Vec<_>>()))?;
     out.set_item("pixel_covariances", matrices_to_array(py, &tri.points.iter().map(|p| p.pixel_covariance).collect::<Vec<_>>()))?;
-    out.set_item("pose_jacobians", matrices_to_array(py, &jacobians))?;
     out.set_item("observation_inliers", tri.observation_inliers.into_pyarray(py))?;
     Ok(out)
 }

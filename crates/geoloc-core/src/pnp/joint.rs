@@ -141,6 +141,11 @@ impl<'a> JointProblem<'a> {
                 termination = Termination::StepConverged;
                 break;
             }
+            // predicted decrease of the reduced quadratic model (see optim::lm)
+            if b.dot(&step) <= options.cost_tolerance * cost {
+                termination = Termination::CostConverged;
+                break;
+            }
             let candidate_pose = pose * SE3::exp(&step);
             let candidate_eps: Vec<Vector3<f64>> = eps
                 .iter()

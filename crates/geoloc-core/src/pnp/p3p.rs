@@ -9,14 +9,10 @@
 //! Each positive-depth solution gives camera-frame points sᵢjᵢ, aligned with Pᵢ by the
 //! Kabsch/Umeyama absolute orientation.
 
-use nalgebra::{Matrix3, Matrix4, Vector3};
+use nalgebra::{Matrix3, Vector3};
 
 use crate::lie::{SE3, SO3};
 
-/// Largest |imaginary part| (relative to the root's modulus + 1) treated as a real root.
-const REAL_ROOT_TOLERANCE: f64 = 1e-6;
-/// Iteration cap of the companion matrix's Schur decomposition.
-const SCHUR_MAX_ITERATIONS: usize = 200;
 /// |A₄| below this fraction of max|Aᵢ| makes the quartic degenerate for this sample.
 const DEGENERATE_LEADING: f64 = 1e-12;
 
@@ -64,43 +60,101 @@ pub fn p3p(bearings: &[Vector3<f64>; 3], points: &[Vector3<f64>; 3]) -> Vec<SE3>
     poses
 }
 
-/// Real roots of A₀ + A₁v + A₂v² + A₃v³ + A₄v⁴ (eigenvalues of the companion matrix,
-/// polished by Newton steps).
+/// Real roots of A₀ + A₁v + A₂v² + A₃v³ + A₄v⁴ by Ferrari's method, each polished by Newton
+/// steps on the original quartic (the closed form alone loses digits near double roots).
 fn real_quartic_roots(coeffs: &[f64; 5]) -> Vec<f64> {
     let scale = coeffs.iter().fold(0.0_f64, |m, c| m.max(c.abs()));
     if scale == 0.0 || coeffs[4].abs() < DEGENERATE_LEADING * scale {
         return Vec::new();
     }
-    let c: Vec<f64> = coeffs.iter().map(|a| a / coeffs[4]).collect();
-    let companion = Matrix4::new(
-        0.0, 0.0, 0.0, -c[0], //
-        1.0, 0.0, 0.0, -c[1], //
-        0.0, 1.0, 0.0, -c[2], //
-        0.0, 0.0, 1.0, -c[3],
-    );
-    let poly = |x: f64| (((x + c[3]) * x + c[2]) * x + c[1]) * x + c[0];
-    let dpoly = |x: f64| ((4.0 * x + 3.0 * c[3]) * x + 2.0 * c[2]) * x + c[1];
-    // Schur with an iteration cap: nalgebra's uncapped version can spin on some inputs.
-    let Some(schur) = nalgebra::linalg::Schur::try_new(companion, f64::EPSILON, SCHUR_MAX_ITERATIONS) else {
-        return Vec::new();
-    };
-    schur
-        .complex_eigenvalues()
-        .iter()
-        .filter(|z| z.im.abs() <= REAL_ROOT_TOLERANCE * (1.0 + z.re.abs()))
-        .map(|z| {
-            let mut x = z.re;
-            for _ in 0..3 {
-                let d = dpoly(x);
-                if d == 0.0 {
+    // monic x⁴ + a x³ + b x² + c x + d, depressed by x = y − a/4: y⁴ + p y² + q y + r
+    let [d, c, b, a] = [coeffs[0], coeffs[1], coeffs[2], coeffs[3]].map(|v| v / coeffs[4]);
+    let a2 = a * a;
+    let p = b - 3.0 * a2 / 8.0;
+    let q = c - a * b / 2.0 + a2 * a / 8.0;
+    let r = d - a * c / 4.0 + a2 * b / 16.0 - 3.0 * a2 * a2 / 256.0;
+    let mut ys = Vec::with_capacity(4);
+    if q.abs() <= BIQUADRATIC_TOLERANCE * (1.0 + p.abs() + r.abs()) {
+        // y⁴ + p y² + r = 0: a quadratic in y²
+        for z in real_quadratic_roots(1.0, p, r) {
+            if z >= 0.0 {
+                ys.push(z.sqrt());
+                ys.push(-z.sqrt());
+            }
+        }
+    } else {
+        // resolvent cubic 8m³ + 8p m² + (2p² − 8r) m − q² = 0 has a root m > 0; then
+        // (y² + p/2 + m)² = (√(2m) y − q/(2√(2m)))² splits into two quadratics
+        let m = largest_real_cubic_root(p, p * p / 4.0 - r, -q * q / 8.0);
+        if m > 0.0 {
+            let s = (2.0 * m).sqrt();
+            ys.extend(real_quadratic_roots(1.0, -s, p / 2.0 + m + q / (2.0 * s)));
+            ys.extend(real_quadratic_roots(1.0, s, p / 2.0 + m - q / (2.0 * s)));
+        }
+    }
+    let poly = |x: f64| (((x + a) * x + b) * x + c) * x + d;
+    let dpoly = |x: f64| ((4.0 * x + 3.0 * a) * x + 2.0 * b) * x + c;
+    ys.into_iter()
+        .map(|y| {
+            let mut x = y - a / 4.0;
+            for _ in 0..NEWTON_STEPS {
+                let slope = dpoly(x);
+                if slope == 0.0 {
                     break;
                 }
-                x -= poly(x) / d;
+                x -= poly(x) / slope;
             }
             x
         })
         .filter(|x| x.is_finite())
         .collect()
+}
+
+/// Newton steps that polish each quartic root.
+const NEWTON_STEPS: usize = 2;
+/// |q| below this (relative) makes the depressed quartic biquadratic.
+const BIQUADRATIC_TOLERANCE: f64 = 1e-14;
+
+/// Real roots of α x² + β x + γ (stable form, no cancellation).
+fn real_quadratic_roots(alpha: f64, beta: f64, gamma: f64) -> Vec<f64> {
+    let disc = beta * beta - 4.0 * alpha * gamma;
+    if disc < 0.0 {
+        return Vec::new();
+    }
+    let t = -0.5 * (beta + beta.signum() * disc.sqrt());
+    if t == 0.0 {
+        return vec![0.0, 0.0];
+    }
+    vec![t / alpha, gamma / t]
+}
+
+/// The largest real root of m³ + e₂ m² + e₁ m + e₀ with (e₂, e₁, e₀) = (p, p²/4 − r, −q²/8),
+/// i.e. the resolvent 8m³ + 8pm² + (2p² − 8r)m − q² divided by 8 (Cardano / Viète).
+fn largest_real_cubic_root(e2: f64, e1: f64, e0: f64) -> f64 {
+    // depress: m = t − e2/3 → t³ + P t + Q
+    let shift = e2 / 3.0;
+    let pp = e1 - e2 * e2 / 3.0;
+    let qq = 2.0 * e2 * e2 * e2 / 27.0 - e2 * e1 / 3.0 + e0;
+    let disc = qq * qq / 4.0 + pp * pp * pp / 27.0;
+    let t = if disc > 0.0 {
+        let sq = disc.sqrt();
+        (-qq / 2.0 + sq).cbrt() + (-qq / 2.0 - sq).cbrt()
+    } else if pp < 0.0 {
+        // three real roots: the largest is 2√(−P/3) cos(⅓ acos(…))
+        let rho = (-pp / 3.0).sqrt();
+        let arg = (-qq / (2.0 * rho * rho * rho)).clamp(-1.0, 1.0);
+        2.0 * rho * (arg.acos() / 3.0).cos()
+    } else {
+        (-qq).cbrt()
+    };
+    let mut m = t - shift;
+    // one Newton step on the undepressed cubic
+    let f = ((m + e2) * m + e1) * m + e0;
+    let df = (3.0 * m + 2.0 * e2) * m + e1;
+    if df != 0.0 {
+        m -= f / df;
+    }
+    m
 }
 
 /// The rigid transform world_from_cam with cam_points[i] = T⁻¹ world_points[i] in the
@@ -134,6 +188,43 @@ pub fn absolute_orientation(cam_points: &[Vector3<f64>], world_points: &[Vector3
 mod tests {
     use super::*;
     use crate::testing::SplitMix64;
+
+    /// Against the eigenvalues of the companion matrix (an independent method) on random
+    /// quartics with four real roots.
+    #[test]
+    fn quartic_roots_match_companion_eigenvalues() {
+        let mut rng = SplitMix64::new(9);
+        for _ in 0..500 {
+            let roots: Vec<f64> = (0..4).map(|_| rng.uniform_in(-3.0, 3.0)).collect();
+            let mut c = vec![1.0];
+            for r in &roots {
+                let mut next = vec![0.0; c.len() + 1];
+                for (i, a) in c.iter().enumerate() {
+                    next[i + 1] += a;
+                    next[i] -= r * a;
+                }
+                c = next;
+            }
+            let lead = rng.uniform_in(0.5, 2.0);
+            let coeffs = [c[0] * lead, c[1] * lead, c[2] * lead, c[3] * lead, c[4] * lead];
+            let mut got = real_quartic_roots(&coeffs);
+            let companion = nalgebra::Matrix4::new(
+                0.0, 0.0, 0.0, -c[0], 1.0, 0.0, 0.0, -c[1], 0.0, 1.0, 0.0, -c[2], 0.0, 0.0, 1.0, -c[3],
+            );
+            let mut want: Vec<f64> = nalgebra::linalg::Schur::try_new(companion, f64::EPSILON, 500)
+                .expect("converges")
+                .complex_eigenvalues()
+                .iter()
+                .map(|z| z.re)
+                .collect();
+            got.sort_by(f64::total_cmp);
+            want.sort_by(f64::total_cmp);
+            assert_eq!(got.len(), 4, "{roots:?} → {got:?}");
+            for (g, w) in got.iter().zip(&want) {
+                assert!((g - w).abs() < 1e-6, "{got:?} vs {want:?}");
+            }
+        }
+    }
 
     #[test]
     fn quartic_roots_of_a_known_polynomial() {
