@@ -128,7 +128,9 @@ def test_triangulate_reasons_and_outputs() -> None:
     [
         ({"points3d": np.zeros((5, 2))}, r"points3d: expected shape \(N, 3\)"),
         ({"pixels": np.zeros((4, 2))}, r"pixels: expected shape \(5, 2\)"),
-        ({"pixels": np.full((5, 2), np.nan)}, r"pixels\[0, 0\] is not finite"),
+        ({"pixels": np.full((5, 2), np.nan)}, r"pixels\[0\] holds a non-finite value"),
+        ({"points3d": np.full((5, 3), np.inf)}, r"points3d\[0\] holds a non-finite value"),
+        ({"pixels": np.array([["a", "b"]] * 5)}, "pixels: expected real numbers"),
         ({"covariance": "exact"}, "covariance: expected"),
         ({"ransac": False}, "init_pose: required"),
         ({"init_pose": np.eye(3)}, r"init_pose: expected shape"),

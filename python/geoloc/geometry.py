@@ -124,6 +124,14 @@ class PnPResult:
     lm_converged: bool
 
 
+def _real_array(x: ArrayLike, name: str) -> Array:
+    """``x`` as a C-contiguous float64 array of real numbers (no finiteness check)."""
+    arr = np.asarray(x)
+    if arr.dtype.kind not in "iuf":
+        raise InvalidInputError(f"{name}: expected real numbers (float64), got an array of dtype {arr.dtype}")
+    return np.ascontiguousarray(arr, dtype=np.float64)
+
+
 def _check_positive(value: float, name: str) -> float:
     if not isinstance(value, (int, float, np.floating, np.integer)) or not np.isfinite(value) or value <= 0:
         raise InvalidInputError(f"{name}: expected a finite number > 0, got {value!r}")
@@ -263,10 +271,11 @@ def solve_pnp(
     """
     if not isinstance(cam, Camera):
         raise InvalidInputError(f"cam: expected a geoloc.Camera, got {type(cam).__name__}")
-    pts = as_float64(points3d, "points3d")
+    # finiteness is checked (with the offending row) by the core, once
+    pts = _real_array(points3d, "points3d")
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise InvalidInputError(f"points3d: expected shape (N, 3), got {pts.shape}")
-    px = as_float64(pixels, "pixels")
+    px = _real_array(pixels, "pixels")
     if px.shape != (pts.shape[0], 2):
         raise InvalidInputError(f"pixels: expected shape ({pts.shape[0]}, 2) like points3d, got {px.shape}")
     n = pts.shape[0]

@@ -4,5 +4,5 @@
 pub mod lm;
 pub mod robust;
 
-pub use lm::{LeastSquares, LmOptions, LmReport, Termination, levenberg_marquardt};
+pub use lm::{LeastSquares, LmOptions, LmReport, Termination, levenberg_marquardt, levenberg_marquardt_with_information};
 pub use robust::RobustLoss;

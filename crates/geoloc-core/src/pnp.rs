@@ -39,7 +39,7 @@ use nalgebra::{Matrix2, Matrix2x3, Matrix3, Matrix3x6, Matrix6, Vector2, Vector3
 use crate::camera::{Camera, j_uv_point, j_uv_pose, project};
 use crate::error::{GeolocError, Result};
 use crate::lie::{SE3, SO3};
-use crate::optim::{LeastSquares, LmOptions, LmReport, RobustLoss, levenberg_marquardt};
+use crate::optim::{LeastSquares, LmOptions, LmReport, RobustLoss, levenberg_marquardt, levenberg_marquardt_with_information};
 use crate::testing::SplitMix64;
 
 /// How the returned covariance is computed.
@@ -242,6 +242,7 @@ pub fn solve_pnp(
         return Ok(PnpResult::failure(n, format!("too few inliers: {} < {MIN_INLIERS}", subset.len()), ransac_iterations));
     }
     let mut joint_covariance = None;
+    let mut least_squares = None;
     if options.covariance == CovarianceModel::Propagated
         && let Some(u) = uncertainty.filter(|u| u.shared.is_none())
     {
@@ -256,28 +257,32 @@ pub fn solve_pnp(
         // plain weighted least squares, whose covariance the propagation below is exact for.
         let w = weighting(camera, points, &pose, &subset, uncertainty, options.pixel_sigma);
         let problem = PoseProblem { camera, points, pixels, subset: &subset, weights: &w.weights, biases: &w.biases, loss: RobustLoss::None };
-        let (next, r) = levenberg_marquardt(&problem, pose, &options.lm);
+        let (next, r, h) = levenberg_marquardt_with_information(&problem, pose, &options.lm);
         pose = next;
         report = Some(r);
+        if uncertainty.is_none() {
+            // exact points: C = (Σ JⱼᵀJⱼ/σ²)⁻¹ is the information of this very solve, and its
+            // cost is Σ‖rⱼ‖²/σ²
+            least_squares = Some((h, r.final_cost));
+        }
     }
     let mut inliers = vec![false; n];
     for &j in &subset {
         inliers[j] = true;
     }
-    let sum_sq: f64 = subset.iter().map(|&j| (project(camera, &pose, &points[j]).uv - pixels[j]).norm_squared()).sum();
+    let sum_sq: f64 = match least_squares {
+        Some((_, cost)) => cost * options.pixel_sigma * options.pixel_sigma,
+        None => subset.iter().map(|&j| (project(camera, &pose, &points[j]).uv - pixels[j]).norm_squared()).sum(),
+    };
     let rms_px = (sum_sq / subset.len() as f64).sqrt();
     let covariance = match options.covariance {
         CovarianceModel::Paper => paper_covariance(camera, points, pixels, &pose, &subset, options.loss),
         CovarianceModel::Propagated => match joint_covariance {
             Some(cov) => cov.filter(|c| inverse_information(c).is_some()),
-            None if uncertainty.is_none() => {
-                // exact points: C = (Σ JⱼᵀJⱼ/σ²)⁻¹, the information of the last solve
-                let weights = vec![Matrix2::identity() / (options.pixel_sigma * options.pixel_sigma); subset.len()];
-                let biases = vec![Vector2::zeros(); subset.len()];
-                let problem = PoseProblem { camera, points, pixels, subset: &subset, weights: &weights, biases: &biases, loss: RobustLoss::None };
-                inverse_information(&problem.normal_equations(&pose).0)
-            }
-            None => propagated_covariance(camera, points, &pose, &subset, uncertainty, options.pixel_sigma),
+            None => match least_squares {
+                Some((h, _)) => inverse_information(&h),
+                None => propagated_covariance(camera, points, &pose, &subset, uncertainty, options.pixel_sigma),
+            },
         },
     };
     let Some(covariance) = covariance else {

@@ -86,6 +86,15 @@ impl SplitMix64 {
     }
 }
 
+/// A world_from_cam pose at `centre` whose optical axis (z) points at `target`, y down.
+pub fn look_at(centre: &Vector3<f64>, target: &Vector3<f64>) -> SE3 {
+    let z = (target - centre).normalize();
+    let up = if z.y.abs() > 0.9 { Vector3::x() } else { Vector3::y() };
+    let x = up.cross(&z).normalize();
+    let y = z.cross(&x);
+    SE3::new(SO3::from_matrix_unchecked(nalgebra::Matrix3::from_columns(&[x, y, z])), *centre)
+}
+
 /// The angle regimes every Lie identity is checked in (DESIGN.md §6): identity, tiny,
 /// just around the Taylor threshold, ordinary, and just short of π.
 pub const ANGLE_REGIMES_RAD: [f64; 7] =

@@ -90,13 +90,27 @@ pub fn levenberg_marquardt<P, const D: usize>(
 where
     P: LeastSquares<D>,
 {
+    let (x, report, _) = levenberg_marquardt_with_information(problem, state, options);
+    (x, report)
+}
+
+/// [`levenberg_marquardt`], also returning the undamped H = Σ JᵀWJ at the returned state
+/// (the information matrix a covariance is built from, without another pass over the data).
+pub fn levenberg_marquardt_with_information<P, const D: usize>(
+    problem: &P,
+    state: P::State,
+    options: &LmOptions,
+) -> (P::State, LmReport, SMatrix<f64, D, D>)
+where
+    P: LeastSquares<D>,
+{
     let mut x = state;
     let (mut h, mut g, mut cost) = problem.normal_equations(&x);
     let initial_cost = cost;
     let mut lambda = options.initial_lambda;
     let report = |iterations, final_cost, termination| LmReport { iterations, initial_cost, final_cost, termination };
     if !cost.is_finite() || !h.iter().all(|v| v.is_finite()) {
-        return (x, report(0, cost, Termination::NonFinite));
+        return (x, report(0, cost, Termination::NonFinite), h);
     }
     for iteration in 1..=options.max_iterations {
         let mut damped = h;
@@ -106,20 +120,20 @@ where
         let Some(chol) = damped.cholesky() else {
             lambda *= 10.0;
             if lambda > MAX_LAMBDA {
-                return (x, report(iteration, cost, Termination::NoDescent));
+                return (x, report(iteration, cost, Termination::NoDescent), h);
             }
             continue;
         };
         let delta = chol.solve(&(-g));
         if delta.norm() < options.step_tolerance {
-            return (x, report(iteration, cost, Termination::StepConverged));
+            return (x, report(iteration, cost, Termination::StepConverged), h);
         }
         // The quadratic model's predicted decrease −(gᵀδ + ½δᵀHδ): when even that is below
         // the tolerance we are at the minimum to working precision — stop here instead of
         // raising λ through a dozen rejected steps.
         let predicted = -(g.dot(&delta) + 0.5 * delta.dot(&(h * delta)));
         if predicted <= options.cost_tolerance * cost {
-            return (x, report(iteration, cost, Termination::CostConverged));
+            return (x, report(iteration, cost, Termination::CostConverged), h);
         }
         let candidate = problem.retract(&x, &delta);
         // Linearize at the candidate right away: steps are mostly accepted, and this saves
@@ -131,16 +145,16 @@ where
             (h, g, cost) = (new_h, new_g, new_cost);
             lambda = (lambda * 0.1).max(MIN_LAMBDA);
             if decrease < options.cost_tolerance {
-                return (x, report(iteration, cost, Termination::CostConverged));
+                return (x, report(iteration, cost, Termination::CostConverged), h);
             }
         } else {
             lambda *= 10.0;
             if lambda > MAX_LAMBDA {
-                return (x, report(iteration, cost, Termination::NoDescent));
+                return (x, report(iteration, cost, Termination::NoDescent), h);
             }
         }
     }
-    (x, report(options.max_iterations, cost, Termination::MaxIterations))
+    (x, report(options.max_iterations, cost, Termination::MaxIterations), h)
 }
 
 #[cfg(test)]

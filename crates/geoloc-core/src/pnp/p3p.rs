@@ -40,6 +40,7 @@ pub fn p3p(bearings: &[Vector3<f64>; 3], points: &[Vector3<f64>; 3]) -> Vec<SE3>
         4.0 * (amc * (1.0 - amc) * cb - (1.0 - apc) * ca * cg + 2.0 * c2 / b2 * ca * ca * cb), // A3
         (amc - 1.0).powi(2) - 4.0 * c2 / b2 * ca * ca, // A4
     ];
+    let Some(world_frame) = triangle_frame(points) else { return Vec::new() };
     let mut poses = Vec::with_capacity(4);
     for v in real_quartic_roots(&coeffs) {
         let denom = 2.0 * (cg - v * ca);
@@ -53,8 +54,11 @@ pub fn p3p(bearings: &[Vector3<f64>; 3], points: &[Vector3<f64>; 3]) -> Vec<SE3>
         }
         let s1 = s1_sq.sqrt();
         let cam_points = [j1 * s1, j2 * (u * s1), j3 * (v * s1)];
-        if let Some(pose) = absolute_orientation(&cam_points, points) {
-            poses.push(pose);
+        if let Some(cam_frame) = triangle_frame(&cam_points) {
+            // R_wc maps the camera triangle's frame onto the world triangle's
+            let r = world_frame * cam_frame.transpose();
+            let rotation = SO3::from_matrix_unchecked(r);
+            poses.push(SE3::new(rotation, points[0] - rotation * cam_points[0]));
         }
     }
     poses
@@ -157,31 +161,14 @@ fn largest_real_cubic_root(e2: f64, e1: f64, e0: f64) -> f64 {
     m
 }
 
-/// The rigid transform world_from_cam with cam_points[i] = T⁻¹ world_points[i] in the
-/// least-squares sense (Kabsch with the reflection fix). None if degenerate.
-pub fn absolute_orientation(cam_points: &[Vector3<f64>], world_points: &[Vector3<f64>]) -> Option<SE3> {
-    let n = cam_points.len() as f64;
-    let cc = cam_points.iter().sum::<Vector3<f64>>() / n;
-    let cw = world_points.iter().sum::<Vector3<f64>>() / n;
-    let mut h = Matrix3::zeros();
-    for (pc, pw) in cam_points.iter().zip(world_points) {
-        h += (pc - cc) * (pw - cw).transpose();
-    }
-    // R (world_from_cam rotation) maximizes Σ (pw − cw)ᵀ R (pc − cc): R = V diag(1,1,d) Uᵀ
-    // for H = Σ (pc − cc)(pw − cw)ᵀ = U Σ Vᵀ.
-    let svd = h.svd(true, true);
-    let (u, v_t) = (svd.u?, svd.v_t?);
-    let v = v_t.transpose();
-    let mut d = Matrix3::identity();
-    if (v * u.transpose()).determinant() < 0.0 {
-        d[(2, 2)] = -1.0;
-    }
-    let r = v * d * u.transpose();
-    if !r.iter().all(|x| x.is_finite()) {
-        return None;
-    }
-    let rotation = SO3::from_matrix_unchecked(r);
-    Some(SE3::new(rotation, cw - rotation * cc))
+/// The orthonormal frame [e₁ e₂ e₃] of a triangle: e₁ along P₂ − P₁, e₃ normal to the
+/// triangle, e₂ = e₃ × e₁. Two congruent triangles' frames differ by exactly the rotation
+/// between them, so R_wc = F_world F_camᵀ (Kneip et al. 2011 use the same construction).
+/// None for a degenerate (collinear) triangle.
+fn triangle_frame(p: &[Vector3<f64>; 3]) -> Option<Matrix3<f64>> {
+    let e1 = (p[1] - p[0]).try_normalize(f64::EPSILON)?;
+    let e3 = e1.cross(&(p[2] - p[0])).try_normalize(f64::EPSILON)?;
+    Some(Matrix3::from_columns(&[e1, e3.cross(&e1), e3]))
 }
 
 #[cfg(test)]
@@ -279,12 +266,16 @@ mod tests {
     }
 
     #[test]
-    fn absolute_orientation_is_exact_for_rigid_copies() {
+    fn triangle_frames_give_the_rotation_between_congruent_triangles() {
         let mut rng = SplitMix64::new(3);
-        let t = rng.pose(10.0);
-        let cam: Vec<Vector3<f64>> = (0..5).map(|_| rng.unit_vector() * 3.0).collect();
-        let world: Vec<Vector3<f64>> = cam.iter().map(|p| t * *p).collect();
-        let est = absolute_orientation(&cam, &world).expect("non-degenerate");
-        assert!((est.inverse() * t).log().norm() < 1e-12);
+        for _ in 0..100 {
+            let t = rng.pose(10.0);
+            let tri: [Vector3<f64>; 3] = std::array::from_fn(|_| rng.unit_vector() * 3.0);
+            let moved = tri.map(|p| t * p);
+            let r = triangle_frame(&moved).expect("non-degenerate") * triangle_frame(&tri).expect("non-degenerate").transpose();
+            assert!((r - t.rotation.matrix()).abs().max() < 1e-12);
+        }
+        let line = [Vector3::zeros(), Vector3::x(), Vector3::x() * 2.0];
+        assert!(triangle_frame(&line).is_none());
     }
 }

@@ -50,19 +50,11 @@ pub fn relative_error<const R: usize, const C: usize>(
 }
 
 use geoloc_core::camera::{Camera, project};
-use geoloc_core::lie::{SE3, SO3};
+use geoloc_core::lie::SE3;
 use geoloc_core::testing::SplitMix64;
 use nalgebra::{Vector2, Vector3};
 
-/// A world_from_cam pose at `centre` whose optical axis (z) points at `target`, y down.
-pub fn look_at(centre: &Vector3<f64>, target: &Vector3<f64>) -> SE3 {
-    let z = (target - centre).normalize();
-    let up = if z.y.abs() > 0.9 { Vector3::x() } else { Vector3::y() };
-    let x = up.cross(&z).normalize();
-    let y = z.cross(&x);
-    let r = nalgebra::Matrix3::from_columns(&[x, y, z]);
-    SE3::new(SO3::from_matrix_unchecked(r), *centre)
-}
+pub use geoloc_core::testing::look_at;
 
 /// `n_cams` cameras on a 1 m arc around the origin looking at a cloud of `n_points` points
 /// 4–6 m away; returns (camera, poses, points).
