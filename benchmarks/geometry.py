@@ -5,8 +5,10 @@
 All peers run in this process on identical data (K = (525, 525, 320, 240), 1 px noise):
 
 1. PnP refinement (LM) from a perturbed pose (2 cm, 1°), N = 50 / 200 / 1000 points:
-   geoloc (with its 6×6 covariance), cv2.solvePnPRefineLM, poselib.refine_absolute_pose,
-   pycolmap.refine_absolute_pose (with covariance).
+   geoloc with its 6×6 covariance — default Huber kernel (robust rounds + a final
+   least-squares solve) and without a kernel (plain least squares, as the peers) —,
+   cv2.solvePnPRefineLM, poselib.refine_absolute_pose, pycolmap.refine_absolute_pose
+   (with covariance).
 2. RANSAC PnP at 0 / 30 / 50 % outliers, N = 50 / 200 / 1000, no initial pose, 5 px
    threshold, ≥100 iterations, confidence 0.9999: geoloc, poselib.estimate_absolute_pose,
    cv2.solvePnPRansac (SQPnP refinement), pycolmap.estimate_absolute_pose.
@@ -84,6 +86,10 @@ def from_cam_from_world(R: Array, t: Array) -> Array:
 # ------------------------------------------------------------------------------- solvers
 def geoloc_refine(pts: Array, px: Array, init: Array) -> Array:
     return geometry.solve_pnp(pts, px, CAM, init_pose=init, ransac=False).pose
+
+
+def geoloc_refine_plain(pts: Array, px: Array, init: Array) -> Array:
+    return geometry.solve_pnp(pts, px, CAM, init_pose=init, ransac=False, loss="none").pose
 
 
 def cv2_refine(pts: Array, px: Array, init: Array) -> Array:
@@ -324,7 +330,10 @@ def main() -> None:
     args = parser.parse_args()
     print(f"geoloc {geoloc.__version__} geometry benchmark; {os.cpu_count()} CPUs")
     for n in args.sizes:
-        solvers: dict[str, Callable[..., Array | None]] = {"geoloc solve_pnp (LM + covariance)": geoloc_refine}
+        solvers: dict[str, Callable[..., Array | None]] = {
+            "geoloc solve_pnp (Huber LM + cov)": geoloc_refine,
+            "geoloc solve_pnp (plain LM + cov)": geoloc_refine_plain,
+        }
         if cv2 is not None:
             solvers["cv2.solvePnPRefineLM"] = cv2_refine
         if poselib is not None:

@@ -284,11 +284,11 @@ def solve_pnp(
     if not ransac and init_pose is None:
         raise InvalidInputError("init_pose: required when ransac=False")
     init = None
-    if init_pose is not None:
-        init_flat, lead = as_batch(init_pose, "init_pose", (4, 4))
-        if lead != ():
-            raise InvalidInputError(f"init_pose: expected shape (4, 4), got {np.shape(init_pose)}")
-        init = init_flat
+    if init_pose is not None:  # finiteness and rigidity are checked by the core
+        init = _real_array(init_pose, "init_pose")
+        if init.shape != (4, 4):
+            raise InvalidInputError(f"init_pose: expected shape (4, 4), got {init.shape}")
+        init = init.reshape(1, 16)
     if uncertainty is not None and point_covariances is not None:
         raise InvalidInputError("point_covariances: give either uncertainty or point_covariances, not both")
     if point_covariances is not None:

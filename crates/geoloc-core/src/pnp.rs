@@ -225,9 +225,11 @@ pub fn solve_pnp(
         let problem = PoseProblem { camera, points, pixels, subset: &subset, weights: &w.weights, biases: &w.biases, loss: options.loss };
         // with the propagated model a final least-squares solve follows: the robust rounds
         // only have to settle the inlier set
-        let lm = match options.covariance {
-            CovarianceModel::Propagated => LmOptions { cost_tolerance: ROBUST_ROUND_COST_TOLERANCE, ..options.lm },
-            CovarianceModel::Paper => options.lm,
+        let final_solve_follows = options.covariance == CovarianceModel::Propagated && options.loss != RobustLoss::None;
+        let lm = if final_solve_follows {
+            LmOptions { cost_tolerance: ROBUST_ROUND_COST_TOLERANCE, ..options.lm }
+        } else {
+            options.lm
         };
         let (next, r) = levenberg_marquardt(&problem, pose, &lm);
         pose = next;
@@ -252,7 +254,7 @@ pub fn solve_pnp(
         pose = next;
         report = Some(r);
         joint_covariance = Some(cov);
-    } else if options.covariance == CovarianceModel::Propagated {
+    } else if options.covariance == CovarianceModel::Propagated && options.loss != RobustLoss::None {
         // Outliers are gone: the efficient estimator for the remaining Gaussian errors is
         // plain weighted least squares, whose covariance the propagation below is exact for.
         let w = weighting(camera, points, &pose, &subset, uncertainty, options.pixel_sigma);
