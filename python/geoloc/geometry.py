@@ -38,6 +38,7 @@ TRACK_STATUS = {
     3: "point behind an observing camera",
     4: "mean residual above max_residual",
     5: "triangulation angle below min_angle",
+    6: "only two of three or more views agree",
 }
 
 _LOSSES = ("huber", "cauchy", "none")

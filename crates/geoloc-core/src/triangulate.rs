@@ -5,7 +5,8 @@
 //! (Huber by default) on r_k = (π(T_k, X) − z_k)/σ. Observations whose residual exceeds
 //! `max_residual_px` are dropped and X re-solved; when they spoil the all-view start, every
 //! two-view DLT is tried and the one with the largest consensus wins (an LO-RANSAC over the
-//! few views of a track). A point is rejected when fewer than two views remain, when it is
+//! few views of a track). A point is rejected when fewer than two views remain, when only
+//! two of three or more views agree (any two views fit *some* point), when it is
 //! behind an inlier camera, when its mean inlier residual exceeds `max_residual_px` (the
 //! paper's ε_r) or when its largest triangulation angle is below `min_angle_rad`.
 //!
@@ -76,6 +77,9 @@ pub enum TrackStatus {
     LargeResidual = 4,
     /// Largest triangulation angle below the minimum.
     SmallAngle = 5,
+    /// Only two of three or more views agree: any two views fit a point, so a lone pair
+    /// outvoted by the rest cannot be told from an outlier pair.
+    Ambiguous = 6,
 }
 
 impl TrackStatus {
@@ -88,6 +92,7 @@ impl TrackStatus {
             Self::BehindCamera => "point behind an observing camera",
             Self::LargeResidual => "mean residual above max_residual",
             Self::SmallAngle => "triangulation angle below min_angle",
+            Self::Ambiguous => "only two of three or more views agree",
         }
     }
 }
@@ -301,6 +306,8 @@ pub fn triangulate_track(
     result.max_angle_rad = max_ray_angle(poses, views, &inliers, &x);
     result.status = if inliers.iter().any(|&i| depth(poses, &views[i], &x) <= 0.0) {
         TrackStatus::BehindCamera
+    } else if distinct_cameras(inliers.iter().map(|&i| &views[i])) == 2 && distinct_cameras(views.iter()) >= 3 {
+        TrackStatus::Ambiguous
     } else if result.mean_residual_px > options.max_residual_px {
         TrackStatus::LargeResidual
     } else if result.max_angle_rad < options.min_angle_rad {
