@@ -791,7 +791,8 @@ mod tests {
             assert_eq!(report.iterations, 1, "the single-step path was taken");
             // the estimate's own σ is ~2e-3 here: 1e-6 is far below it
             assert!((one.inverse() * full).log().norm() < 1e-6, "{:?}", (one.inverse() * full).log());
-            assert!((report.final_cost - full_report.final_cost).abs() < 1e-6 * full_report.final_cost);
+            // the predicted cost only feeds the reported RMS
+            assert!((report.final_cost - full_report.final_cost).abs() < 1e-4 * full_report.final_cost);
         }
     }
 
