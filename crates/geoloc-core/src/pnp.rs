@@ -320,7 +320,8 @@ fn final_least_squares(problem: &PoseProblem<'_>, pose: SE3, lm: &LmOptions) -> 
         let step = chol.solve(&(-g));
         let metric = step.dot(&(h * step));
         if metric <= ONE_STEP_MAX_METRIC {
-            let predicted = cost + 0.5 * g.dot(&step); // cost + gᵀδ + ½δᵀHδ with Hδ = −g
+            // the cost is Σ rᵀWr and g its half-gradient: cost + 2gᵀδ + δᵀHδ = cost + gᵀδ at Hδ = −g
+            let predicted = cost + g.dot(&step);
             let report = LmReport { iterations: 1, initial_cost: cost, final_cost: predicted, termination: crate::optim::Termination::CostConverged };
             return (pose * SE3::exp(&step), report, h);
         }

@@ -128,9 +128,10 @@ where
         if delta.norm() < options.step_tolerance {
             return (x, report(iteration, cost, Termination::StepConverged), h);
         }
-        // The quadratic model's predicted decrease −(gᵀδ + ½δᵀHδ): when even that is below
-        // the tolerance we are at the minimum to working precision — stop here instead of
-        // raising λ through a dozen rejected steps.
+        // Half the quadratic model's predicted decrease, −(gᵀδ + ½δᵀHδ) (g is the
+        // half-gradient of the cost): when even that is below the tolerance we are at the
+        // minimum to working precision — stop here instead of raising λ through a dozen
+        // rejected steps.
         let predicted = -(g.dot(&delta) + 0.5 * delta.dot(&(h * delta)));
         if predicted <= options.cost_tolerance * cost {
             return (x, report(iteration, cost, Termination::CostConverged), h);
