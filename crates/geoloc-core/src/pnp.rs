@@ -20,13 +20,13 @@
 //!      uncertainty: a last least-squares solve on the inliers and C = σ²(ΣJⱼᵀJⱼ)⁻¹.
 //!      With independent point covariances Σⱼ: maximum likelihood over the pose and the
 //!      point corrections jointly (`joint`), C the pose block of its inverse information.
-//!      With keyframe-pose errors shared by the points (D_jk = ∂Xⱼ/∂δ_k, C_k): weighted
-//!      least squares with Wⱼ = Sⱼ⁻¹, Sⱼ = σ²I + J_X,j Σⱼ^marg J_X,jᵀ, residuals corrected
-//!      by the second-order projection bias bⱼ = ½ tr(∇²π Σⱼ^marg), and the sandwich
+//!      With keyframe-pose errors shared by the points (D_jk = ∂Xⱼ/∂δ_k, C_k): the same
+//!      joint solve, the shared part kept in the residual weights
+//!      Wⱼ = (σ²I + J_X,j Σⱼ^shared J_X,jᵀ)⁻¹, and the first-order sandwich covariance
 //!      C = H⁻¹ (Σⱼ JⱼᵀWⱼ Sⱼ^ind WⱼJⱼ) H⁻¹ + Σ_k M_k C_k M_kᵀ with
-//!      H = Σⱼ JⱼᵀWⱼJⱼ and M_k = −H⁻¹ Σⱼ JⱼᵀWⱼ J_X,j D_jk,
-//!      where Sⱼ^ind holds the errors independent between points and the M_k terms those
-//!      all points share.
+//!      H = Σⱼ JⱼᵀWⱼJⱼ and M_k = −H⁻¹ Σⱼ JⱼᵀWⱼ J_X,j D_jk (Wⱼ here from the marginal
+//!      Sⱼ = σ²I + J_X,j Σⱼ^marg J_X,jᵀ), where Sⱼ^ind holds the errors independent between
+//!      points and the M_k terms those all points share.
 //!
 //! Geometry that is merely bad (too few points, no consensus, a singular information
 //! matrix) gives `success = false` with a reason, never an error.
@@ -246,14 +246,30 @@ pub fn solve_pnp(
     let mut joint_covariance = None;
     let mut least_squares = None;
     if options.covariance == CovarianceModel::Propagated
-        && let Some(u) = uncertainty.filter(|u| u.shared.is_none())
+        && let Some(u) = uncertainty
     {
-        let problem = joint::JointProblem::new(camera, points, pixels, &subset, u, options.pixel_sigma);
-        // Outliers are gone: maximum likelihood over the pose and the point corrections.
+        // Outliers are gone: maximum likelihood over the pose and the independent point
+        // corrections. Shared keyframe-pose errors stay in the residual weights
+        // (Wⱼ = (σ²I + J_X Σⱼ^shared J_Xᵀ)⁻¹) and in the sandwich covariance below.
+        let shared_weights = u.shared.is_some().then(|| {
+            subset
+                .iter()
+                .map(|&j| {
+                    let p = project(camera, &pose, &points[j]);
+                    let j_x = j_uv_point(camera, &pose, &p);
+                    let shared = point_covariance(j, uncertainty, true).unwrap_or_else(Matrix3::zeros) - u.covariances[j];
+                    let s = Matrix2::identity() * (options.pixel_sigma * options.pixel_sigma) + j_x * shared * j_x.transpose();
+                    s.try_inverse().unwrap_or_else(|| Matrix2::identity() / (options.pixel_sigma * options.pixel_sigma))
+                })
+                .collect::<Vec<_>>()
+        });
+        let problem = joint::JointProblem::new(camera, points, pixels, &subset, u, options.pixel_sigma, shared_weights.as_deref());
         let (next, cov, r) = problem.solve(pose, &options.lm);
         pose = next;
         report = Some(r);
-        joint_covariance = Some(cov);
+        if u.shared.is_none() {
+            joint_covariance = Some(cov);
+        }
     } else if options.covariance == CovarianceModel::Propagated && options.loss != RobustLoss::None {
         // Outliers are gone: the efficient estimator for the remaining Gaussian errors is
         // plain weighted least squares, whose covariance the propagation below is exact for.
