@@ -9,7 +9,10 @@
 
 pub mod camera;
 pub mod error;
+pub mod fusion;
+pub mod keyframes;
 pub mod lie;
+pub mod motion;
 pub mod optim;
 pub mod parallel;
 pub mod pnp;
