@@ -10,13 +10,19 @@ from . import geometry, lie
 from ._core import __version__
 from .camera import Camera
 from .exceptions import GeolocError, InvalidInputError, NotARotationError
+from .fusion import FusionResult, fuse
+from .motion import MotionPrediction, motion_predict
 
 __all__ = [
     "Camera",
+    "FusionResult",
     "GeolocError",
     "InvalidInputError",
+    "MotionPrediction",
     "NotARotationError",
     "__version__",
+    "fuse",
     "geometry",
     "lie",
+    "motion_predict",
 ]

@@ -72,3 +72,30 @@ def solve_pnp(
     confidence: float,
     seed: int,
 ) -> dict[str, Any]: ...
+def keyframe_score(
+    pose1: NDArray[np.float64], pose2: NDArray[np.float64], d_m: float, ell: float, alpha_m: float
+) -> NDArray[np.float64]: ...
+def select_keyframes(
+    poses_wc: NDArray[np.float64],
+    k: int,
+    n: int,
+    window: int,
+    d_m: float,
+    ell: float,
+    alpha_m: float,
+    min_score: float,
+) -> NDArray[np.uint64]: ...
+def motion_predict(
+    poses_wc: NDArray[np.float64],
+    timestamps: NDArray[np.float64],
+    t_query: float,
+    covariances: NDArray[np.float64] | None,
+) -> dict[str, Any]: ...
+def fuse(
+    pose_m: NDArray[np.float64],
+    cov_m: NDArray[np.float64],
+    pose_g: NDArray[np.float64],
+    cov_g: NDArray[np.float64],
+    gate_sigma: float,
+    gate: str,
+) -> dict[str, Any]: ...

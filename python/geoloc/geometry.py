@@ -15,7 +15,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from . import _core
-from ._validation import as_batch, as_float64
+from ._validation import as_batch, as_float64, broadcast_batches
 from .camera import Camera
 from .exceptions import InvalidInputError
 
@@ -24,6 +24,8 @@ __all__ = [
     "PointUncertainty",
     "TRACK_STATUS",
     "TriangulationResult",
+    "keyframe_score",
+    "select_keyframes",
     "solve_pnp",
     "triangulate",
 ]
@@ -353,3 +355,42 @@ def _solve_pnp_core(
         int(seed),
     )
     return result
+
+
+def keyframe_score(
+    T1: ArrayLike, T2: ArrayLike, d_m: float = 0.1, ell: float = 0.2, alpha_m: float = np.radians(3.0)
+) -> Array:
+    """s(T1, T2) = exp(−(‖p1 − p2‖ − d_m)²/ℓ²) · min(α_m/Θ(R1ᵀR2), 1) for world_from_cam poses
+    (Θ = 0 scores 1); batch axes broadcast. Returns a float array of the batch shape."""
+    a, lead_a = as_batch(T1, "T1", (4, 4))
+    b, lead_b = as_batch(T2, "T2", (4, 4))
+    (a, b), lead = broadcast_batches([(a, lead_a, "T1"), (b, lead_b, "T2")])
+    if not np.isfinite(d_m) or d_m < 0:
+        raise InvalidInputError(f"d_m: expected a finite number ≥ 0, got {d_m!r}")
+    out = _core.keyframe_score(a, b, float(d_m), _check_positive(ell, "ell"), _check_positive(alpha_m, "alpha_m"))
+    return np.asarray(out).reshape(lead)
+
+
+def select_keyframes(
+    poses: ArrayLike,
+    k: int,
+    n: int = 7,
+    window: int = 100,
+    d_m: float = 0.1,
+    ell: float = 0.2,
+    alpha_m: float = np.radians(3.0),
+    min_score: float = 1e-3,
+) -> NDArray[np.int64]:
+    """The co-visible keyframe group around frame ``k`` (sorted indices into ``poses``).
+
+    Alternately backward in [k_b − window, k_b) and forward in (k_f, k_f + window], the pose
+    scoring best (:func:`keyframe_score`) against the current end of the group joins it and
+    becomes the new end, until there are ``n`` members or no candidate scores ``min_score``;
+    near the ends of a sequence the group is smaller or one-sided.
+    """
+    flat = _pose_stack(poses, "poses")
+    for name, value in (("k", k), ("n", n), ("window", window)):
+        if not isinstance(value, (int, np.integer)) or value < 0:
+            raise InvalidInputError(f"{name}: expected a non-negative integer, got {value!r}")
+    out = _core.select_keyframes(flat, int(k), int(n), int(window), float(d_m), float(ell), float(alpha_m), float(min_score))
+    return np.asarray(out, dtype=np.int64)

@@ -7,6 +7,7 @@ mod convert;
 mod errors;
 mod geometry;
 mod lie;
+mod temporal;
 
 use pyo3::prelude::*;
 
@@ -17,5 +18,6 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("PARALLEL_MIN_ITEMS", geoloc_core::parallel::PARALLEL_MIN_ITEMS)?;
     lie::register(m)?;
     geometry::register(m)?;
+    temporal::register(m)?;
     Ok(())
 }

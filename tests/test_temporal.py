@@ -1,0 +1,89 @@
+"""Keyframes, the motion model and fusion through the Python API."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import geoloc
+from geoloc import geometry, lie
+from geoloc.montecarlo import CHI2_6DOF_95
+
+
+def _track(n: int, step: float = 0.02) -> np.ndarray:
+    return lie.se3_exp(np.c_[np.arange(n) * step, np.zeros((n, 5))])
+
+
+def test_keyframe_score_known_values_and_broadcast() -> None:
+    T = _track(3, 0.1)
+    assert geometry.keyframe_score(T[0], T[1]) == pytest.approx(1.0)
+    assert geometry.keyframe_score(T[0], T[0]) == pytest.approx(np.exp(-0.25))
+    rot6 = np.eye(4)
+    rot6[:3, :3] = lie.so3_exp([0, np.radians(6), 0])
+    rot6[0, 3] = 0.1
+    assert geometry.keyframe_score(np.eye(4), rot6) == pytest.approx(0.5, rel=1e-9)
+    assert geometry.keyframe_score(np.eye(4), T).shape == (3,)
+
+
+def test_select_keyframes_matches_the_paper_layout() -> None:
+    poses = _track(200)
+    np.testing.assert_array_equal(geometry.select_keyframes(poses, 100), [85, 90, 95, 100, 105, 110, 115])
+    assert geometry.select_keyframes(poses, 0).tolist()[0] == 0
+    with pytest.raises(geoloc.InvalidInputError, match="k: 200 is out of range"):
+        geometry.select_keyframes(poses, 200)
+    with pytest.raises(geoloc.InvalidInputError, match="k: expected a non-negative integer"):
+        geometry.select_keyframes(poses, -1)
+
+
+def test_motion_prediction_is_exact_for_constant_velocity_and_calibrated() -> None:
+    rng = np.random.default_rng(0)
+    times = np.array([0.0, 1 / 30, 2 / 30, 4 / 30])  # a dropped frame
+    sig = 0.01
+    cov = np.eye(6) * sig**2
+    inside, trials = 0, 1000
+    for _ in range(trials):
+        start = lie.se3_exp(rng.normal(size=6))
+        v = rng.normal(size=6) * 0.5
+        truth = lie.se3_compose(start, lie.se3_exp(np.outer(times, v)))
+        noisy = lie.se3_compose(truth, lie.se3_exp(rng.normal(size=(4, 6)) * sig))
+        p = geoloc.motion_predict(noisy, times, 5 / 30, covariances=np.stack([cov] * 4))
+        e = lie.se3_log(lie.se3_inverse(start @ lie.se3_exp(v * 5 / 30)) @ p.pose)
+        inside += e @ np.linalg.solve(p.covariance, e) <= CHI2_6DOF_95
+    assert 0.92 <= inside / trials <= 0.98
+    exact = geoloc.motion_predict(truth, times, 0.2, covariances=np.stack([cov] * 4))
+    np.testing.assert_allclose(exact.pose, start @ lie.se3_exp(v * 0.2), atol=1e-9)
+    np.testing.assert_allclose(exact.velocity, v, atol=1e-8)
+
+
+def test_motion_bad_input() -> None:
+    poses = _track(3)
+    with pytest.raises(geoloc.InvalidInputError, match=r"timestamps: expected shape \(3,\)"):
+        geoloc.motion_predict(poses, [0.0, 0.1], 0.3)
+    with pytest.raises(geoloc.InvalidInputError, match="timestamps: must be distinct"):
+        geoloc.motion_predict(poses, [0.0, 0.1, 0.1], 0.3)
+    with pytest.raises(geoloc.InvalidInputError, match="need at least 3 poses"):
+        geoloc.motion_predict(poses[:2], [0.0, 0.1], 0.3)
+    with pytest.raises(geoloc.InvalidInputError, match="covariances"):
+        geoloc.motion_predict(poses, [0.0, 0.1, 0.2], 0.3, covariances=np.zeros((3, 6, 6)))
+    with pytest.raises(geoloc.InvalidInputError, match="t_query"):
+        geoloc.motion_predict(poses, [0.0, 0.1, 0.2], [0.3, 0.4])
+
+
+def test_fusion_gates_a_ten_sigma_outlier_and_fuses_otherwise() -> None:
+    cov = np.eye(6) * 1e-4
+    far = lie.se3_exp([0.1, 0, 0, 0, 0, 0])
+    for gate in ("isometric", "chi2"):
+        r = geoloc.fuse(np.eye(4), cov, far, cov, gate=gate)
+        assert r.source == "motion"
+        np.testing.assert_array_equal(r.pose, np.eye(4))
+    near = lie.se3_exp([0.01, 0, 0, 0, 0, 0])
+    r = geoloc.fuse(np.eye(4), cov, near, cov)
+    assert r.source == "fused"
+    assert r.pose[0, 3] == pytest.approx(0.005, abs=1e-9)
+    np.testing.assert_allclose(r.covariance, cov / 2, atol=1e-9)  # J_r⁻¹ at ±5 mm: 1e-5 relative
+    with pytest.raises(geoloc.InvalidInputError, match="cov_g: is not positive definite"):
+        geoloc.fuse(np.eye(4), cov, near, np.zeros((6, 6)))
+    with pytest.raises(geoloc.InvalidInputError, match="gate: expected"):
+        geoloc.fuse(np.eye(4), cov, near, cov, gate="max")  # type: ignore[arg-type]
+    with pytest.raises(geoloc.InvalidInputError, match=r"pose_m: expected shape \(4, 4\)"):
+        geoloc.fuse(np.stack([np.eye(4)] * 2), cov, near, cov)
