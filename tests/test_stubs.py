@@ -38,5 +38,5 @@ def test_every_core_function_is_in_the_stub() -> None:
 
     stub = (ROOT / "python" / "geoloc" / "_core.pyi").read_text()
     public = [n for n in dir(core) if not n.startswith("_") and callable(getattr(core, n))]
-    missing = [n for n in public if f"def {n}(" not in stub]
+    missing = [n for n in public if f"def {n}(" not in stub and f"class {n}:" not in stub]
     assert not missing, missing

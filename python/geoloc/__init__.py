@@ -6,7 +6,7 @@ translation first; perturbations and covariances are on the right (``T @ exp(δ^
 
 from __future__ import annotations
 
-from . import geometry, lie
+from . import geometry, lie, retrieval
 from ._core import __version__
 from .camera import Camera
 from .exceptions import GeolocError, InvalidInputError, NotARotationError
@@ -25,4 +25,5 @@ __all__ = [
     "geometry",
     "lie",
     "motion_predict",
+    "retrieval",
 ]

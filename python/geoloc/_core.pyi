@@ -1,7 +1,7 @@
 # Stub of the compiled module geoloc._core (crates/geoloc-py); checked against the built
 # module by mypy.stubtest in tests/test_stubs.py. Every function maps rows: (N, in) float64,
 # C-contiguous, finite → (N, out) float64; matrices are flattened row-major.
-from typing import Any
+from typing import Any, final
 
 import numpy as np
 from numpy.typing import NDArray
@@ -99,3 +99,13 @@ def fuse(
     gate_sigma: float,
     gate: str,
 ) -> dict[str, Any]: ...
+
+@final
+class DescriptorIndex:
+    def __new__(cls, descriptors: NDArray[np.float32], backend: str | None = None) -> DescriptorIndex: ...
+    def query(self, queries: NDArray[np.float32], k: int) -> tuple[NDArray[np.float32], NDArray[np.int64]]: ...
+    def __len__(self) -> int: ...
+    @property
+    def dim(self) -> int: ...
+    @property
+    def backend(self) -> str: ...

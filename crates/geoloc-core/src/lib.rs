@@ -16,6 +16,7 @@ pub mod motion;
 pub mod optim;
 pub mod parallel;
 pub mod pnp;
+pub mod retrieval;
 pub mod testing;
 pub mod triangulate;
 

@@ -7,6 +7,7 @@ mod convert;
 mod errors;
 mod geometry;
 mod lie;
+mod retrieval;
 mod temporal;
 
 use pyo3::prelude::*;
@@ -19,5 +20,6 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     lie::register(m)?;
     geometry::register(m)?;
     temporal::register(m)?;
+    retrieval::register(m)?;
     Ok(())
 }

@@ -1,0 +1,285 @@
+//! Exact nearest-neighbour search over global image descriptors.
+//!
+//! [`DescriptorIndex`] answers exact 1-NN / k-NN queries in the Euclidean metric — the same
+//! neighbours as a brute-force scan (ties broken by the lower index). It uses a kiddo k-d
+//! tree where k-d trees win (dimension ≤ [`KDTREE_MAX_DIM`]) and a flat, cache-friendly
+//! parallel scan above that (k-d trees degrade to worse than a scan in tens of dimensions).
+//! Many identical descriptors (a stopped camera) are fine: should the tree's construction
+//! panic on them anyway, the index falls back to the scan instead of unwinding into the
+//! caller.
+
+use std::num::NonZero;
+
+use kiddo::SquaredEuclidean;
+use kiddo::immutable::float::kdtree::ImmutableKdTree;
+use rayon::prelude::*;
+
+use crate::error::{GeolocError, Result};
+
+/// Highest dimension served by the k-d tree (kiddo's dimension is a compile-time constant).
+pub const KDTREE_MAX_DIM: usize = 8;
+/// Queries per rayon task in batched searches.
+const QUERY_CHUNK: usize = 16;
+
+/// Which search structure an index uses.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Backend {
+    /// kiddo's immutable k-d tree.
+    KdTree,
+    /// Exact parallel scan.
+    Flat,
+}
+
+trait Tree: Send + Sync {
+    fn nearest(&self, query: &[f32], k: usize) -> Vec<(f32, usize)>;
+}
+
+struct KiddoTree<const K: usize>(ImmutableKdTree<f32, u32, K, 32>);
+
+impl<const K: usize> Tree for KiddoTree<K> {
+    fn nearest(&self, query: &[f32], k: usize) -> Vec<(f32, usize)> {
+        let q: [f32; K] = query.try_into().expect("invariant: query rows have the index dimension");
+        let n = NonZero::new(k).expect("invariant: k ≥ 1 is checked by the caller");
+        let found = self.0.nearest_n::<SquaredEuclidean>(&q, n);
+        let Some(worst) = found.iter().map(|f| f.distance).reduce(f32::max) else { return Vec::new() };
+        // everything as close as the k-th: ties at the boundary must be resolved by index,
+        // exactly as a scan would (a stopped camera yields thousands of them)
+        let all = NonZero::new(self.0.size().max(1)).expect("invariant: max(1) is non-zero");
+        self.0
+            .nearest_n_within::<SquaredEuclidean>(&q, worst, all, false)
+            .into_iter()
+            .map(|f| (f.distance, f.item as usize))
+            .collect()
+    }
+}
+
+fn build_tree<const K: usize>(data: &[f32]) -> Option<Box<dyn Tree>> {
+    let rows: Vec<[f32; K]> = data
+        .chunks_exact(K)
+        .map(|c| c.try_into().expect("invariant: chunks have K values"))
+        .collect();
+    // kiddo has panicked on degenerate inputs in past versions: never let that unwind out
+    std::panic::catch_unwind(|| ImmutableKdTree::<f32, u32, K, 32>::new_from_slice(&rows))
+        .ok()
+        .map(|t| Box::new(KiddoTree(t)) as Box<dyn Tree>)
+}
+
+/// An exact nearest-neighbour index over N descriptors of dimension D (row-major f32).
+pub struct DescriptorIndex {
+    dim: usize,
+    data: Vec<f32>,
+    tree: Option<Box<dyn Tree>>,
+}
+
+impl std::fmt::Debug for DescriptorIndex {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("DescriptorIndex").field("len", &self.len()).field("dim", &self.dim).field("backend", &self.backend()).finish()
+    }
+}
+
+impl DescriptorIndex {
+    /// Builds the index (the backend is chosen by dimension; see the module doc).
+    ///
+    /// # Errors
+    /// Empty input, a length that is not a multiple of `dim`, or non-finite values.
+    pub fn new(data: Vec<f32>, dim: usize) -> Result<Self> {
+        Self::with_backend(data, dim, None)
+    }
+
+    /// As [`DescriptorIndex::new`], forcing a backend (`KdTree` needs dim ≤ [`KDTREE_MAX_DIM`]).
+    ///
+    /// # Errors
+    /// As [`DescriptorIndex::new`], or `KdTree` requested above its dimension limit.
+    pub fn with_backend(data: Vec<f32>, dim: usize, backend: Option<Backend>) -> Result<Self> {
+        if dim == 0 || data.is_empty() || !data.len().is_multiple_of(dim) {
+            return Err(GeolocError::invalid("descriptors", format!("expected a non-empty (N, D) array, got {} values for D = {dim}", data.len())));
+        }
+        if let Some(i) = data.iter().position(|v| !v.is_finite()) {
+            return Err(GeolocError::NonFinite { name: "descriptors".into(), index: i / dim });
+        }
+        let use_tree = match backend {
+            Some(Backend::Flat) => false,
+            Some(Backend::KdTree) if dim > KDTREE_MAX_DIM => {
+                return Err(GeolocError::invalid("backend", format!("the k-d tree serves D ≤ {KDTREE_MAX_DIM}, got D = {dim}")));
+            }
+            Some(Backend::KdTree) => true,
+            None => dim <= KDTREE_MAX_DIM,
+        };
+        let tree = if use_tree { build_for_dim(&data, dim) } else { None };
+        Ok(Self { dim, data, tree })
+    }
+
+    /// N.
+    pub fn len(&self) -> usize {
+        self.data.len() / self.dim
+    }
+
+    /// Whether the index holds no descriptors (never: construction refuses that).
+    pub fn is_empty(&self) -> bool {
+        self.data.is_empty()
+    }
+
+    /// D.
+    pub fn dim(&self) -> usize {
+        self.dim
+    }
+
+    /// The backend in use.
+    pub fn backend(&self) -> Backend {
+        if self.tree.is_some() { Backend::KdTree } else { Backend::Flat }
+    }
+
+    /// The k nearest descriptors of each query row (Q × D, row-major): Euclidean distances
+    /// and indices, each Q × k row-major, nearest first, ties by lower index.
+    ///
+    /// # Errors
+    /// Wrong query width, non-finite queries, k = 0 or k > N.
+    pub fn query(&self, queries: &[f32], k: usize) -> Result<(Vec<f32>, Vec<usize>)> {
+        if !queries.len().is_multiple_of(self.dim) {
+            return Err(GeolocError::invalid("queries", format!("rows must have D = {} values", self.dim)));
+        }
+        if let Some(i) = queries.iter().position(|v| !v.is_finite()) {
+            return Err(GeolocError::NonFinite { name: "queries".into(), index: i / self.dim });
+        }
+        if k == 0 || k > self.len() {
+            return Err(GeolocError::invalid("k", format!("must be in 1..={}, got {k}", self.len())));
+        }
+        let q_count = queries.len() / self.dim;
+        let mut distances = vec![0.0_f32; q_count * k];
+        let mut indices = vec![0_usize; q_count * k];
+        distances
+            .par_chunks_mut(k * QUERY_CHUNK)
+            .zip(indices.par_chunks_mut(k * QUERY_CHUNK))
+            .enumerate()
+            .for_each(|(chunk, (d_out, i_out))| {
+                for (local, (d_row, i_row)) in d_out.chunks_mut(k).zip(i_out.chunks_mut(k)).enumerate() {
+                    let q = chunk * QUERY_CHUNK + local;
+                    let query = &queries[q * self.dim..(q + 1) * self.dim];
+                    let mut found = match &self.tree {
+                        Some(tree) => tree.nearest(query, k),
+                        None => self.scan(query, k),
+                    };
+                    // a canonical order: distance, then index (trees may order ties freely)
+                    found.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+                    found.truncate(k);
+                    for (slot, (d2, i)) in found.into_iter().enumerate() {
+                        d_row[slot] = d2.max(0.0).sqrt();
+                        i_row[slot] = i;
+                    }
+                }
+            });
+        Ok((distances, indices))
+    }
+
+    /// Brute force: squared distances to every row, keeping the k best (distance, index).
+    fn scan(&self, query: &[f32], k: usize) -> Vec<(f32, usize)> {
+        let mut best: Vec<(f32, usize)> = Vec::with_capacity(k + 1);
+        let mut worst = f32::INFINITY;
+        for (i, row) in self.data.chunks_exact(self.dim).enumerate() {
+            let d2: f32 = row.iter().zip(query).map(|(a, b)| (a - b) * (a - b)).sum();
+            if best.len() < k || d2 < worst {
+                // ties are exact equalities of identically computed distances: order by index
+                let pos = best.partition_point(|&(d, j)| d.total_cmp(&d2).then(j.cmp(&i)).is_lt());
+                best.insert(pos, (d2, i));
+                if best.len() > k {
+                    best.pop();
+                }
+                if best.len() == k {
+                    worst = best[k - 1].0;
+                }
+            }
+        }
+        best
+    }
+}
+
+fn build_for_dim(data: &[f32], dim: usize) -> Option<Box<dyn Tree>> {
+    match dim {
+        1 => build_tree::<1>(data),
+        2 => build_tree::<2>(data),
+        3 => build_tree::<3>(data),
+        4 => build_tree::<4>(data),
+        5 => build_tree::<5>(data),
+        6 => build_tree::<6>(data),
+        7 => build_tree::<7>(data),
+        8 => build_tree::<8>(data),
+        _ => None,
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::float_cmp)] // exact zero distances to identical descriptors
+mod tests {
+    use super::*;
+    use crate::testing::SplitMix64;
+
+    fn brute(data: &[f32], dim: usize, q: &[f32], k: usize) -> Vec<(f32, usize)> {
+        let mut all: Vec<(f32, usize)> = data
+            .chunks_exact(dim)
+            .enumerate()
+            .map(|(i, r)| (r.iter().zip(q).map(|(a, b)| (a - b) * (a - b)).sum::<f32>(), i))
+            .collect();
+        all.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+        all.truncate(k);
+        all
+    }
+
+    fn random(rng: &mut SplitMix64, n: usize) -> Vec<f32> {
+        (0..n).map(|_| rng.normal() as f32).collect()
+    }
+
+    #[test]
+    fn equals_brute_force_for_every_backend_and_dimension() {
+        let mut rng = SplitMix64::new(1);
+        for dim in [1, 2, 3, 5, 8, 16, 33] {
+            let data = random(&mut rng, 500 * dim);
+            let queries = random(&mut rng, 40 * dim);
+            for backend in [Backend::KdTree, Backend::Flat] {
+                if backend == Backend::KdTree && dim > KDTREE_MAX_DIM {
+                    continue;
+                }
+                let index = DescriptorIndex::with_backend(data.clone(), dim, Some(backend)).expect("valid");
+                assert_eq!(index.backend(), backend);
+                let (d, i) = index.query(&queries, 5).expect("valid");
+                for q in 0..40 {
+                    let want = brute(&data, dim, &queries[q * dim..(q + 1) * dim], 5);
+                    for s in 0..5 {
+                        assert_eq!(i[q * 5 + s], want[s].1, "dim {dim} {backend:?} query {q}");
+                        assert!((d[q * 5 + s] - want[s].0.sqrt()).abs() < 1e-5);
+                    }
+                }
+            }
+        }
+    }
+
+    /// A stopped camera: thousands of identical descriptors must not panic, and ties come
+    /// back by index.
+    #[test]
+    fn many_identical_descriptors() {
+        for dim in [3, 8, 32] {
+            let mut data = vec![0.5_f32; 5000 * dim];
+            data.extend(vec![1.0_f32; 10 * dim]);
+            let index = DescriptorIndex::new(data, dim).expect("valid");
+            let (d, i) = index.query(&vec![0.5_f32; dim], 3).expect("valid");
+            assert_eq!(i, vec![0, 1, 2], "dim {dim}");
+            assert!(d.iter().all(|&x| x == 0.0));
+            let (_, i) = index.query(&vec![1.0_f32; dim], 1).expect("valid");
+            assert_eq!(i, vec![5000]);
+        }
+    }
+
+    #[test]
+    fn bad_input() {
+        assert!(DescriptorIndex::new(vec![], 3).is_err());
+        assert!(DescriptorIndex::new(vec![1.0; 7], 3).is_err());
+        assert!(DescriptorIndex::new(vec![f32::NAN; 6], 3).is_err());
+        assert!(DescriptorIndex::with_backend(vec![1.0; 20], 10, Some(Backend::KdTree)).is_err());
+        let index = DescriptorIndex::new(vec![1.0; 6], 3).expect("valid");
+        assert!(index.query(&[1.0; 4], 1).is_err());
+        assert!(index.query(&[1.0; 3], 0).is_err());
+        assert!(index.query(&[1.0; 3], 3).is_err());
+        assert!(index.query(&[f32::INFINITY, 0.0, 0.0], 1).is_err());
+        let (d, i) = index.query(&[], 1).expect("no queries is fine");
+        assert!(d.is_empty() && i.is_empty());
+    }
+}

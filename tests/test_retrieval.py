@@ -1,0 +1,61 @@
+"""geoloc.retrieval.DescriptorIndex against a numpy brute force."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import geoloc
+from geoloc.retrieval import DescriptorIndex
+
+
+def _brute(data: np.ndarray, q: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    d2 = ((q[:, None, :].astype(np.float64) - data[None].astype(np.float64)) ** 2).sum(-1)
+    order = np.lexsort((np.broadcast_to(np.arange(len(data)), d2.shape), d2), axis=-1)[:, :k]
+    return np.sqrt(np.take_along_axis(d2, order, 1)), order
+
+
+@pytest.mark.parametrize("dim", [2, 3, 8, 16, 32, 128])
+@pytest.mark.parametrize("backend", [None, "flat"])
+def test_equals_brute_force(dim: int, backend: str | None) -> None:
+    rng = np.random.default_rng(dim)
+    data = rng.normal(size=(2000, dim)).astype(np.float32)
+    data /= np.linalg.norm(data, axis=1, keepdims=True)
+    q = rng.normal(size=(50, dim)).astype(np.float32)
+    idx = DescriptorIndex(data, backend=backend)  # type: ignore[arg-type]
+    assert idx.backend == (backend or ("kdtree" if dim <= 8 else "flat"))
+    dist, ind = idx.query(q, k=4)
+    want_d, want_i = _brute(data, q, 4)
+    np.testing.assert_array_equal(ind, want_i)
+    np.testing.assert_allclose(dist, want_d, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("dim", [3, 32])
+def test_duplicated_descriptors_do_not_panic_and_tie_by_index(dim: int) -> None:
+    data = np.ones((3000, dim), dtype=np.float32)
+    data[2500:] = 2.0
+    idx = DescriptorIndex(data)
+    dist, ind = idx.query(np.ones(dim), k=3)
+    np.testing.assert_array_equal(ind, [[0, 1, 2]])
+    np.testing.assert_array_equal(dist, [[0, 0, 0]])
+    _, ind = idx.query(np.full(dim, 2.0), k=1)
+    assert ind[0, 0] == 2500
+
+
+def test_bad_input() -> None:
+    with pytest.raises(geoloc.InvalidInputError, match=r"descriptors: expected shape \(N, D\)"):
+        DescriptorIndex(np.zeros(5))
+    with pytest.raises(geoloc.InvalidInputError, match="non-empty"):
+        DescriptorIndex(np.zeros((0, 4)))
+    with pytest.raises(geoloc.InvalidInputError, match=r"descriptors\[1\] is not finite"):
+        DescriptorIndex(np.array([[0.0, 1.0], [np.nan, 0.0]]))
+    with pytest.raises(geoloc.InvalidInputError, match="backend"):
+        DescriptorIndex(np.zeros((3, 4)), backend="ball")  # type: ignore[arg-type]
+    with pytest.raises(geoloc.InvalidInputError, match="backend: the k-d tree serves"):
+        DescriptorIndex(np.zeros((3, 40)), backend="kdtree")
+    idx = DescriptorIndex(np.eye(4))
+    with pytest.raises(geoloc.InvalidInputError, match=r"queries: expected shape \(N, 4\)"):
+        idx.query(np.zeros((2, 3)))
+    with pytest.raises(geoloc.InvalidInputError, match="k: expected an integer in 1..4"):
+        idx.query(np.zeros(4), k=5)
+    assert len(idx) == 4 and idx.dim == 4
