@@ -68,6 +68,8 @@ fn build_tree<const K: usize>(data: &[f32]) -> Option<Box<dyn Tree>> {
 pub struct DescriptorIndex {
     dim: usize,
     data: Vec<f32>,
+    /// ‖x‖² per row (for the matrix-product scan).
+    norms: Vec<f32>,
     tree: Option<Box<dyn Tree>>,
 }
 
@@ -106,7 +108,8 @@ impl DescriptorIndex {
             None => dim <= KDTREE_MAX_DIM,
         };
         let tree = if use_tree { build_for_dim(&data, dim) } else { None };
-        Ok(Self { dim, data, tree })
+        let norms = data.chunks_exact(dim).map(|r| r.iter().map(|v| v * v).sum()).collect();
+        Ok(Self { dim, data, norms, tree })
     }
 
     /// N.
@@ -147,18 +150,21 @@ impl DescriptorIndex {
         let q_count = queries.len() / self.dim;
         let mut distances = vec![0.0_f32; q_count * k];
         let mut indices = vec![0_usize; q_count * k];
+        let block = if self.tree.is_some() { QUERY_CHUNK } else { GEMM_QUERY_BLOCK };
         distances
-            .par_chunks_mut(k * QUERY_CHUNK)
-            .zip(indices.par_chunks_mut(k * QUERY_CHUNK))
+            .par_chunks_mut(k * block)
+            .zip(indices.par_chunks_mut(k * block))
             .enumerate()
             .for_each(|(chunk, (d_out, i_out))| {
-                for (local, (d_row, i_row)) in d_out.chunks_mut(k).zip(i_out.chunks_mut(k)).enumerate() {
-                    let q = chunk * QUERY_CHUNK + local;
-                    let query = &queries[q * self.dim..(q + 1) * self.dim];
-                    let mut found = match &self.tree {
-                        Some(tree) => tree.nearest(query, k),
-                        None => self.scan(query, k),
-                    };
+                let first = chunk * block;
+                let count = d_out.len() / k;
+                let rows = &queries[first * self.dim..(first + count) * self.dim];
+                let results: Vec<Vec<(f32, usize)>> = match &self.tree {
+                    Some(tree) => rows.chunks_exact(self.dim).map(|q| tree.nearest(q, k)).collect(),
+                    None if count == 1 => vec![self.scan(rows, k)],
+                    None => self.scan_block(rows, k),
+                };
+                for ((mut found, d_row), i_row) in results.into_iter().zip(d_out.chunks_mut(k)).zip(i_out.chunks_mut(k)) {
                     // a canonical order: distance, then index (trees may order ties freely)
                     found.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
                     found.truncate(k);
@@ -171,25 +177,112 @@ impl DescriptorIndex {
         Ok((distances, indices))
     }
 
-    /// Brute force: squared distances to every row, keeping the k best (distance, index).
+    /// Brute force for one query: squared distances to every row, keeping the k best.
     fn scan(&self, query: &[f32], k: usize) -> Vec<(f32, usize)> {
-        let mut best: Vec<(f32, usize)> = Vec::with_capacity(k + 1);
-        let mut worst = f32::INFINITY;
+        let mut best = TopK::new(k);
         for (i, row) in self.data.chunks_exact(self.dim).enumerate() {
-            let d2: f32 = row.iter().zip(query).map(|(a, b)| (a - b) * (a - b)).sum();
-            if best.len() < k || d2 < worst {
-                // ties are exact equalities of identically computed distances: order by index
-                let pos = best.partition_point(|&(d, j)| d.total_cmp(&d2).then(j.cmp(&i)).is_lt());
-                best.insert(pos, (d2, i));
-                if best.len() > k {
-                    best.pop();
-                }
-                if best.len() == k {
-                    worst = best[k - 1].0;
+            best.push(squared_distance(row, query), i);
+        }
+        best.into_sorted()
+    }
+}
+
+/// Σ (aᵢ − bᵢ)², the reference distance every backend is exact against.
+#[inline]
+fn squared_distance(a: &[f32], b: &[f32]) -> f32 {
+    a.iter().zip(b).map(|(x, y)| (x - y) * (x - y)).sum()
+}
+
+/// The k smallest (distance, index) pairs seen, ties by index.
+struct TopK {
+    k: usize,
+    best: Vec<(f32, usize)>,
+}
+
+impl TopK {
+    fn new(k: usize) -> Self {
+        Self { k, best: Vec::with_capacity(k + 1) }
+    }
+
+    fn worst(&self) -> f32 {
+        if self.best.len() < self.k { f32::INFINITY } else { self.best[self.k - 1].0 }
+    }
+
+    #[inline]
+    fn push(&mut self, d2: f32, i: usize) {
+        if self.best.len() == self.k && d2 > self.worst() {
+            return;
+        }
+        // ties are exact equalities of identically computed distances: order by index
+        let pos = self.best.partition_point(|&(d, j)| d.total_cmp(&d2).then(j.cmp(&i)).is_lt());
+        if pos < self.k {
+            self.best.insert(pos, (d2, i));
+            self.best.truncate(self.k);
+        }
+    }
+
+    fn into_sorted(self) -> Vec<(f32, usize)> {
+        self.best
+    }
+}
+
+/// Queries per block of the matrix-product scan.
+const GEMM_QUERY_BLOCK: usize = 64;
+/// Database rows per block of the matrix-product scan (keeps the product in cache).
+const GEMM_ROW_BLOCK: usize = 2048;
+
+impl DescriptorIndex {
+    /// The flat backend for many queries: ‖q − x‖² = ‖x‖² + ‖q‖² − 2 q·x with the dot
+    /// products of a block of queries against a block of rows computed as one matrix product
+    /// (nalgebra → matrixmultiply's SIMD kernels). That form rounds differently from the
+    /// reference Σ(qᵢ − xᵢ)², so it only *selects*: every row whose estimate is within a
+    /// rounding bound of the k-th best is re-scored exactly, and the k best of those are
+    /// returned — the same neighbours as the reference scan.
+    fn scan_block(&self, queries: &[f32], k: usize) -> Vec<Vec<(f32, usize)>> {
+        use nalgebra::DMatrix;
+        let (dim, n) = (self.dim, self.len());
+        let b = queries.len() / dim;
+        // rounding bound of the f32 expansion, B_q = γ_{D+3} (max‖x‖ + ‖q‖)² with γ_m ≈ m ε:
+        // a true top-k row has estimate ≤ d + B ≤ (k-th estimate + B) + B
+        let gamma = (dim as f32 + 3.0) * f32::EPSILON;
+        let max_norm = self.norms.iter().fold(0.0_f32, |m, &v| m.max(v)).sqrt();
+        let q_norm: Vec<f32> = queries.chunks_exact(dim).map(|q| q.iter().map(|v| v * v).sum()).collect();
+        let margin: Vec<f32> = q_norm.iter().map(|&qn| 2.0 * gamma * (max_norm + qn.sqrt()).powi(2)).collect();
+        let q_mat = DMatrix::from_row_slice(b, dim, queries);
+        let mut candidates: Vec<Vec<(f32, usize)>> = vec![Vec::new(); b];
+        let mut estimates: Vec<TopK> = (0..b).map(|_| TopK::new(k)).collect();
+        for start in (0..n).step_by(GEMM_ROW_BLOCK) {
+            let rows = GEMM_ROW_BLOCK.min(n - start);
+            let block = &self.data[start * dim..(start + rows) * dim];
+            // (D × rows) column-major is exactly the row-major (rows × D) block
+            let x_mat = DMatrix::from_column_slice(dim, rows, block);
+            let dots = &q_mat * &x_mat; // b × rows
+            for r in 0..rows {
+                let x_norm = self.norms[start + r];
+                for q in 0..b {
+                    let estimate = x_norm + q_norm[q] - 2.0 * dots[(q, r)];
+                    if estimate <= estimates[q].worst() + margin[q] {
+                        candidates[q].push((estimate, start + r));
+                        estimates[q].push(estimate, start + r);
+                    }
                 }
             }
         }
-        best
+        let thresholds: Vec<f32> = estimates.iter().zip(&margin).map(|(e, m)| e.worst() + m).collect();
+        candidates
+            .into_iter()
+            .enumerate()
+            .map(|(q, cands)| {
+                let query = &queries[q * dim..(q + 1) * dim];
+                let mut best = TopK::new(k);
+                for (estimate, i) in cands {
+                    if estimate <= thresholds[q] {
+                        best.push(squared_distance(&self.data[i * dim..(i + 1) * dim], query), i);
+                    }
+                }
+                best.into_sorted()
+            })
+            .collect()
     }
 }
 
