@@ -99,6 +99,21 @@ def fuse(
     gate_sigma: float,
     gate: str,
 ) -> dict[str, Any]: ...
+def match_binary(
+    a: NDArray[np.uint8], b: NDArray[np.uint8], ratio: float | None, mutual: bool, max_distance: float | None
+) -> tuple[NDArray[np.int64], NDArray[np.float32]]: ...
+def match_float(
+    a: NDArray[np.float32], b: NDArray[np.float32], ratio: float | None, mutual: bool, max_distance: float | None
+) -> tuple[NDArray[np.int64], NDArray[np.float32]]: ...
+def epipolar_filter(
+    intrinsics: tuple[float, float, float, float],
+    pose_a: NDArray[np.float64],
+    pose_b: NDArray[np.float64],
+    keypoints_a: NDArray[np.float64],
+    keypoints_b: NDArray[np.float64],
+    pairs: NDArray[np.int64],
+    max_px: float,
+) -> NDArray[np.bool_]: ...
 
 @final
 class DescriptorIndex:

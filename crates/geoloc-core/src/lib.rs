@@ -12,6 +12,7 @@ pub mod error;
 pub mod fusion;
 pub mod keyframes;
 pub mod lie;
+pub mod matching;
 pub mod motion;
 pub mod optim;
 pub mod parallel;

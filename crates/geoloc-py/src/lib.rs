@@ -7,6 +7,7 @@ mod convert;
 mod errors;
 mod geometry;
 mod lie;
+mod matching;
 mod retrieval;
 mod temporal;
 
@@ -21,5 +22,6 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     geometry::register(m)?;
     temporal::register(m)?;
     retrieval::register(m)?;
+    matching::register(m)?;
     Ok(())
 }

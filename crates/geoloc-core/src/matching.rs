@@ -1,0 +1,275 @@
+//! Local-descriptor matching between two images: brute force (parallel over the first
+//! image's descriptors) with Hamming distance for binary descriptors (ORB: rows of bytes) and
+//! Euclidean distance for float ones (SIFT), Lowe's ratio test, a mutual (cross) check, and an
+//! epipolar check that uses the known poses of keyframes.
+//!
+//! Epipolar geometry for world_from_cam poses T_a, T_b: the relative pose b_from_a is
+//! T_b⁻¹T_a = (R, t), the essential matrix E = t^ R maps a normalized point x_a of image a to
+//! the epipolar line E x_a in image b, and F = K⁻ᵀ E K⁻¹ in pixels; a match is kept when the
+//! Sampson distance (xᵦᵀFxₐ)² / (‖(Fxₐ)₁,₂‖² + ‖(Fᵀxᵦ)₁,₂‖²) is at most `max_px`².
+
+use nalgebra::{Matrix3, Vector2, Vector3};
+use rayon::prelude::*;
+
+use crate::camera::Camera;
+use crate::error::{GeolocError, Result};
+use crate::lie::{SE3, so3};
+
+/// Descriptors of one image: N rows of `width` values.
+#[derive(Clone, Copy, Debug)]
+pub enum Descriptors<'a> {
+    /// Binary descriptors, `width` bytes per row, compared by Hamming distance.
+    Binary {
+        /// Row-major bytes.
+        data: &'a [u8],
+        /// Bytes per descriptor.
+        width: usize,
+    },
+    /// Float descriptors, `width` values per row, compared by Euclidean distance.
+    Float {
+        /// Row-major values.
+        data: &'a [f32],
+        /// Values per descriptor.
+        width: usize,
+    },
+}
+
+impl Descriptors<'_> {
+    fn len(&self) -> usize {
+        match *self {
+            Self::Binary { data, width } => data.len() / width.max(1),
+            Self::Float { data, width } => data.len() / width.max(1),
+        }
+    }
+
+    fn width(&self) -> usize {
+        match *self {
+            Self::Binary { width, .. } | Self::Float { width, .. } => width,
+        }
+    }
+
+    fn distance(&self, i: usize, other: &Self, j: usize) -> f32 {
+        match (*self, *other) {
+            (Self::Binary { data: a, width }, Self::Binary { data: b, .. }) => {
+                let (ra, rb) = (&a[i * width..(i + 1) * width], &b[j * width..(j + 1) * width]);
+                ra.iter().zip(rb).map(|(x, y)| (x ^ y).count_ones()).sum::<u32>() as f32
+            }
+            (Self::Float { data: a, width }, Self::Float { data: b, .. }) => {
+                let (ra, rb) = (&a[i * width..(i + 1) * width], &b[j * width..(j + 1) * width]);
+                ra.iter().zip(rb).map(|(x, y)| (x - y) * (x - y)).sum::<f32>().sqrt()
+            }
+            _ => f32::INFINITY,
+        }
+    }
+}
+
+/// Options of [`match_descriptors`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct MatchOptions {
+    /// Lowe's ratio: keep a match when best < ratio · second best (None: no ratio test;
+    /// default 0.8).
+    pub ratio: Option<f32>,
+    /// Keep only matches that are each other's best (default true).
+    pub mutual: bool,
+    /// Keep only matches closer than this (None: no limit).
+    pub max_distance: Option<f32>,
+}
+
+impl Default for MatchOptions {
+    fn default() -> Self {
+        Self { ratio: Some(0.8), mutual: true, max_distance: None }
+    }
+}
+
+/// One correspondence: index in a, index in b, descriptor distance.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Match {
+    /// Row of the first image's descriptors.
+    pub a: usize,
+    /// Row of the second image's descriptors.
+    pub b: usize,
+    /// Hamming (bits) or Euclidean distance.
+    pub distance: f32,
+}
+
+/// Best and second-best of `i` (of `from`) among all rows of `to`: (best index, best, second).
+fn best_two(from: &Descriptors<'_>, i: usize, to: &Descriptors<'_>) -> (usize, f32, f32) {
+    let (mut best, mut d1, mut d2) = (usize::MAX, f32::INFINITY, f32::INFINITY);
+    for j in 0..to.len() {
+        let d = from.distance(i, to, j);
+        if d < d1 {
+            (d2, d1, best) = (d1, d, j);
+        } else if d < d2 {
+            d2 = d;
+        }
+    }
+    (best, d1, d2)
+}
+
+/// Matches the descriptors of two images; see the module doc. Sorted by `a`.
+///
+/// # Errors
+/// Mixed binary/float descriptors, different widths, a zero width, a bad ratio.
+pub fn match_descriptors(a: &Descriptors<'_>, b: &Descriptors<'_>, options: &MatchOptions) -> Result<Vec<Match>> {
+    match (a, b) {
+        (Descriptors::Binary { .. }, Descriptors::Binary { .. }) | (Descriptors::Float { .. }, Descriptors::Float { .. }) => {}
+        _ => return Err(GeolocError::invalid("descriptors_b", "binary and float descriptors cannot be compared")),
+    }
+    if a.width() == 0 || a.width() != b.width() {
+        return Err(GeolocError::invalid("descriptors_b", format!("width {} differs from descriptors_a's {}", b.width(), a.width())));
+    }
+    if let Some(r) = options.ratio
+        && !(r > 0.0 && r <= 1.0)
+    {
+        return Err(GeolocError::invalid("ratio", format!("must be in (0, 1], got {r}")));
+    }
+    if b.len() == 0 {
+        return Ok(Vec::new());
+    }
+    let forward: Vec<(usize, f32, f32)> = (0..a.len()).into_par_iter().map(|i| best_two(a, i, b)).collect();
+    let backward: Option<Vec<usize>> =
+        options.mutual.then(|| (0..b.len()).into_par_iter().map(|j| best_two(b, j, a).0).collect());
+    Ok(forward
+        .into_iter()
+        .enumerate()
+        .filter(|&(_, (j, d1, d2))| {
+            j != usize::MAX
+                && options.ratio.is_none_or(|r| d1 < r * d2)
+                && options.max_distance.is_none_or(|m| d1 <= m)
+        })
+        .filter(|&(i, (j, _, _))| backward.as_ref().is_none_or(|back| back[j] == i))
+        .map(|(i, (j, d, _))| Match { a: i, b: j, distance: d })
+        .collect())
+}
+
+/// The fundamental matrix F (pixels) with x_bᵀ F x_a = 0 for images taken at world_from_cam
+/// poses `pose_a` and `pose_b` by `camera`: F = K⁻ᵀ t^ R K⁻¹ with (R, t) = T_b⁻¹ T_a.
+pub fn fundamental_matrix(camera: &Camera, pose_a: &SE3, pose_b: &SE3) -> Matrix3<f64> {
+    let b_from_a = pose_b.inverse() * *pose_a;
+    let e = so3::hat(&b_from_a.translation) * b_from_a.rotation.matrix();
+    let k_inv = Matrix3::new(1.0 / camera.fx, 0.0, -camera.cx / camera.fx, 0.0, 1.0 / camera.fy, -camera.cy / camera.fy, 0.0, 0.0, 1.0);
+    k_inv.transpose() * e * k_inv
+}
+
+/// Sampson distance (pixels) of the pair (x_a, x_b) to the epipolar geometry F.
+pub fn sampson_distance(f: &Matrix3<f64>, xa: &Vector2<f64>, xb: &Vector2<f64>) -> f64 {
+    let (pa, pb) = (Vector3::new(xa.x, xa.y, 1.0), Vector3::new(xb.x, xb.y, 1.0));
+    let fa = f * pa;
+    let fb = f.transpose() * pb;
+    let num = pb.dot(&fa);
+    let den = fa.x * fa.x + fa.y * fa.y + fb.x * fb.x + fb.y * fb.y;
+    if den <= 0.0 { f64::INFINITY } else { (num * num / den).sqrt() }
+}
+
+/// Keeps the matches whose keypoints are within `max_px` (Sampson) of the epipolar geometry
+/// of the two known poses. Keypoints are undistorted pixels.
+///
+/// # Errors
+/// A match indexing past the keypoints, or a non-positive threshold.
+pub fn epipolar_filter(
+    camera: &Camera,
+    pose_a: &SE3,
+    pose_b: &SE3,
+    keypoints_a: &[Vector2<f64>],
+    keypoints_b: &[Vector2<f64>],
+    matches: &[Match],
+    max_px: f64,
+) -> Result<Vec<Match>> {
+    if !(max_px.is_finite() && max_px > 0.0) {
+        return Err(GeolocError::invalid("max_epipolar_px", format!("must be finite and > 0, got {max_px}")));
+    }
+    if let Some(m) = matches.iter().find(|m| m.a >= keypoints_a.len() || m.b >= keypoints_b.len()) {
+        return Err(GeolocError::invalid("matches", format!("({}, {}) indexes past the keypoints", m.a, m.b)));
+    }
+    let f = fundamental_matrix(camera, pose_a, pose_b);
+    Ok(matches.iter().copied().filter(|m| sampson_distance(&f, &keypoints_a[m.a], &keypoints_b[m.b]) <= max_px).collect())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::project;
+    use crate::testing::{SplitMix64, look_at};
+
+    fn random_bytes(rng: &mut SplitMix64, n: usize) -> Vec<u8> {
+        (0..n).map(|_| (rng.next_u64() & 0xff) as u8).collect()
+    }
+
+    #[test]
+    fn hamming_known_value_and_brute_force_equality() {
+        let a = [0b1111_0000u8, 0xff];
+        let b = [0b0000_0000u8, 0xfe];
+        let (da, db) = (Descriptors::Binary { data: &a, width: 2 }, Descriptors::Binary { data: &b, width: 2 });
+        assert_eq!(da.distance(0, &db, 0), 5.0);
+        let mut rng = SplitMix64::new(1);
+        let x = random_bytes(&mut rng, 200 * 32);
+        let y = random_bytes(&mut rng, 300 * 32);
+        let (dx, dy) = (Descriptors::Binary { data: &x, width: 32 }, Descriptors::Binary { data: &y, width: 32 });
+        let plain = MatchOptions { ratio: None, mutual: false, max_distance: None };
+        let m = match_descriptors(&dx, &dy, &plain).expect("valid");
+        assert_eq!(m.len(), 200);
+        for mm in &m {
+            let brute = (0..300).map(|j| dx.distance(mm.a, &dy, j)).fold(f32::INFINITY, f32::min);
+            assert_eq!(mm.distance, brute);
+        }
+    }
+
+    /// Float descriptors: perturbed copies match back to their originals through the ratio
+    /// and mutual checks, distractors do not.
+    #[test]
+    fn perturbed_copies_match_back() {
+        let mut rng = SplitMix64::new(2);
+        let width = 128;
+        let a: Vec<f32> = (0..500 * width).map(|_| rng.normal() as f32).collect();
+        let perm: Vec<usize> = (0..500).rev().collect();
+        let mut b = vec![0.0f32; 500 * width];
+        for (i, &p) in perm.iter().enumerate() {
+            for c in 0..width {
+                b[p * width + c] = a[i * width + c] + 0.05 * rng.normal() as f32;
+            }
+        }
+        let m = match_descriptors(
+            &Descriptors::Float { data: &a, width },
+            &Descriptors::Float { data: &b, width },
+            &MatchOptions::default(),
+        )
+        .expect("valid");
+        assert_eq!(m.len(), 500);
+        assert!(m.iter().all(|mm| mm.b == perm[mm.a]));
+    }
+
+    #[test]
+    fn epipolar_check_keeps_consistent_pairs_only() {
+        let cam = Camera::new(525.0, 525.0, 320.0, 240.0).expect("valid");
+        let target = Vector3::new(0.0, 0.0, 5.0);
+        let (pa, pb) = (look_at(&Vector3::new(-0.3, 0.0, 0.0), &target), look_at(&Vector3::new(0.3, 0.1, 0.0), &target));
+        let mut rng = SplitMix64::new(3);
+        let points: Vec<Vector3<f64>> = (0..100).map(|_| target + rng.unit_vector() * 1.5).collect();
+        let ka: Vec<Vector2<f64>> = points.iter().map(|x| project(&cam, &pa, x).uv).collect();
+        let mut kb: Vec<Vector2<f64>> = points.iter().map(|x| project(&cam, &pb, x).uv).collect();
+        for k in kb.iter_mut().take(20) {
+            *k += Vector2::new(0.0, 40.0); // off the epipolar line
+        }
+        let f = fundamental_matrix(&cam, &pa, &pb);
+        assert!(sampson_distance(&f, &ka[50], &kb[50]) < 1e-9);
+        let matches: Vec<Match> = (0..100).map(|i| Match { a: i, b: i, distance: 0.0 }).collect();
+        let kept = epipolar_filter(&cam, &pa, &pb, &ka, &kb, &matches, 2.0).expect("valid");
+        // a vertical shift can lie along a near-vertical epipolar line for a few points
+        assert!(kept.iter().all(|m| m.a >= 20 || sampson_distance(&f, &ka[m.a], &kb[m.b]) <= 2.0));
+        assert!(kept.iter().filter(|m| m.a >= 20).count() == 80);
+        assert!(kept.len() < 100);
+    }
+
+    #[test]
+    fn bad_input() {
+        let x = [0u8; 32];
+        let y = [0.0f32; 32];
+        assert!(match_descriptors(&Descriptors::Binary { data: &x, width: 32 }, &Descriptors::Float { data: &y, width: 32 }, &MatchOptions::default()).is_err());
+        assert!(match_descriptors(&Descriptors::Binary { data: &x, width: 32 }, &Descriptors::Binary { data: &x, width: 16 }, &MatchOptions::default()).is_err());
+        let bad = MatchOptions { ratio: Some(1.5), ..MatchOptions::default() };
+        assert!(match_descriptors(&Descriptors::Binary { data: &x, width: 32 }, &Descriptors::Binary { data: &x, width: 32 }, &bad).is_err());
+        let cam = Camera::new(1.0, 1.0, 0.0, 0.0).expect("valid");
+        let m = [Match { a: 3, b: 0, distance: 0.0 }];
+        assert!(epipolar_filter(&cam, &SE3::identity(), &SE3::identity(), &[], &[], &m, 1.0).is_err());
+    }
+}

@@ -1,0 +1,82 @@
+"""Local-descriptor matching: Hamming (binary, e.g. ORB) or Euclidean (float, e.g. SIFT),
+Lowe's ratio test, a mutual check, and an epipolar check for images of known pose."""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from . import _core
+from ._validation import as_batch, as_float64
+from .camera import Camera
+from .exceptions import InvalidInputError
+
+__all__ = ["epipolar_filter", "match_descriptors"]
+
+
+def match_descriptors(
+    descriptors_a: ArrayLike,
+    descriptors_b: ArrayLike,
+    ratio: float | None = 0.8,
+    mutual: bool = True,
+    max_distance: float | None = None,
+) -> tuple[NDArray[np.int64], NDArray[np.float32]]:
+    """Match every row of ``descriptors_a`` (N, W) to its nearest row of ``descriptors_b``.
+
+    uint8 descriptors are binary (W bytes, Hamming distance in bits); float ones use the
+    Euclidean distance. A match survives Lowe's ``ratio`` test (best < ratio · second best),
+    the ``mutual`` check (each is the other's best) and ``max_distance``. Returns the index
+    pairs (M, 2) and their distances (M,), sorted by the first index. Parallel, GIL-free.
+    """
+    a, b = np.asarray(descriptors_a), np.asarray(descriptors_b)
+    for name, arr in (("descriptors_a", a), ("descriptors_b", b)):
+        if arr.ndim != 2:
+            raise InvalidInputError(f"{name}: expected shape (N, W), got {arr.shape}")
+    if a.shape[1] != b.shape[1]:
+        raise InvalidInputError(f"descriptors_b: width {b.shape[1]} differs from descriptors_a's {a.shape[1]}")
+    if ratio is not None and not 0 < ratio <= 1:
+        raise InvalidInputError(f"ratio: expected a number in (0, 1] or None, got {ratio!r}")
+    if (a.dtype == np.uint8) != (b.dtype == np.uint8):
+        raise InvalidInputError("descriptors_b: binary (uint8) and float descriptors cannot be compared")
+    r = None if ratio is None else float(ratio)
+    md = None if max_distance is None else float(max_distance)
+    if a.dtype == np.uint8:
+        pairs, dist = _core.match_binary(np.ascontiguousarray(a), np.ascontiguousarray(b), r, bool(mutual), md)
+    else:
+        fa = np.ascontiguousarray(as_float64(a, "descriptors_a"), dtype=np.float32)
+        fb = np.ascontiguousarray(as_float64(b, "descriptors_b"), dtype=np.float32)
+        pairs, dist = _core.match_float(fa, fb, r, bool(mutual), md)
+    return pairs, dist
+
+
+def epipolar_filter(
+    cam: Camera,
+    pose_a: ArrayLike,
+    pose_b: ArrayLike,
+    keypoints_a: ArrayLike,
+    keypoints_b: ArrayLike,
+    pairs: ArrayLike,
+    max_px: float = 2.0,
+) -> NDArray[np.bool_]:
+    """Mask of the ``pairs`` (M, 2) whose undistorted keypoints are within ``max_px``
+    (Sampson distance) of the epipolar geometry of world_from_cam poses ``pose_a``,
+    ``pose_b``: F = K⁻ᵀ t^R K⁻¹ with (R, t) = T_b⁻¹T_a."""
+    if not isinstance(cam, Camera):
+        raise InvalidInputError(f"cam: expected a geoloc.Camera, got {type(cam).__name__}")
+    pa, lead_a = as_batch(pose_a, "pose_a", (4, 4))
+    pb, lead_b = as_batch(pose_b, "pose_b", (4, 4))
+    if lead_a != () or lead_b != ():
+        raise InvalidInputError("pose_a, pose_b: expected one (4, 4) pose each")
+    ka = as_float64(keypoints_a, "keypoints_a")
+    kb = as_float64(keypoints_b, "keypoints_b")
+    for name, k in (("keypoints_a", ka), ("keypoints_b", kb)):
+        if k.ndim != 2 or k.shape[1] != 2:
+            raise InvalidInputError(f"{name}: expected shape (N, 2), got {k.shape}")
+    p = np.asarray(pairs)
+    if p.ndim != 2 or p.shape[1] != 2 or p.dtype.kind not in "iu":
+        raise InvalidInputError(f"pairs: expected integer pairs of shape (M, 2), got {p.shape} {p.dtype}")
+    out = _core.epipolar_filter(
+        cam.intrinsics, pa, pb, np.ascontiguousarray(ka), np.ascontiguousarray(kb),
+        np.ascontiguousarray(p, dtype=np.int64), float(max_px),
+    )
+    return np.asarray(out, dtype=bool)

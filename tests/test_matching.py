@@ -1,0 +1,67 @@
+"""geoloc.matching against brute force and known geometry."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import geoloc
+from geoloc import lie, matching
+from geoloc.montecarlo import look_at
+
+
+def test_binary_matching_equals_brute_force_hamming() -> None:
+    rng = np.random.default_rng(0)
+    a = rng.integers(0, 256, (200, 32), dtype=np.uint8)
+    b = rng.integers(0, 256, (300, 32), dtype=np.uint8)
+    pairs, dist = matching.match_descriptors(a, b, ratio=None, mutual=False)
+    bits = np.unpackbits(a[:, None, :] ^ b[None], axis=-1).sum(-1)
+    np.testing.assert_array_equal(pairs[:, 0], np.arange(200))
+    np.testing.assert_array_equal(dist, bits.min(1))
+    assert np.all(bits[pairs[:, 0], pairs[:, 1]] == bits.min(1))
+
+
+def test_float_copies_match_back_through_ratio_and_mutual_checks() -> None:
+    rng = np.random.default_rng(1)
+    a = rng.normal(size=(400, 128)).astype(np.float32)
+    perm = rng.permutation(400)
+    b = np.empty_like(a)
+    b[perm] = a + 0.05 * rng.normal(size=a.shape).astype(np.float32)
+    pairs, dist = matching.match_descriptors(a, b)
+    assert len(pairs) == 400
+    np.testing.assert_array_equal(pairs[:, 1], perm[pairs[:, 0]])
+    assert dist.dtype == np.float32
+
+
+def test_epipolar_filter_rejects_off_line_pairs() -> None:
+    cam = geoloc.Camera(525, 525, 320, 240)
+    target = np.array([0.0, 0.0, 5.0])
+    pa, pb = look_at(np.array([-0.3, 0.0, 0.0]), target), look_at(np.array([0.3, 0.1, 0.0]), target)
+    pts = target + np.random.default_rng(2).normal(size=(100, 3))
+
+    def project(T: np.ndarray) -> np.ndarray:
+        p = lie.se3_transform_points(lie.se3_inverse(T), pts)
+        return p[:, :2] / p[:, 2:] * 525 + [320, 240]
+
+    ka, kb = project(pa), project(pb)
+    kb[:20, 1] += 40
+    pairs = np.c_[np.arange(100), np.arange(100)]
+    keep = matching.epipolar_filter(cam, pa, pb, ka, kb, pairs, max_px=2.0)
+    assert keep[20:].all() and keep[:20].sum() < 20
+
+
+def test_bad_input() -> None:
+    a8 = np.zeros((3, 32), dtype=np.uint8)
+    with pytest.raises(geoloc.InvalidInputError, match="binary .* cannot be compared"):
+        matching.match_descriptors(a8, np.zeros((3, 32), dtype=np.float32))
+    with pytest.raises(geoloc.InvalidInputError, match="width 16 differs"):
+        matching.match_descriptors(a8, np.zeros((3, 16), dtype=np.uint8))
+    with pytest.raises(geoloc.InvalidInputError, match="ratio"):
+        matching.match_descriptors(a8, a8, ratio=1.5)
+    with pytest.raises(geoloc.InvalidInputError, match=r"descriptors_a: expected shape \(N, W\)"):
+        matching.match_descriptors(np.zeros(5), a8)
+    cam = geoloc.Camera(1, 1, 0, 0)
+    with pytest.raises(geoloc.InvalidInputError, match="matches"):
+        matching.epipolar_filter(cam, np.eye(4), np.eye(4), np.zeros((1, 2)), np.zeros((1, 2)), np.array([[3, 0]]))
+    pairs, dist = matching.match_descriptors(a8, np.zeros((0, 32), dtype=np.uint8))
+    assert pairs.shape == (0, 2) and dist.shape == (0,)
