@@ -186,6 +186,7 @@ pub fn epipolar_filter(
 }
 
 #[cfg(test)]
+#[allow(clippy::float_cmp)] // Hamming distances are small integers held exactly in f32
 mod tests {
     use super::*;
     use crate::camera::project;
