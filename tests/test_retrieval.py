@@ -59,3 +59,37 @@ def test_bad_input() -> None:
     with pytest.raises(geoloc.InvalidInputError, match="k: expected an integer in 1..4"):
         idx.query(np.zeros(4), k=5)
     assert len(idx) == 4 and idx.dim == 4
+
+
+@pytest.mark.parametrize("binary", [False, True])
+def test_bow_retrieves_noisy_redraws_of_each_image(binary: bool) -> None:
+    from geoloc.retrieval import BowDatabase, Vocabulary
+
+    rng = np.random.default_rng(3)
+    protos = rng.normal(size=(60, 32)) * 3
+    layout = [[(i * 3 + j * 7) % 60 for j in range(6)] for i in range(20)]
+
+    def draw(ids: list[int]) -> np.ndarray:
+        d = np.repeat(protos[ids], 10, axis=0) + 0.3 * rng.normal(size=(60, 32))
+        return np.packbits(d > 0, axis=1) if binary else d.astype(np.float32)
+
+    images = [draw(ids) for ids in layout]
+    vocab = Vocabulary.train(np.vstack(images), branching=8, depth=2, seed=1)
+    db = BowDatabase(vocab, images)
+    hits = sum(int(db.query(draw(ids), k=3)[1][0] == i) for i, ids in enumerate(layout))
+    assert hits >= 18
+    scores, ids = db.query(images[4], k=20)
+    assert ids[0] == 4 and scores[0] == pytest.approx(1.0, abs=1e-5)
+    assert np.all(np.diff(scores) <= 0)
+
+
+def test_bow_bad_input() -> None:
+    from geoloc.retrieval import BowDatabase, Vocabulary
+
+    with pytest.raises(geoloc.InvalidInputError, match="cannot make 4 clusters"):
+        Vocabulary.train(np.zeros((2, 8), dtype=np.float32), branching=4)
+    vocab = Vocabulary.train(np.random.default_rng(0).normal(size=(100, 8)), branching=4, depth=2)
+    with pytest.raises(geoloc.InvalidInputError, match="the vocabulary is for float descriptors of width 8"):
+        vocab.words(np.zeros((3, 8), dtype=np.uint8))
+    with pytest.raises(geoloc.InvalidInputError, match="vocabulary: expected"):
+        BowDatabase("vocab", [])  # type: ignore[arg-type]

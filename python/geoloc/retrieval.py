@@ -10,7 +10,7 @@ from numpy.typing import ArrayLike, NDArray
 from . import _core
 from .exceptions import InvalidInputError
 
-__all__ = ["DescriptorIndex"]
+__all__ = ["BowDatabase", "DescriptorIndex", "Vocabulary"]
 
 
 def _f32_rows(x: ArrayLike, name: str, dim: int | None = None) -> NDArray[np.float32]:
@@ -70,3 +70,62 @@ class DescriptorIndex:
         q = _f32_rows(queries, "queries", self.dim)
         dist, ind = self._index.query(q, int(k))
         return dist, ind
+
+
+def _local_descriptors(x: ArrayLike, name: str) -> NDArray[np.uint8] | NDArray[np.float32]:
+    arr = np.asarray(x)
+    if arr.ndim != 2 or arr.shape[1] == 0:
+        raise InvalidInputError(f"{name}: expected shape (N, W), got {arr.shape}")
+    if arr.dtype == np.uint8:
+        return np.ascontiguousarray(arr)
+    return _f32_rows(arr, name)
+
+
+class Vocabulary:
+    """A hierarchical visual vocabulary of up to ``branching``**``depth`` words, clustered
+    from local descriptors: k-means for float descriptors (SIFT), k-majority with Hamming
+    distance for binary uint8 ones (ORB). Needs no training framework."""
+
+    def __init__(self, core: _core.Vocabulary) -> None:
+        self._vocabulary = core
+
+    @classmethod
+    def train(cls, descriptors: ArrayLike, branching: int = 10, depth: int = 3, seed: int = 0) -> Vocabulary:
+        """Cluster ``descriptors`` (N, W) into a vocabulary tree (seeded, reproducible)."""
+        for name, value in (("branching", branching), ("depth", depth), ("seed", seed)):
+            if not isinstance(value, (int, np.integer)) or value < 0:
+                raise InvalidInputError(f"{name}: expected a non-negative integer, got {value!r}")
+        d = _local_descriptors(descriptors, "descriptors")
+        return cls(_core.Vocabulary.train(d, int(branching), int(depth), int(seed)))
+
+    def __len__(self) -> int:
+        return len(self._vocabulary)
+
+    def words(self, descriptors: ArrayLike) -> NDArray[np.uint32]:
+        """The word of each descriptor (N,)."""
+        return np.asarray(self._vocabulary.words(_local_descriptors(descriptors, "descriptors")))
+
+
+class BowDatabase:
+    """TF-IDF bag-of-words image database (L1 scoring, DBoW2's), built from the local
+    descriptors of each image; :meth:`query` ranks the images for a query image."""
+
+    def __init__(self, vocabulary: Vocabulary, images: list[ArrayLike]) -> None:
+        if not isinstance(vocabulary, Vocabulary):
+            raise InvalidInputError(f"vocabulary: expected a geoloc.retrieval.Vocabulary, got {type(vocabulary).__name__}")
+        self.vocabulary = vocabulary
+        words = [vocabulary.words(d).tolist() for d in images]
+        self._database = _core.BowDatabase(len(vocabulary), words)
+        self._n = len(images)
+
+    def __len__(self) -> int:
+        return self._n
+
+    def query(self, descriptors: ArrayLike, k: int = 1) -> tuple[NDArray[np.float32], NDArray[np.int64]]:
+        """Scores (k,) in [0, 1] and image indices (k,) of the best images, best first."""
+        if not isinstance(k, (int, np.integer)) or k < 1:
+            raise InvalidInputError(f"k: expected a positive integer, got {k!r}")
+        ranked = self._database.query(self.vocabulary.words(descriptors).tolist(), int(min(k, self._n)))
+        scores = np.array([s for _, s in ranked], dtype=np.float32)
+        ids = np.array([i for i, _ in ranked], dtype=np.int64)
+        return scores, ids

@@ -3,6 +3,7 @@
 //! This crate holds no math: each function validates and borrows its numpy inputs, calls
 //! geoloc-core without the GIL, and converts the outputs (STYLE.md "Boundaries").
 
+mod bow;
 mod convert;
 mod errors;
 mod geometry;
@@ -23,5 +24,6 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     temporal::register(m)?;
     retrieval::register(m)?;
     matching::register(m)?;
+    bow::register(m)?;
     Ok(())
 }
