@@ -42,11 +42,9 @@ pub enum Centres {
 
 fn distance(desc: &Descriptors<'_>, i: usize, centres: &Centres, c: usize) -> f32 {
     match (desc, centres) {
-        (Descriptors::Binary { data, width }, Centres::Binary { data: cd, .. }) => data[i * width..(i + 1) * width]
-            .iter()
-            .zip(&cd[c * width..(c + 1) * width])
-            .map(|(a, b)| (a ^ b).count_ones())
-            .sum::<u32>() as f32,
+        (Descriptors::Binary { data, width }, Centres::Binary { data: cd, .. }) => {
+            crate::matching::hamming(&data[i * width..(i + 1) * width], &cd[c * width..(c + 1) * width]) as f32
+        }
         (Descriptors::Float { data, width }, Centres::Float { data: cd, .. }) => data[i * width..(i + 1) * width]
             .iter()
             .zip(&cd[c * width..(c + 1) * width])

@@ -7,7 +7,8 @@
 //! by Gauss–Newton with ∂e_X/∂δ = J_r⁻¹(e_X) for T ⊞ δ = T exp(δ^); C_F = H⁻¹ with
 //! H = Σ J_r⁻ᵀ C⁻¹ J_r⁻¹ at the optimum. Before that T_G is gated against T_M: with the
 //! paper's rule it is a failure when its position or its rotation lies outside `gate_sigma`
-//! isometric σ of the prediction (σ_p = mean √diag C_M,ρ, σ_r = Θ(exp √diag C_M,φ)); with the
+//! isometric σ (σ_p = mean √diag C_ρ, σ_r = Θ(exp √diag C_φ)) of the difference of the two,
+//! whose covariance is C = C_M + C_G; with the
 //! χ² rule when e = log(T_M⁻¹T_G) has eᵀ(C_M + C_G)⁻¹e above the χ²₆ quantile of the same
 //! two-sided probability. A failed T_G leaves T_F = T_M, C_F = C_M.
 
@@ -100,7 +101,9 @@ pub fn fuse(
     let e = (pose_m.inverse() * *pose_g).log();
     let rejected = match gate {
         Gate::Isometric => {
-            let (sigma_p, sigma_r) = isometric_sigmas(cov_m);
+            // the spread of T_G − T_M is C_M + C_G: a geometric pose far more certain than
+            // the prediction is not rejected for the prediction's own uncertainty alone
+            let (sigma_p, sigma_r) = isometric_sigmas(&(cov_m + cov_g));
             let position = (pose_g.translation - pose_m.translation).norm();
             let rotation = pose_m.rotation.distance(&pose_g.rotation);
             position > gate_sigma * sigma_p || rotation > gate_sigma * sigma_r

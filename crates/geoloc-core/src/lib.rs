@@ -13,6 +13,8 @@ pub mod error;
 pub mod fusion;
 pub mod keyframes;
 pub mod lie;
+pub mod localizer;
+pub mod map;
 pub mod matching;
 pub mod motion;
 pub mod optim;

@@ -11,7 +11,8 @@
 //! covariance of (δ, ε):
 //!
 //! * with the poses' covariances Cᵢ the fit is weighted (Wᵢ = Cᵢ⁻¹) and Σ = (JᵀWJ)⁻¹ —
-//!   calibrated when the model holds;
+//!   calibrated when the model holds; when the weighted residual χ² exceeds its 99 %
+//!   quantile (6m − 12 dof) the motion is not constant-velocity and Σ is scaled by χ²/dof;
 //! * without them (the paper's way) each axis' noise variance is estimated from the fit
 //!   residuals, σ_a² = Σᵢ eᵢ,ₐ² / (m − 2) (m poses, 2 parameters per axis), and
 //!   Σ = (Jᵀ diag(1/σ²) J)⁻¹; this needs m ≥ 3.
@@ -118,8 +119,15 @@ pub fn motion_predict(
         });
         weights = vec![Matrix6::from_diagonal(&variance.map(|v| 1.0 / v)); m];
     }
-    let (h, _, _) = normal_equations(poses, timestamps, t_ref, &reference, &velocity, &weights);
-    let sigma = h.try_inverse().ok_or_else(|| GeolocError::invalid("poses", "the velocity is not observable"))?;
+    let (h, _, cost) = normal_equations(poses, timestamps, t_ref, &reference, &velocity, &weights);
+    let mut sigma = h.try_inverse().ok_or_else(|| GeolocError::invalid("poses", "the velocity is not observable"))?;
+    // With given covariances, a fit much worse than they allow means the motion is not
+    // constant-velocity: scale Σ by the variance factor χ²/dof when χ² exceeds its 99 %
+    // quantile (rarely triggered by noise alone, so a consistent model stays calibrated).
+    let dof = 6 * m - 12;
+    if covariances.is_some() && dof > 0 && cost > chi2_quantile_99(dof) {
+        sigma *= cost / dof as f64;
+    }
     let tau = t_query - t_ref;
     let step = velocity * tau;
     let mut g = SMatrix::<f64, 6, 12>::zeros();
@@ -138,6 +146,15 @@ pub fn motion_predict(
         velocity,
         rms_residual,
     })
+}
+
+/// The 99 % quantile of χ² with `dof` degrees of freedom (Wilson–Hilferty; within 1 % for
+/// dof ≥ 3, and the fit has dof = 6m − 12 ≥ 6).
+fn chi2_quantile_99(dof: usize) -> f64 {
+    let k = dof as f64;
+    let z = 2.326_347_874_040_841; // Φ⁻¹(0.99)
+    let c = 2.0 / (9.0 * k);
+    k * (1.0 - c + z * c.sqrt()).powi(3)
 }
 
 /// ξ from the latest pose and the one before it in time: log(T_prev⁻¹ T_latest)/Δt.
@@ -294,6 +311,28 @@ mod tests {
         }
         let h_numeric = numeric.transpose() * numeric;
         assert!((h - h_numeric).abs().max() < 1e-5 * h.abs().max(), "{}", (h - h_numeric).abs().max());
+    }
+
+    #[test]
+    fn chi2_quantiles() {
+        // tabulated χ²(0.99): dof 6 → 16.812, 12 → 26.217, 30 → 50.892
+        for (dof, q) in [(6, 16.812), (12, 26.217), (30, 50.892)] {
+            assert!((chi2_quantile_99(dof) - q).abs() < 0.01 * q, "{dof}: {}", chi2_quantile_99(dof));
+        }
+    }
+
+    /// An accelerating camera with tiny pose covariances: the variance factor widens the
+    /// prediction enough to contain the truth.
+    #[test]
+    fn model_mismatch_widens_the_prediction() {
+        let times = [0.0, 0.1, 0.2, 0.3];
+        let poses: Vec<SE3> = times.iter().map(|&t| SE3::exp(&Twist::new(t * t * 5.0, 0.0, 0.0, 0.0, 0.0, 0.0))).collect();
+        let covs = vec![Matrix6::identity() * 1e-8; 4];
+        let p = motion_predict(&poses, &times, 0.4, Some(&covs)).expect("valid");
+        let truth = SE3::exp(&Twist::new(0.8, 0.0, 0.0, 0.0, 0.0, 0.0));
+        let e = (truth.inverse() * p.world_from_cam).log();
+        let nees = e.dot(&(p.covariance.try_inverse().expect("spd") * e));
+        assert!(nees < 100.0, "NEES {nees}: the prediction ignores the misfit");
     }
 
     #[test]
