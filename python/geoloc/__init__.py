@@ -6,7 +6,7 @@ translation first; perturbations and covariances are on the right (``T @ exp(δ^
 
 from __future__ import annotations
 
-from . import geometry, lie, matching, retrieval
+from . import geometry, lie, localizer, matching, retrieval
 from ._core import __version__
 from .camera import Camera
 from .exceptions import GeolocError, InvalidInputError, NotARotationError
@@ -24,6 +24,7 @@ __all__ = [
     "fuse",
     "geometry",
     "lie",
+    "localizer",
     "matching",
     "motion_predict",
     "retrieval",

@@ -136,3 +136,32 @@ class Vocabulary:
 class BowDatabase:
     def __new__(cls, vocabulary_len: int, images: list[list[int]]) -> BowDatabase: ...
     def query(self, words: list[int], k: int) -> list[tuple[int, float]]: ...
+
+@final
+class FeatureMap:
+    def __new__(
+        cls,
+        intrinsics: tuple[float, float, float, float],
+        poses_wc: NDArray[np.float64],
+        keypoints_list: list[NDArray[np.float64]],
+        descriptors_list: list[NDArray[Any]],
+        global_descriptors: NDArray[np.float32] | None,
+        pose_covariances: NDArray[np.float64] | None,
+        retrieval: str,
+        branching: int,
+        depth: int,
+        seed: int,
+    ) -> FeatureMap: ...
+    def __len__(self) -> int: ...
+
+@final
+class FeatureLocalizer:
+    def __new__(cls, map: FeatureMap, pixel_sigma: float, max_residual: float, gate_sigma: float, history: int) -> FeatureLocalizer: ...
+    def localize(
+        self,
+        timestamp: float,
+        keypoints_px: NDArray[np.float64],
+        descriptors: NDArray[Any],
+        global_descriptor: NDArray[np.float32] | None,
+    ) -> dict[str, Any]: ...
+    def reset(self) -> None: ...

@@ -8,6 +8,7 @@ mod convert;
 mod errors;
 mod geometry;
 mod lie;
+mod localizer;
 mod matching;
 mod retrieval;
 mod temporal;
@@ -25,5 +26,6 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     retrieval::register(m)?;
     matching::register(m)?;
     bow::register(m)?;
+    localizer::register(m)?;
     Ok(())
 }

@@ -1,0 +1,85 @@
+"""The feature-level localizer on a small simulated sequence (a tiny version of the Rust test)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import geoloc
+from geoloc import lie
+from geoloc.localizer import FeatureLocalizer, FeatureMap
+from geoloc.montecarlo import look_at
+
+CAM = geoloc.Camera(525, 525, 320, 240)
+
+
+def _walk(t: float, offset: float) -> np.ndarray:
+    c = np.array([-1.5 + 0.6 * t, offset + 0.05 * np.sin(2 * t), 0.0])
+    return look_at(c, c + np.array([0.1 * np.sin(1.3 * t), 0.0, 5.0]))
+
+
+def _observe(rng: np.random.Generator, pose: np.ndarray, pts: np.ndarray, desc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    p = lie.se3_transform_points(lie.se3_inverse(pose), pts)
+    uv = p[:, :2] / p[:, 2:] * 525 + [320, 240]
+    ok = (p[:, 2] > 0.5) & (uv[:, 0] >= 0) & (uv[:, 0] < 640) & (uv[:, 1] >= 0) & (uv[:, 1] < 480)
+    d = desc[ok].copy()
+    flips = rng.integers(0, 256, size=(len(d), 3))
+    for k in range(3):
+        d[np.arange(len(d)), flips[:, k] // 8] ^= (1 << (flips[:, k] % 8)).astype(np.uint8)
+    return uv[ok] + 0.5 * rng.normal(size=(ok.sum(), 2)), d
+
+
+@pytest.fixture(scope="module")
+def feature_map() -> tuple[FeatureMap, np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(0)
+    pts = rng.uniform([-4, -1.5, 3], [4, 1.5, 7], (800, 3))
+    desc = rng.integers(0, 256, (800, 32), dtype=np.uint8)
+    poses = np.stack([_walk(0.1 * i, 0.0) for i in range(40)])
+    obs = [_observe(rng, p, pts, desc) for p in poses]
+    m = FeatureMap(CAM, poses, [o[0] for o in obs], [o[1] for o in obs], branching=8, depth=2)
+    return m, pts, desc
+
+
+def test_sequence_is_localized_with_fusion(feature_map: tuple[FeatureMap, np.ndarray, np.ndarray]) -> None:
+    m, pts, desc = feature_map
+    rng = np.random.default_rng(1)
+    loc = FeatureLocalizer(m)
+    errors, sources = [], []
+    for f in range(30):
+        t = 0.3 + f / 30
+        truth = _walk(t, 0.15)
+        kp, d = _observe(rng, truth, pts, desc)
+        r = loc.localize(t, kp, d)
+        assert r.pose is not None and r.covariance is not None
+        errors.append(np.linalg.norm(r.pose[:3, 3] - truth[:3, 3]))
+        sources.append(r.source)
+        assert set(r.timings_ms) >= {"retrieval", "pnp", "total"}
+    assert np.median(errors) < 0.01
+    assert sources[0] == "geometric" and sources.count("fused") > 20
+
+
+def test_bad_frames_and_maps(feature_map: tuple[FeatureMap, np.ndarray, np.ndarray]) -> None:
+    m, _, _ = feature_map
+    loc = FeatureLocalizer(m)
+    with pytest.raises(geoloc.InvalidInputError, match=r"keypoints: expected shape \(3, 2\)"):
+        loc.localize(0.0, np.zeros((2, 2)), np.zeros((3, 32), dtype=np.uint8))
+    with pytest.raises(geoloc.InvalidInputError, match="the vocabulary is for binary"):
+        loc.localize(0.0, np.zeros((3, 2)), np.zeros((3, 32), dtype=np.float32))
+    with pytest.raises(geoloc.InvalidInputError, match="retrieval"):
+        FeatureMap(CAM, np.eye(4)[None], [np.zeros((1, 2))], [np.zeros((1, 32), dtype=np.uint8)], retrieval="ann")  # type: ignore[arg-type]
+    with pytest.raises(geoloc.InvalidInputError, match="needs a global descriptor"):
+        FeatureMap(CAM, np.eye(4)[None], [np.zeros((1, 2))], [np.zeros((1, 32), dtype=np.uint8)], retrieval="global")
+    with pytest.raises(geoloc.InvalidInputError, match="history"):
+        FeatureLocalizer(m, history=1)
+
+
+def test_timestamps_must_increase(feature_map: tuple[FeatureMap, np.ndarray, np.ndarray]) -> None:
+    m, pts, desc = feature_map
+    rng = np.random.default_rng(2)
+    loc = FeatureLocalizer(m)
+    kp, d = _observe(rng, _walk(0.5, 0.1), pts, desc)
+    assert loc.localize(0.5, kp, d).source == "geometric"
+    with pytest.raises(geoloc.InvalidInputError, match="timestamp: must be finite and increase"):
+        loc.localize(0.5, kp, d)
+    loc.reset()
+    assert loc.localize(0.4, kp, d).source == "geometric"
