@@ -15,37 +15,18 @@ use std::collections::HashMap;
 use rayon::prelude::*;
 
 use crate::error::{GeolocError, Result};
-use crate::matching::Descriptors;
+use crate::matching::{DescriptorSet, Descriptors};
 use crate::testing::SplitMix64;
 
 /// Lloyd iterations per tree node.
 const LLOYD_ITERATIONS: usize = 10;
 
-/// Owned descriptors of either kind (the vocabulary's node centres).
-#[derive(Clone, Debug, PartialEq)]
-pub enum Centres {
-    /// Binary centres, `width` bytes each.
-    Binary {
-        /// Row-major bytes.
-        data: Vec<u8>,
-        /// Bytes per centre.
-        width: usize,
-    },
-    /// Float centres, `width` values each.
-    Float {
-        /// Row-major values.
-        data: Vec<f32>,
-        /// Values per centre.
-        width: usize,
-    },
-}
-
-fn distance(desc: &Descriptors<'_>, i: usize, centres: &Centres, c: usize) -> f32 {
+fn distance(desc: &Descriptors<'_>, i: usize, centres: &DescriptorSet, c: usize) -> f32 {
     match (desc, centres) {
-        (Descriptors::Binary { data, width }, Centres::Binary { data: cd, .. }) => {
+        (Descriptors::Binary { data, width }, DescriptorSet::Binary { data: cd, .. }) => {
             crate::matching::hamming(&data[i * width..(i + 1) * width], &cd[c * width..(c + 1) * width]) as f32
         }
-        (Descriptors::Float { data, width }, Centres::Float { data: cd, .. }) => data[i * width..(i + 1) * width]
+        (Descriptors::Float { data, width }, DescriptorSet::Float { data: cd, .. }) => data[i * width..(i + 1) * width]
             .iter()
             .zip(&cd[c * width..(c + 1) * width])
             .map(|(a, b)| (a - b) * (a - b))
@@ -61,8 +42,8 @@ fn count(desc: &Descriptors<'_>) -> usize {
     }
 }
 
-/// Centres of `members` (k-majority bits or means).
-fn centre_of(desc: &Descriptors<'_>, members: &[usize]) -> Centres {
+/// Centre of `members` (k-majority bits or means).
+fn centre_of(desc: &Descriptors<'_>, members: &[usize]) -> DescriptorSet {
     match *desc {
         Descriptors::Binary { data, width } => {
             let mut out = vec![0u8; width];
@@ -74,7 +55,7 @@ fn centre_of(desc: &Descriptors<'_>, members: &[usize]) -> Centres {
                     }
                 }
             }
-            Centres::Binary { data: out, width }
+            DescriptorSet::Binary { data: out, width }
         }
         Descriptors::Float { data, width } => {
             let mut out = vec![0f32; width];
@@ -85,29 +66,29 @@ fn centre_of(desc: &Descriptors<'_>, members: &[usize]) -> Centres {
             }
             let n = members.len().max(1) as f32;
             out.iter_mut().for_each(|o| *o /= n);
-            Centres::Float { data: out, width }
+            DescriptorSet::Float { data: out, width }
         }
     }
 }
 
-fn concat(parts: Vec<Centres>) -> Centres {
+fn concat(parts: Vec<DescriptorSet>) -> DescriptorSet {
     match parts.first() {
-        Some(Centres::Binary { width, .. }) => {
+        Some(DescriptorSet::Binary { width, .. }) => {
             let width = *width;
-            Centres::Binary { data: parts.into_iter().flat_map(|p| if let Centres::Binary { data, .. } = p { data } else { Vec::new() }).collect(), width }
+            DescriptorSet::Binary { data: parts.into_iter().flat_map(|p| if let DescriptorSet::Binary { data, .. } = p { data } else { Vec::new() }).collect(), width }
         }
-        Some(Centres::Float { width, .. }) => {
+        Some(DescriptorSet::Float { width, .. }) => {
             let width = *width;
-            Centres::Float { data: parts.into_iter().flat_map(|p| if let Centres::Float { data, .. } = p { data } else { Vec::new() }).collect(), width }
+            DescriptorSet::Float { data: parts.into_iter().flat_map(|p| if let DescriptorSet::Float { data, .. } = p { data } else { Vec::new() }).collect(), width }
         }
-        None => Centres::Float { data: Vec::new(), width: 0 },
+        None => DescriptorSet::Float { data: Vec::new(), width: 0 },
     }
 }
 
 /// One node of the vocabulary tree: the centres of its children and where they lead.
 #[derive(Clone, Debug, PartialEq)]
 struct Node {
-    centres: Centres,
+    centres: DescriptorSet,
     /// Per child: another node, or a word (leaf).
     children: Vec<Child>,
 }
@@ -219,7 +200,7 @@ impl Vocabulary {
 }
 
 /// k-means++ seeding then Lloyd iterations over `members`; returns centres and clusters.
-fn kmeans(desc: &Descriptors<'_>, members: &[usize], k: usize, rng: &mut SplitMix64) -> (Centres, Vec<Vec<usize>>) {
+fn kmeans(desc: &Descriptors<'_>, members: &[usize], k: usize, rng: &mut SplitMix64) -> (DescriptorSet, Vec<Vec<usize>>) {
     // k-means++: first centre uniform, then proportional to the squared distance
     let mut seeds = vec![members[(rng.next_u64() % members.len() as u64) as usize]];
     let mut nearest: Vec<f32> = vec![f32::INFINITY; members.len()];

@@ -62,6 +62,60 @@ impl Descriptors<'_> {
     }
 }
 
+/// Owned descriptors (of one image, or a vocabulary's centres).
+#[derive(Clone, Debug, PartialEq)]
+pub enum DescriptorSet {
+    /// Binary, `width` bytes per keypoint (ORB).
+    Binary {
+        /// Row-major bytes.
+        data: Vec<u8>,
+        /// Bytes per descriptor.
+        width: usize,
+    },
+    /// Float, `width` values per keypoint (SIFT).
+    Float {
+        /// Row-major values.
+        data: Vec<f32>,
+        /// Values per descriptor.
+        width: usize,
+    },
+}
+
+impl DescriptorSet {
+    /// A borrowed view.
+    pub fn view(&self) -> Descriptors<'_> {
+        match self {
+            Self::Binary { data, width } => Descriptors::Binary { data, width: *width },
+            Self::Float { data, width } => Descriptors::Float { data, width: *width },
+        }
+    }
+
+    /// Number of descriptors.
+    pub fn len(&self) -> usize {
+        match self {
+            Self::Binary { data, width } => data.len() / (*width).max(1),
+            Self::Float { data, width } => data.len() / (*width).max(1),
+        }
+    }
+
+    /// Whether there are none.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// The rows `rows`, in that order.
+    pub fn select(&self, rows: &[usize]) -> Self {
+        match self {
+            Self::Binary { data, width } => {
+                Self::Binary { data: rows.iter().flat_map(|&r| data[r * width..(r + 1) * width].iter().copied()).collect(), width: *width }
+            }
+            Self::Float { data, width } => {
+                Self::Float { data: rows.iter().flat_map(|&r| data[r * width..(r + 1) * width].iter().copied()).collect(), width: *width }
+            }
+        }
+    }
+}
+
 /// Hamming distance of two byte strings, eight bytes per popcount.
 #[inline]
 pub fn hamming(a: &[u8], b: &[u8]) -> u32 {

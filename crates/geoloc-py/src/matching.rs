@@ -23,6 +23,12 @@ fn options(ratio: Option<f32>, mutual: bool, max_distance: Option<f32>) -> Match
     MatchOptions { ratio, mutual, max_distance }
 }
 
+/// Matches two borrowed descriptor sets without the GIL.
+fn run<'py>(py: Python<'py>, a: Descriptors<'_>, b: Descriptors<'_>, options: MatchOptions) -> PyResult<Matches<'py>> {
+    let m = py.detach(|| core_match(&a, &b, &options)).map_err(to_py_err)?;
+    to_arrays(py, m)
+}
+
 /// Binary (uint8 rows) descriptors, Hamming distance.
 #[pyfunction]
 pub fn match_binary<'py>(
@@ -33,13 +39,10 @@ pub fn match_binary<'py>(
     mutual: bool,
     max_distance: Option<f32>,
 ) -> PyResult<Matches<'py>> {
-    let (wa, wb) = (a.shape()[1], b.shape()[1]);
     let da = a.as_slice().map_err(|_| invalid("descriptors_a", "array must be C-contiguous"))?;
     let db = b.as_slice().map_err(|_| invalid("descriptors_b", "array must be C-contiguous"))?;
-    let m = py
-        .detach(|| core_match(&Descriptors::Binary { data: da, width: wa }, &Descriptors::Binary { data: db, width: wb }, &options(ratio, mutual, max_distance)))
-        .map_err(to_py_err)?;
-    to_arrays(py, m)
+    let (wa, wb) = (a.shape()[1], b.shape()[1]);
+    run(py, Descriptors::Binary { data: da, width: wa }, Descriptors::Binary { data: db, width: wb }, options(ratio, mutual, max_distance))
 }
 
 /// Float (float32 rows) descriptors, Euclidean distance.
@@ -52,13 +55,10 @@ pub fn match_float<'py>(
     mutual: bool,
     max_distance: Option<f32>,
 ) -> PyResult<Matches<'py>> {
-    let (wa, wb) = (a.shape()[1], b.shape()[1]);
     let da = a.as_slice().map_err(|_| invalid("descriptors_a", "array must be C-contiguous"))?;
     let db = b.as_slice().map_err(|_| invalid("descriptors_b", "array must be C-contiguous"))?;
-    let m = py
-        .detach(|| core_match(&Descriptors::Float { data: da, width: wa }, &Descriptors::Float { data: db, width: wb }, &options(ratio, mutual, max_distance)))
-        .map_err(to_py_err)?;
-    to_arrays(py, m)
+    let (wa, wb) = (a.shape()[1], b.shape()[1]);
+    run(py, Descriptors::Float { data: da, width: wa }, Descriptors::Float { data: db, width: wb }, options(ratio, mutual, max_distance))
 }
 
 /// The matches (M, 2) consistent with the epipolar geometry of two known poses.
