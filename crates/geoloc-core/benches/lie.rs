@@ -22,15 +22,69 @@ fn single_calls(c: &mut Criterion) {
     let mut g = c.benchmark_group("single");
     g.throughput(Throughput::Elements(xs.len() as u64));
     // every output is passed whole to black_box so no part of the computation is elided
-    g.bench_function("so3_exp", |b| b.iter(|| xs.iter().for_each(|x| { black_box(SO3::exp(&se3::phi(x))); })));
-    g.bench_function("so3_log", |b| b.iter(|| poses.iter().for_each(|t| { black_box(t.rotation.log()); })));
-    g.bench_function("se3_exp", |b| b.iter(|| xs.iter().for_each(|x| { black_box(SE3::exp(black_box(x))); })));
-    g.bench_function("se3_log", |b| b.iter(|| poses.iter().for_each(|t| { black_box(t.log()); })));
-    g.bench_function("so3_right_jacobian", |b| b.iter(|| xs.iter().for_each(|x| { black_box(so3::right_jacobian(&se3::phi(x))); })));
-    g.bench_function("se3_right_jacobian", |b| b.iter(|| xs.iter().for_each(|x| { black_box(se3::right_jacobian(x)); })));
-    g.bench_function("se3_right_jacobian_inverse", |b| b.iter(|| xs.iter().for_each(|x| { black_box(se3::right_jacobian_inverse(x)); })));
-    g.bench_function("se3_adjoint", |b| b.iter(|| poses.iter().for_each(|t| { black_box(t.adjoint()); })));
-    g.bench_function("so3_from_matrix_checked", |b| b.iter(|| poses.iter().for_each(|t| { black_box(SO3::from_matrix(black_box(t.rotation.matrix())).ok()); })));
+    g.bench_function("so3_exp", |b| {
+        b.iter(|| {
+            xs.iter().for_each(|x| {
+                black_box(SO3::exp(&se3::phi(x)));
+            })
+        })
+    });
+    g.bench_function("so3_log", |b| {
+        b.iter(|| {
+            poses.iter().for_each(|t| {
+                black_box(t.rotation.log());
+            })
+        })
+    });
+    g.bench_function("se3_exp", |b| {
+        b.iter(|| {
+            xs.iter().for_each(|x| {
+                black_box(SE3::exp(black_box(x)));
+            })
+        })
+    });
+    g.bench_function("se3_log", |b| {
+        b.iter(|| {
+            poses.iter().for_each(|t| {
+                black_box(t.log());
+            })
+        })
+    });
+    g.bench_function("so3_right_jacobian", |b| {
+        b.iter(|| {
+            xs.iter().for_each(|x| {
+                black_box(so3::right_jacobian(&se3::phi(x)));
+            })
+        })
+    });
+    g.bench_function("se3_right_jacobian", |b| {
+        b.iter(|| {
+            xs.iter().for_each(|x| {
+                black_box(se3::right_jacobian(x));
+            })
+        })
+    });
+    g.bench_function("se3_right_jacobian_inverse", |b| {
+        b.iter(|| {
+            xs.iter().for_each(|x| {
+                black_box(se3::right_jacobian_inverse(x));
+            })
+        })
+    });
+    g.bench_function("se3_adjoint", |b| {
+        b.iter(|| {
+            poses.iter().for_each(|t| {
+                black_box(t.adjoint());
+            })
+        })
+    });
+    g.bench_function("so3_from_matrix_checked", |b| {
+        b.iter(|| {
+            poses.iter().for_each(|t| {
+                black_box(SO3::from_matrix(black_box(t.rotation.matrix())).ok());
+            })
+        })
+    });
     g.finish();
 }
 

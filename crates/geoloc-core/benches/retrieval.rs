@@ -24,7 +24,9 @@ fn retrieval(c: &mut Criterion) {
         let queries = normalized(&mut rng, 2000, dim);
         let index = DescriptorIndex::new(data.clone(), dim).expect("valid");
         g.throughput(Throughput::Elements(2000));
-        g.bench_function(format!("{n}x{dim}_2000q_{:?}", index.backend()), |b| b.iter(|| index.query(black_box(&queries), 1)));
+        g.bench_function(format!("{n}x{dim}_2000q_{:?}", index.backend()), |b| {
+            b.iter(|| index.query(black_box(&queries), 1))
+        });
         if dim <= 8 {
             let flat = DescriptorIndex::with_backend(data, dim, Some(Backend::Flat)).expect("valid");
             g.bench_function(format!("{n}x{dim}_2000q_Flat"), |b| b.iter(|| flat.query(black_box(&queries), 1)));
@@ -41,14 +43,22 @@ fn matching(c: &mut Criterion) {
     let b: Vec<u8> = a.iter().map(|x| x ^ 1).collect();
     g.bench_function("binary_2000x2000", |bch| {
         bch.iter(|| {
-            match_descriptors(&Descriptors::Binary { data: &a, width: 32 }, &Descriptors::Binary { data: black_box(&b), width: 32 }, &MatchOptions::default())
+            match_descriptors(
+                &Descriptors::Binary { data: &a, width: 32 },
+                &Descriptors::Binary { data: black_box(&b), width: 32 },
+                &MatchOptions::default(),
+            )
         })
     });
     let fa = normalized(&mut rng, 1000, 128);
     let fb: Vec<f32> = fa.iter().map(|x| x + 0.001).collect();
     g.bench_function("float_1000x1000x128", |bch| {
         bch.iter(|| {
-            match_descriptors(&Descriptors::Float { data: &fa, width: 128 }, &Descriptors::Float { data: black_box(&fb), width: 128 }, &MatchOptions::default())
+            match_descriptors(
+                &Descriptors::Float { data: &fa, width: 128 },
+                &Descriptors::Float { data: black_box(&fb), width: 128 },
+                &MatchOptions::default(),
+            )
         })
     });
     g.finish();

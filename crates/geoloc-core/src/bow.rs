@@ -75,11 +75,23 @@ fn concat(parts: Vec<DescriptorSet>) -> DescriptorSet {
     match parts.first() {
         Some(DescriptorSet::Binary { width, .. }) => {
             let width = *width;
-            DescriptorSet::Binary { data: parts.into_iter().flat_map(|p| if let DescriptorSet::Binary { data, .. } = p { data } else { Vec::new() }).collect(), width }
+            DescriptorSet::Binary {
+                data: parts
+                    .into_iter()
+                    .flat_map(|p| if let DescriptorSet::Binary { data, .. } = p { data } else { Vec::new() })
+                    .collect(),
+                width,
+            }
         }
         Some(DescriptorSet::Float { width, .. }) => {
             let width = *width;
-            DescriptorSet::Float { data: parts.into_iter().flat_map(|p| if let DescriptorSet::Float { data, .. } = p { data } else { Vec::new() }).collect(), width }
+            DescriptorSet::Float {
+                data: parts
+                    .into_iter()
+                    .flat_map(|p| if let DescriptorSet::Float { data, .. } = p { data } else { Vec::new() })
+                    .collect(),
+                width,
+            }
         }
         None => DescriptorSet::Float { data: Vec::new(), width: 0 },
     }
@@ -122,11 +134,17 @@ impl Vocabulary {
             return Err(GeolocError::invalid("descriptors", "zero-width descriptors"));
         }
         if branching < 2 || depth == 0 {
-            return Err(GeolocError::invalid("branching", format!("need branching ≥ 2 and depth ≥ 1, got {branching}, {depth}")));
+            return Err(GeolocError::invalid(
+                "branching",
+                format!("need branching ≥ 2 and depth ≥ 1, got {branching}, {depth}"),
+            ));
         }
         let n = count(descriptors);
         if n < branching {
-            return Err(GeolocError::invalid("descriptors", format!("{n} descriptors cannot make {branching} clusters")));
+            return Err(GeolocError::invalid(
+                "descriptors",
+                format!("{n} descriptors cannot make {branching} clusters"),
+            ));
         }
         let mut vocabulary = Self { nodes: Vec::new(), words: 0, binary, width };
         let mut rng = SplitMix64::new(seed);
@@ -136,7 +154,14 @@ impl Vocabulary {
     }
 
     /// Builds the node for `members`; returns its index.
-    fn build(&mut self, desc: &Descriptors<'_>, members: &[usize], branching: usize, depth: usize, rng: &mut SplitMix64) -> usize {
+    fn build(
+        &mut self,
+        desc: &Descriptors<'_>,
+        members: &[usize],
+        branching: usize,
+        depth: usize,
+        rng: &mut SplitMix64,
+    ) -> usize {
         let k = branching.min(members.len());
         let (centres, clusters) = kmeans(desc, members, k, rng);
         let index = self.nodes.len();
@@ -177,7 +202,11 @@ impl Vocabulary {
         if binary != self.binary || width != self.width {
             return Err(GeolocError::invalid(
                 "descriptors",
-                format!("the vocabulary is for {} descriptors of width {}", if self.binary { "binary" } else { "float" }, self.width),
+                format!(
+                    "the vocabulary is for {} descriptors of width {}",
+                    if self.binary { "binary" } else { "float" },
+                    self.width
+                ),
             ));
         }
         Ok((0..count(descriptors))
@@ -187,7 +216,9 @@ impl Vocabulary {
                 loop {
                     let n = &self.nodes[node];
                     let best = (0..n.children.len())
-                        .min_by(|&a, &b| distance(descriptors, i, &n.centres, a).total_cmp(&distance(descriptors, i, &n.centres, b)))
+                        .min_by(|&a, &b| {
+                            distance(descriptors, i, &n.centres, a).total_cmp(&distance(descriptors, i, &n.centres, b))
+                        })
                         .expect("invariant: nodes have children");
                     match n.children[best] {
                         Child::Node(next) => node = next,
@@ -200,7 +231,12 @@ impl Vocabulary {
 }
 
 /// k-means++ seeding then Lloyd iterations over `members`; returns centres and clusters.
-fn kmeans(desc: &Descriptors<'_>, members: &[usize], k: usize, rng: &mut SplitMix64) -> (DescriptorSet, Vec<Vec<usize>>) {
+fn kmeans(
+    desc: &Descriptors<'_>,
+    members: &[usize],
+    k: usize,
+    rng: &mut SplitMix64,
+) -> (DescriptorSet, Vec<Vec<usize>>) {
     // k-means++: first centre uniform, then proportional to the squared distance
     let mut seeds = vec![members[(rng.next_u64() % members.len() as u64) as usize]];
     let mut nearest: Vec<f32> = vec![f32::INFINITY; members.len()];
@@ -227,14 +263,20 @@ fn kmeans(desc: &Descriptors<'_>, members: &[usize], k: usize, rng: &mut SplitMi
     for _ in 0..LLOYD_ITERATIONS {
         clusters = vec![Vec::new(); k];
         for &m in members {
-            let best = (0..k).min_by(|&a, &b| distance(desc, m, &centres, a).total_cmp(&distance(desc, m, &centres, b))).expect("k ≥ 1");
+            let best = (0..k)
+                .min_by(|&a, &b| distance(desc, m, &centres, a).total_cmp(&distance(desc, m, &centres, b)))
+                .expect("k ≥ 1");
             clusters[best].push(m);
         }
         let next = concat(
             clusters
                 .iter()
                 .enumerate()
-                .map(|(c, members)| if members.is_empty() { centre_of(desc, &[seeds[c]]) } else { centre_of(desc, members) })
+                .map(
+                    |(c, members)| {
+                        if members.is_empty() { centre_of(desc, &[seeds[c]]) } else { centre_of(desc, members) }
+                    },
+                )
                 .collect(),
         );
         if next == centres {
@@ -276,7 +318,10 @@ impl BowDatabase {
         let mut containing = vec![0u32; vocabulary_len];
         for (i, words) in images.iter().enumerate() {
             if let Some(&w) = words.iter().find(|&&w| w as usize >= vocabulary_len) {
-                return Err(GeolocError::invalid(format!("images[{i}]"), format!("word {w} is not in a vocabulary of {vocabulary_len}")));
+                return Err(GeolocError::invalid(
+                    format!("images[{i}]"),
+                    format!("word {w} is not in a vocabulary of {vocabulary_len}"),
+                ));
             }
             let mut unique = words.clone();
             unique.sort_unstable();
@@ -299,7 +344,10 @@ impl BowDatabase {
     /// The `k` best images for a query's words: (image index, L1 score), best first, ties by
     /// index.
     pub fn query(&self, words: &[u32], k: usize) -> Vec<(usize, f32)> {
-        let q = bow_vector(&words.iter().copied().filter(|&w| (w as usize) < self.idf.len()).collect::<Vec<_>>(), &self.idf);
+        let q = bow_vector(
+            &words.iter().copied().filter(|&w| (w as usize) < self.idf.len()).collect::<Vec<_>>(),
+            &self.idf,
+        );
         let mut scores = vec![0.0f32; self.images];
         for (&w, &qv) in &q {
             for &(image, v) in &self.inverted[w as usize] {
@@ -322,13 +370,23 @@ mod tests {
     fn synthetic(binary: bool) {
         let mut rng = SplitMix64::new(7);
         let width = 32;
-        let prototypes: Vec<Vec<f32>> = (0..60).map(|_| (0..width).map(|_| rng.normal() as f32 * 3.0).collect()).collect();
+        let prototypes: Vec<Vec<f32>> =
+            (0..60).map(|_| (0..width).map(|_| rng.normal() as f32 * 3.0).collect()).collect();
         let images: Vec<Vec<usize>> = (0..20).map(|i| (0..6).map(|j| (i * 3 + j * 7) % 60).collect()).collect();
         let draw = |rng: &mut SplitMix64, protos: &[usize]| -> Vec<f32> {
-            protos.iter().flat_map(|&p| (0..10).flat_map(|_| prototypes[p].iter().map(|v| v + 0.3 * rng.normal() as f32).collect::<Vec<_>>()).collect::<Vec<_>>()).collect()
+            protos
+                .iter()
+                .flat_map(|&p| {
+                    (0..10)
+                        .flat_map(|_| prototypes[p].iter().map(|v| v + 0.3 * rng.normal() as f32).collect::<Vec<_>>())
+                        .collect::<Vec<_>>()
+                })
+                .collect()
         };
         let to_bytes = |v: &[f32]| -> Vec<u8> {
-            v.chunks(8).map(|c| c.iter().enumerate().fold(0u8, |b, (i, x)| if *x > 0.0 { b | 1 << i } else { b })).collect()
+            v.chunks(8)
+                .map(|c| c.iter().enumerate().fold(0u8, |b, (i, x)| if *x > 0.0 { b | 1 << i } else { b }))
+                .collect()
         };
         let train: Vec<Vec<f32>> = images.iter().map(|im| draw(&mut rng, im)).collect();
         let all: Vec<f32> = train.concat();

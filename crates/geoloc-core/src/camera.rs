@@ -175,6 +175,8 @@ mod tests {
     #[test]
     fn bad_intrinsics_are_named() {
         assert!(matches!(Camera::new(0.0, 1.0, 0.0, 0.0), Err(GeolocError::InvalidInput { name, .. }) if name == "fx"));
-        assert!(matches!(Camera::new(1.0, 1.0, f64::NAN, 0.0), Err(GeolocError::InvalidInput { name, .. }) if name == "cx"));
+        assert!(
+            matches!(Camera::new(1.0, 1.0, f64::NAN, 0.0), Err(GeolocError::InvalidInput { name, .. }) if name == "cx")
+        );
     }
 }

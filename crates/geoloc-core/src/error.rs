@@ -59,9 +59,7 @@ impl GeolocError {
                 Self::NotARotation { name: name.to_owned(), index, what, reason }
             }
             Self::NonFinite { .. } => Self::NonFinite { name: name.to_owned(), index },
-            Self::InvalidInput { reason, .. } => {
-                Self::InvalidInput { name: format!("{name}[{index}]"), reason }
-            }
+            Self::InvalidInput { reason, .. } => Self::InvalidInput { name: format!("{name}[{index}]"), reason },
         }
     }
 }

@@ -97,7 +97,8 @@ pub fn fuse(
     }
     let info_m = spd_inverse(cov_m, "cov_m")?;
     let info_g = spd_inverse(cov_g, "cov_g")?;
-    let motion_only = Fusion { world_from_cam: *pose_m, covariance: *cov_m, source: FusionSource::Motion, iterations: 0 };
+    let motion_only =
+        Fusion { world_from_cam: *pose_m, covariance: *cov_m, source: FusionSource::Motion, iterations: 0 };
     let e = (pose_m.inverse() * *pose_g).log();
     let rejected = match gate {
         Gate::Isometric => {
@@ -137,7 +138,12 @@ pub fn fuse(
         h = hh;
     }
     let covariance = spd_inverse(&h, "information")?;
-    Ok(Fusion { world_from_cam: pose, covariance: 0.5 * (covariance + covariance.transpose()), source: FusionSource::Fused, iterations })
+    Ok(Fusion {
+        world_from_cam: pose,
+        covariance: 0.5 * (covariance + covariance.transpose()),
+        source: FusionSource::Fused,
+        iterations,
+    })
 }
 
 fn normal_equations(
@@ -212,7 +218,8 @@ mod tests {
                     for k in 0..6 {
                         let mut dk = Vector6::zeros();
                         dk[k] = h;
-                        hess[(i, k)] = (f(&x, &(d + dk)) - f(&x, &(d - dk)) - f(&x, &(dk - d)) + f(&x, &(-d - dk))) / (4.0 * h * h);
+                        hess[(i, k)] = (f(&x, &(d + dk)) - f(&x, &(d - dk)) - f(&x, &(dk - d)) + f(&x, &(-d - dk)))
+                            / (4.0 * h * h);
                     }
                 }
                 let step = -(hess.try_inverse().expect("spd") * grad);
@@ -273,10 +280,14 @@ mod tests {
         let p = SE3::identity();
         let bad = Matrix6::zeros();
         let good = Matrix6::identity();
-        assert!(matches!(fuse(&p, &bad, &p, &good, 3.0, Gate::Isometric), Err(GeolocError::InvalidInput { name, .. }) if name == "cov_m"));
+        assert!(
+            matches!(fuse(&p, &bad, &p, &good, 3.0, Gate::Isometric), Err(GeolocError::InvalidInput { name, .. }) if name == "cov_m")
+        );
         let mut asym = Matrix6::identity();
         asym[(0, 1)] = 0.5;
-        assert!(matches!(fuse(&p, &good, &p, &asym, 3.0, Gate::Isometric), Err(GeolocError::InvalidInput { name, .. }) if name == "cov_g"));
+        assert!(
+            matches!(fuse(&p, &good, &p, &asym, 3.0, Gate::Isometric), Err(GeolocError::InvalidInput { name, .. }) if name == "cov_g")
+        );
         assert!(fuse(&p, &good, &p, &good, 0.0, Gate::Isometric).is_err());
     }
 }

@@ -64,12 +64,19 @@ pub fn select_keyframes(poses: &[SE3], seed: usize, options: &KeyframeOptions) -
     if !(options.d_m.is_finite() && options.d_m >= 0.0) {
         return Err(GeolocError::invalid("d_m", format!("must be finite and ≥ 0, got {}", options.d_m)));
     }
-    let score = |a: usize, b: usize| keyframe_score(&poses[a], &poses[b], options.d_m, options.ell, options.alpha_m_rad);
+    let score =
+        |a: usize, b: usize| keyframe_score(&poses[a], &poses[b], options.d_m, options.ell, options.alpha_m_rad);
     let mut group = vec![seed];
     let (mut back, mut forward) = (Some(seed), Some(seed));
     let mut backward_turn = true;
     while group.len() < options.n && (back.is_some() || forward.is_some()) {
-        let side_is_back = if back.is_none() { false } else if forward.is_none() { true } else { backward_turn };
+        let side_is_back = if back.is_none() {
+            false
+        } else if forward.is_none() {
+            true
+        } else {
+            backward_turn
+        };
         backward_turn = !backward_turn;
         let end = if side_is_back { back } else { forward }.expect("invariant: the chosen side is open");
         let candidates: Box<dyn Iterator<Item = usize>> = if side_is_back {

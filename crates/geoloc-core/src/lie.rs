@@ -5,8 +5,8 @@
 //! translation first, T = exp(ξ^); perturbations are on the right, T ⊞ δ = T exp(δ^);
 //! Jacobians and the Q block follow Barfoot, *State Estimation for Robotics* (2017).
 
-mod series;
 pub mod se3;
+mod series;
 pub mod so3;
 
 pub use se3::{SE3, Twist};

@@ -174,10 +174,16 @@ impl Localizer {
             Descriptors::Float { data, width } => data.len() / width.max(1),
         };
         if n_desc != frame.keypoints.len() {
-            return Err(GeolocError::invalid("descriptors", format!("{n_desc} descriptors for {} keypoints", frame.keypoints.len())));
+            return Err(GeolocError::invalid(
+                "descriptors",
+                format!("{n_desc} descriptors for {} keypoints", frame.keypoints.len()),
+            ));
         }
         if !frame.timestamp.is_finite() || self.history.back().is_some_and(|(t, _, _)| frame.timestamp <= *t) {
-            return Err(GeolocError::invalid("timestamp", format!("must be finite and increase, got {}", frame.timestamp)));
+            return Err(GeolocError::invalid(
+                "timestamp",
+                format!("must be finite and increase, got {}", frame.timestamp),
+            ));
         }
         let mut timings = Timings::default();
         let t = Instant::now();
@@ -203,8 +209,10 @@ impl Localizer {
             let px: Vec<Vector2<f64>> = matches.iter().map(|m| frame.keypoints[m.a]).collect();
             let covs: Vec<Matrix3<f64>> = matches.iter().map(|m| points.pixel_covariances[m.b]).collect();
             let k = group.len();
-            let jacobians: Option<Vec<Matrix3x6<f64>>> =
-                points.shared.as_ref().map(|(j, _)| matches.iter().flat_map(|m| j[m.b * k..(m.b + 1) * k].iter().copied()).collect());
+            let jacobians: Option<Vec<Matrix3x6<f64>>> = points
+                .shared
+                .as_ref()
+                .map(|(j, _)| matches.iter().flat_map(|m| j[m.b * k..(m.b + 1) * k].iter().copied()).collect());
             let shared = match (&jacobians, &points.shared) {
                 (Some(j), Some((_, c))) => Some(SharedPoseUncertainty { jacobians: j, pose_covariances: c }),
                 _ => None,
@@ -231,14 +239,31 @@ impl Localizer {
             None
         };
         let (pose, covariance, source, reason) = match (geometric, prediction) {
-            (Ok((tg, cg)), Some(pred)) => match fuse(&pred.world_from_cam, &pred.covariance, &tg, &cg, self.options.gate_sigma, self.options.gate) {
-                Ok(f) if f.source == FusionSource::Fused => (Some(f.world_from_cam), Some(f.covariance), Source::Fused, "ok".to_string()),
-                Ok(f) => (Some(f.world_from_cam), Some(f.covariance), Source::Motion, "geometric pose outside the motion gate".to_string()),
-                Err(e) => (Some(tg), Some(cg), Source::Geometric, format!("fusion skipped: {e}")),
-            },
+            (Ok((tg, cg)), Some(pred)) => {
+                match fuse(&pred.world_from_cam, &pred.covariance, &tg, &cg, self.options.gate_sigma, self.options.gate)
+                {
+                    Ok(f) if f.source == FusionSource::Fused => {
+                        (Some(f.world_from_cam), Some(f.covariance), Source::Fused, "ok".to_string())
+                    }
+                    Ok(f) => (
+                        Some(f.world_from_cam),
+                        Some(f.covariance),
+                        Source::Motion,
+                        "geometric pose outside the motion gate".to_string(),
+                    ),
+                    Err(e) => (Some(tg), Some(cg), Source::Geometric, format!("fusion skipped: {e}")),
+                }
+            }
             (Ok((tg, cg)), None) => (Some(tg), Some(cg), Source::Geometric, "ok (no motion history yet)".to_string()),
-            (Err(why), Some(pred)) => (Some(pred.world_from_cam), Some(pred.covariance), Source::Motion, format!("geometric locator failed: {why}")),
-            (Err(why), None) => (None, None, Source::Lost, format!("geometric locator failed and no motion history: {why}")),
+            (Err(why), Some(pred)) => (
+                Some(pred.world_from_cam),
+                Some(pred.covariance),
+                Source::Motion,
+                format!("geometric locator failed: {why}"),
+            ),
+            (Err(why), None) => {
+                (None, None, Source::Lost, format!("geometric locator failed and no motion history: {why}"))
+            }
         };
         timings.motion_fusion_ms = ms(t);
         if let (Some(p), Some(c)) = (pose, covariance) {
@@ -266,7 +291,8 @@ impl Localizer {
             if g == seed {
                 continue;
             }
-            let matches = match_descriptors(&kf[seed].descriptors.view(), &kf[g].descriptors.view(), &self.options.matching)?;
+            let matches =
+                match_descriptors(&kf[seed].descriptors.view(), &kf[g].descriptors.view(), &self.options.matching)?;
             let kept = epipolar_filter(
                 &map.camera,
                 &kf[seed].world_from_cam,
@@ -292,9 +318,19 @@ impl Localizer {
             pixels.push(kf[seed].keypoints[i]);
         }
         let poses: Vec<SE3> = group.iter().map(|&g| kf[g].world_from_cam).collect();
-        let covs: Option<Vec<Matrix6<f64>>> = map.pose_covariances.as_ref().map(|c| group.iter().map(|&g| c[g]).collect());
-        let tri = triangulate(&map.camera, &poses, covs.as_deref(), &cam_ids, &track_ids, &pixels, &self.options.triangulation)?;
-        let valid: Vec<usize> = tracked.iter().copied().filter(|&i| tri.points[i].status == TrackStatus::Valid).collect();
+        let covs: Option<Vec<Matrix6<f64>>> =
+            map.pose_covariances.as_ref().map(|c| group.iter().map(|&g| c[g]).collect());
+        let tri = triangulate(
+            &map.camera,
+            &poses,
+            covs.as_deref(),
+            &cam_ids,
+            &track_ids,
+            &pixels,
+            &self.options.triangulation,
+        )?;
+        let valid: Vec<usize> =
+            tracked.iter().copied().filter(|&i| tri.points[i].status == TrackStatus::Valid).collect();
         let k = group.len();
         let shared = covs.map(|c| {
             let mut jac = vec![Matrix3x6::zeros(); valid.len() * k];

@@ -9,8 +9,8 @@ use crate::bow::{BowDatabase, Vocabulary};
 use crate::camera::Camera;
 use crate::error::{GeolocError, Result};
 use crate::lie::SE3;
-use crate::matching::Descriptors;
 pub use crate::matching::DescriptorSet;
+use crate::matching::Descriptors;
 use crate::retrieval::DescriptorIndex;
 
 /// One keyframe of the map.
@@ -84,7 +84,10 @@ impl Map {
         if let Some(c) = &pose_covariances
             && c.len() != keyframes.len()
         {
-            return Err(GeolocError::invalid("pose_covariances", format!("has {} entries for {} keyframes", c.len(), keyframes.len())));
+            return Err(GeolocError::invalid(
+                "pose_covariances",
+                format!("has {} entries for {} keyframes", c.len(), keyframes.len()),
+            ));
         }
         let kind_of = |d: &DescriptorSet| match d {
             DescriptorSet::Binary { width, .. } => (true, *width),
@@ -99,7 +102,10 @@ impl Map {
                 ));
             }
             if kind_of(&kf.descriptors) != first {
-                return Err(GeolocError::invalid(format!("keyframes[{i}]"), "descriptors differ in kind or width from keyframe 0's"));
+                return Err(GeolocError::invalid(
+                    format!("keyframes[{i}]"),
+                    "descriptors differ in kind or width from keyframe 0's",
+                ));
             }
         }
         let retrieval = match kind {
@@ -109,7 +115,12 @@ impl Map {
                 for (i, kf) in keyframes.iter().enumerate() {
                     match &kf.global {
                         Some(g) if g.len() == dim && dim > 0 => data.extend_from_slice(g),
-                        _ => return Err(GeolocError::invalid(format!("keyframes[{i}]"), format!("needs a global descriptor of length {dim}"))),
+                        _ => {
+                            return Err(GeolocError::invalid(
+                                format!("keyframes[{i}]"),
+                                format!("needs a global descriptor of length {dim}"),
+                            ));
+                        }
                     }
                 }
                 Retrieval::Global(DescriptorIndex::new(data, dim)?)
@@ -117,11 +128,29 @@ impl Map {
             RetrievalKind::Bow { branching, depth } => {
                 let all = match &keyframes[0].descriptors {
                     DescriptorSet::Binary { width, .. } => DescriptorSet::Binary {
-                        data: keyframes.iter().flat_map(|k| if let DescriptorSet::Binary { data, .. } = &k.descriptors { data.clone() } else { Vec::new() }).collect(),
+                        data: keyframes
+                            .iter()
+                            .flat_map(|k| {
+                                if let DescriptorSet::Binary { data, .. } = &k.descriptors {
+                                    data.clone()
+                                } else {
+                                    Vec::new()
+                                }
+                            })
+                            .collect(),
                         width: *width,
                     },
                     DescriptorSet::Float { width, .. } => DescriptorSet::Float {
-                        data: keyframes.iter().flat_map(|k| if let DescriptorSet::Float { data, .. } = &k.descriptors { data.clone() } else { Vec::new() }).collect(),
+                        data: keyframes
+                            .iter()
+                            .flat_map(|k| {
+                                if let DescriptorSet::Float { data, .. } = &k.descriptors {
+                                    data.clone()
+                                } else {
+                                    Vec::new()
+                                }
+                            })
+                            .collect(),
                         width: *width,
                     },
                 };
@@ -148,7 +177,9 @@ impl Map {
     pub fn retrieve(&self, descriptors: &Descriptors<'_>, global: Option<&[f32]>) -> Result<usize> {
         match &self.retrieval {
             Retrieval::Global(index) => {
-                let g = global.ok_or_else(|| GeolocError::invalid("global", "this map retrieves by global descriptor; give one"))?;
+                let g = global.ok_or_else(|| {
+                    GeolocError::invalid("global", "this map retrieves by global descriptor; give one")
+                })?;
                 let (_, idx) = index.query(g, 1)?;
                 Ok(idx[0])
             }

@@ -106,12 +106,14 @@ impl DescriptorSet {
     /// The rows `rows`, in that order.
     pub fn select(&self, rows: &[usize]) -> Self {
         match self {
-            Self::Binary { data, width } => {
-                Self::Binary { data: rows.iter().flat_map(|&r| data[r * width..(r + 1) * width].iter().copied()).collect(), width: *width }
-            }
-            Self::Float { data, width } => {
-                Self::Float { data: rows.iter().flat_map(|&r| data[r * width..(r + 1) * width].iter().copied()).collect(), width: *width }
-            }
+            Self::Binary { data, width } => Self::Binary {
+                data: rows.iter().flat_map(|&r| data[r * width..(r + 1) * width].iter().copied()).collect(),
+                width: *width,
+            },
+            Self::Float { data, width } => Self::Float {
+                data: rows.iter().flat_map(|&r| data[r * width..(r + 1) * width].iter().copied()).collect(),
+                width: *width,
+            },
         }
     }
 }
@@ -180,11 +182,15 @@ fn best_two(from: &Descriptors<'_>, i: usize, to: &Descriptors<'_>) -> (usize, f
 /// Mixed binary/float descriptors, different widths, a zero width, a bad ratio.
 pub fn match_descriptors(a: &Descriptors<'_>, b: &Descriptors<'_>, options: &MatchOptions) -> Result<Vec<Match>> {
     match (a, b) {
-        (Descriptors::Binary { .. }, Descriptors::Binary { .. }) | (Descriptors::Float { .. }, Descriptors::Float { .. }) => {}
+        (Descriptors::Binary { .. }, Descriptors::Binary { .. })
+        | (Descriptors::Float { .. }, Descriptors::Float { .. }) => {}
         _ => return Err(GeolocError::invalid("descriptors_b", "binary and float descriptors cannot be compared")),
     }
     if a.width() == 0 || a.width() != b.width() {
-        return Err(GeolocError::invalid("descriptors_b", format!("width {} differs from descriptors_a's {}", b.width(), a.width())));
+        return Err(GeolocError::invalid(
+            "descriptors_b",
+            format!("width {} differs from descriptors_a's {}", b.width(), a.width()),
+        ));
     }
     if let Some(r) = options.ratio
         && !(r > 0.0 && r <= 1.0)
@@ -198,14 +204,22 @@ pub fn match_descriptors(a: &Descriptors<'_>, b: &Descriptors<'_>, options: &Mat
         // float: the exact k-NN of the retrieval index (blocked matrix products + exact
         // re-scoring) finds the same two nearest as the scan below, several times faster
         (Descriptors::Float { data: da, width }, Descriptors::Float { data: db, .. }) if a.len() > 0 => {
-            let index_b = crate::retrieval::DescriptorIndex::with_backend(db.to_vec(), *width, Some(crate::retrieval::Backend::Flat))?;
+            let index_b = crate::retrieval::DescriptorIndex::with_backend(
+                db.to_vec(),
+                *width,
+                Some(crate::retrieval::Backend::Flat),
+            )?;
             let k = b.len().min(2);
             let (dist, idx) = index_b.query(da, k)?;
             let forward: Vec<(usize, f32, f32)> = (0..a.len())
                 .map(|i| (idx[i * k], dist[i * k], if k == 2 { dist[i * k + 1] } else { f32::INFINITY }))
                 .collect();
             let backward = if options.mutual {
-                let index_a = crate::retrieval::DescriptorIndex::with_backend(da.to_vec(), *width, Some(crate::retrieval::Backend::Flat))?;
+                let index_a = crate::retrieval::DescriptorIndex::with_backend(
+                    da.to_vec(),
+                    *width,
+                    Some(crate::retrieval::Backend::Flat),
+                )?;
                 Some(index_a.query(db, 1)?.1)
             } else {
                 None
@@ -221,9 +235,7 @@ pub fn match_descriptors(a: &Descriptors<'_>, b: &Descriptors<'_>, options: &Mat
         .into_iter()
         .enumerate()
         .filter(|&(_, (j, d1, d2))| {
-            j != usize::MAX
-                && options.ratio.is_none_or(|r| d1 < r * d2)
-                && options.max_distance.is_none_or(|m| d1 <= m)
+            j != usize::MAX && options.ratio.is_none_or(|r| d1 < r * d2) && options.max_distance.is_none_or(|m| d1 <= m)
         })
         .filter(|&(i, (j, _, _))| backward.as_ref().is_none_or(|back| back[j] == i))
         .map(|(i, (j, d, _))| Match { a: i, b: j, distance: d })
@@ -235,7 +247,17 @@ pub fn match_descriptors(a: &Descriptors<'_>, b: &Descriptors<'_>, options: &Mat
 pub fn fundamental_matrix(camera: &Camera, pose_a: &SE3, pose_b: &SE3) -> Matrix3<f64> {
     let b_from_a = pose_b.inverse() * *pose_a;
     let e = so3::hat(&b_from_a.translation) * b_from_a.rotation.matrix();
-    let k_inv = Matrix3::new(1.0 / camera.fx, 0.0, -camera.cx / camera.fx, 0.0, 1.0 / camera.fy, -camera.cy / camera.fy, 0.0, 0.0, 1.0);
+    let k_inv = Matrix3::new(
+        1.0 / camera.fx,
+        0.0,
+        -camera.cx / camera.fx,
+        0.0,
+        1.0 / camera.fy,
+        -camera.cy / camera.fy,
+        0.0,
+        0.0,
+        1.0,
+    );
     k_inv.transpose() * e * k_inv
 }
 
@@ -270,7 +292,11 @@ pub fn epipolar_filter(
         return Err(GeolocError::invalid("matches", format!("({}, {}) indexes past the keypoints", m.a, m.b)));
     }
     let f = fundamental_matrix(camera, pose_a, pose_b);
-    Ok(matches.iter().copied().filter(|m| sampson_distance(&f, &keypoints_a[m.a], &keypoints_b[m.b]) <= max_px).collect())
+    Ok(matches
+        .iter()
+        .copied()
+        .filter(|m| sampson_distance(&f, &keypoints_a[m.a], &keypoints_b[m.b]) <= max_px)
+        .collect())
 }
 
 #[cfg(test)]
@@ -331,7 +357,8 @@ mod tests {
     fn epipolar_check_keeps_consistent_pairs_only() {
         let cam = Camera::new(525.0, 525.0, 320.0, 240.0).expect("valid");
         let target = Vector3::new(0.0, 0.0, 5.0);
-        let (pa, pb) = (look_at(&Vector3::new(-0.3, 0.0, 0.0), &target), look_at(&Vector3::new(0.3, 0.1, 0.0), &target));
+        let (pa, pb) =
+            (look_at(&Vector3::new(-0.3, 0.0, 0.0), &target), look_at(&Vector3::new(0.3, 0.1, 0.0), &target));
         let mut rng = SplitMix64::new(3);
         let points: Vec<Vector3<f64>> = (0..100).map(|_| target + rng.unit_vector() * 1.5).collect();
         let ka: Vec<Vector2<f64>> = points.iter().map(|x| project(&cam, &pa, x).uv).collect();
@@ -353,10 +380,31 @@ mod tests {
     fn bad_input() {
         let x = [0u8; 32];
         let y = [0.0f32; 32];
-        assert!(match_descriptors(&Descriptors::Binary { data: &x, width: 32 }, &Descriptors::Float { data: &y, width: 32 }, &MatchOptions::default()).is_err());
-        assert!(match_descriptors(&Descriptors::Binary { data: &x, width: 32 }, &Descriptors::Binary { data: &x, width: 16 }, &MatchOptions::default()).is_err());
+        assert!(
+            match_descriptors(
+                &Descriptors::Binary { data: &x, width: 32 },
+                &Descriptors::Float { data: &y, width: 32 },
+                &MatchOptions::default()
+            )
+            .is_err()
+        );
+        assert!(
+            match_descriptors(
+                &Descriptors::Binary { data: &x, width: 32 },
+                &Descriptors::Binary { data: &x, width: 16 },
+                &MatchOptions::default()
+            )
+            .is_err()
+        );
         let bad = MatchOptions { ratio: Some(1.5), ..MatchOptions::default() };
-        assert!(match_descriptors(&Descriptors::Binary { data: &x, width: 32 }, &Descriptors::Binary { data: &x, width: 32 }, &bad).is_err());
+        assert!(
+            match_descriptors(
+                &Descriptors::Binary { data: &x, width: 32 },
+                &Descriptors::Binary { data: &x, width: 32 },
+                &bad
+            )
+            .is_err()
+        );
         let cam = Camera::new(1.0, 1.0, 0.0, 0.0).expect("valid");
         let m = [Match { a: 3, b: 0, distance: 0.0 }];
         assert!(epipolar_filter(&cam, &SE3::identity(), &SE3::identity(), &[], &[], &m, 1.0).is_err());

@@ -62,7 +62,10 @@ pub fn motion_predict(
     if m < needed {
         return Err(GeolocError::invalid(
             "poses",
-            format!("need at least {needed} poses to fit a velocity{}, got {m}", if needed == 3 { " and estimate its noise" } else { "" }),
+            format!(
+                "need at least {needed} poses to fit a velocity{}, got {m}",
+                if needed == 3 { " and estimate its noise" } else { "" }
+            ),
         ));
     }
     if let Some(i) = timestamps.iter().position(|t| !t.is_finite()) {
@@ -134,12 +137,9 @@ pub fn motion_predict(
     g.fixed_view_mut::<6, 6>(0, 0).copy_from(&SE3::exp(&-step).adjoint());
     g.fixed_view_mut::<6, 6>(0, 6).copy_from(&(se3::right_jacobian(&step) * tau));
     let covariance = g * sigma * g.transpose();
-    let rms_residual = residuals(poses, timestamps, t_ref, &reference, &velocity)
-        .iter()
-        .map(|e| e.norm_squared())
-        .sum::<f64>()
-        .sqrt()
-        / (m as f64).sqrt();
+    let rms_residual =
+        residuals(poses, timestamps, t_ref, &reference, &velocity).iter().map(|e| e.norm_squared()).sum::<f64>().sqrt()
+            / (m as f64).sqrt();
     Ok(MotionPrediction {
         world_from_cam: reference * SE3::exp(&step),
         covariance: 0.5 * (covariance + covariance.transpose()),
@@ -253,7 +253,12 @@ mod tests {
         let mut rng = SplitMix64::new(2);
         let (sigma_t, sigma_r) = (0.01, 0.01);
         let cov = Matrix6::from_diagonal(&Vector6::new(
-            sigma_t * sigma_t, sigma_t * sigma_t, sigma_t * sigma_t, sigma_r * sigma_r, sigma_r * sigma_r, sigma_r * sigma_r,
+            sigma_t * sigma_t,
+            sigma_t * sigma_t,
+            sigma_t * sigma_t,
+            sigma_r * sigma_r,
+            sigma_r * sigma_r,
+            sigma_r * sigma_r,
         ));
         let covs = vec![cov; 4];
         let times = [0.0, 1.0 / 30.0, 2.0 / 30.0, 4.0 / 30.0];
@@ -267,8 +272,12 @@ mod tests {
                 .iter()
                 .map(|p| {
                     *p * SE3::exp(&Twist::new(
-                        sigma_t * rng.normal(), sigma_t * rng.normal(), sigma_t * rng.normal(),
-                        sigma_r * rng.normal(), sigma_r * rng.normal(), sigma_r * rng.normal(),
+                        sigma_t * rng.normal(),
+                        sigma_t * rng.normal(),
+                        sigma_t * rng.normal(),
+                        sigma_r * rng.normal(),
+                        sigma_r * rng.normal(),
+                        sigma_r * rng.normal(),
                     ))
                 })
                 .collect();
@@ -326,7 +335,8 @@ mod tests {
     #[test]
     fn model_mismatch_widens_the_prediction() {
         let times = [0.0, 0.1, 0.2, 0.3];
-        let poses: Vec<SE3> = times.iter().map(|&t| SE3::exp(&Twist::new(t * t * 5.0, 0.0, 0.0, 0.0, 0.0, 0.0))).collect();
+        let poses: Vec<SE3> =
+            times.iter().map(|&t| SE3::exp(&Twist::new(t * t * 5.0, 0.0, 0.0, 0.0, 0.0, 0.0))).collect();
         let covs = vec![Matrix6::identity() * 1e-8; 4];
         let p = motion_predict(&poses, &times, 0.4, Some(&covs)).expect("valid");
         let truth = SE3::exp(&Twist::new(0.8, 0.0, 0.0, 0.0, 0.0, 0.0));
@@ -345,7 +355,9 @@ mod tests {
         let times = [0.0, 0.1, 0.2, 0.3];
         let noisy: Vec<SE3> = trajectory(&SE3::identity(), &v, &times)
             .iter()
-            .map(|p| *p * SE3::exp(&Twist::new(0.01 * rng.normal(), 0.01 * rng.normal(), 0.01 * rng.normal(), 0.0, 0.0, 0.0)))
+            .map(|p| {
+                *p * SE3::exp(&Twist::new(0.01 * rng.normal(), 0.01 * rng.normal(), 0.01 * rng.normal(), 0.0, 0.0, 0.0))
+            })
             .collect();
         let p = motion_predict(&noisy, &times, 0.4, None).expect("valid");
         assert!(p.covariance[(0, 0)] > 1e-6 && p.covariance[(3, 3)] < p.covariance[(0, 0)]);

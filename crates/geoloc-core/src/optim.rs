@@ -4,5 +4,7 @@
 pub mod lm;
 pub mod robust;
 
-pub use lm::{LeastSquares, LmOptions, LmReport, Termination, levenberg_marquardt, levenberg_marquardt_with_information};
+pub use lm::{
+    LeastSquares, LmOptions, LmReport, Termination, levenberg_marquardt, levenberg_marquardt_with_information,
+};
 pub use robust::RobustLoss;

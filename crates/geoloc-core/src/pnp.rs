@@ -40,7 +40,9 @@ use nalgebra::{Matrix2, Matrix2x3, Matrix3, Matrix3x6, Matrix6, Vector2, Vector3
 use crate::camera::{Camera, j_uv_point, j_uv_pose, project};
 use crate::error::{GeolocError, Result};
 use crate::lie::{SE3, SO3};
-use crate::optim::{LeastSquares, LmOptions, LmReport, RobustLoss, levenberg_marquardt, levenberg_marquardt_with_information};
+use crate::optim::{
+    LeastSquares, LmOptions, LmReport, RobustLoss, levenberg_marquardt, levenberg_marquardt_with_information,
+};
 
 /// How the returned covariance is computed.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -222,7 +224,15 @@ pub fn solve_pnp(
             break;
         }
         let w = weighting(camera, points, &pose, &subset, uncertainty, options.pixel_sigma);
-        let problem = PoseProblem { camera, points, pixels, subset: &subset, weights: &w.weights, biases: &w.biases, loss: options.loss };
+        let problem = PoseProblem {
+            camera,
+            points,
+            pixels,
+            subset: &subset,
+            weights: &w.weights,
+            biases: &w.biases,
+            loss: options.loss,
+        };
         // with the propagated model a final least-squares solve follows: the robust rounds
         // only have to settle the inlier set
         let final_solve_follows = options.covariance == CovarianceModel::Propagated && options.loss != RobustLoss::None;
@@ -241,7 +251,11 @@ pub fn solve_pnp(
         subset = next_subset;
     }
     if subset.len() < MIN_INLIERS {
-        return Ok(PnpResult::failure(n, format!("too few inliers: {} < {MIN_INLIERS}", subset.len()), ransac_iterations));
+        return Ok(PnpResult::failure(
+            n,
+            format!("too few inliers: {} < {MIN_INLIERS}", subset.len()),
+            ransac_iterations,
+        ));
     }
     let mut joint_covariance = None;
     let mut least_squares = None;
@@ -257,13 +271,23 @@ pub fn solve_pnp(
                 .map(|&j| {
                     let p = project(camera, &pose, &points[j]);
                     let j_x = j_uv_point(camera, &pose, &p);
-                    let shared = point_covariance(j, uncertainty, true).unwrap_or_else(Matrix3::zeros) - u.covariances[j];
-                    let s = Matrix2::identity() * (options.pixel_sigma * options.pixel_sigma) + j_x * shared * j_x.transpose();
+                    let shared =
+                        point_covariance(j, uncertainty, true).unwrap_or_else(Matrix3::zeros) - u.covariances[j];
+                    let s = Matrix2::identity() * (options.pixel_sigma * options.pixel_sigma)
+                        + j_x * shared * j_x.transpose();
                     s.try_inverse().unwrap_or_else(|| Matrix2::identity() / (options.pixel_sigma * options.pixel_sigma))
                 })
                 .collect::<Vec<_>>()
         });
-        let problem = joint::JointProblem::new(camera, points, pixels, &subset, u, options.pixel_sigma, shared_weights.as_deref());
+        let problem = joint::JointProblem::new(
+            camera,
+            points,
+            pixels,
+            &subset,
+            u,
+            options.pixel_sigma,
+            shared_weights.as_deref(),
+        );
         let (next, cov, r) = problem.solve(pose, &options.lm);
         pose = next;
         report = Some(r);
@@ -274,7 +298,15 @@ pub fn solve_pnp(
         // Outliers are gone: the efficient estimator for the remaining Gaussian errors is
         // plain weighted least squares, whose covariance the propagation below is exact for.
         let w = weighting(camera, points, &pose, &subset, uncertainty, options.pixel_sigma);
-        let problem = PoseProblem { camera, points, pixels, subset: &subset, weights: &w.weights, biases: &w.biases, loss: RobustLoss::None };
+        let problem = PoseProblem {
+            camera,
+            points,
+            pixels,
+            subset: &subset,
+            weights: &w.weights,
+            biases: &w.biases,
+            loss: RobustLoss::None,
+        };
         let (next, r, h) = final_least_squares(&problem, pose, &options.lm);
         pose = next;
         report = Some(r);
@@ -304,7 +336,11 @@ pub fn solve_pnp(
         },
     };
     let Some(covariance) = covariance else {
-        let mut failed = PnpResult::failure(n, "degenerate geometry: the pose is not observable from these points", ransac_iterations);
+        let mut failed = PnpResult::failure(
+            n,
+            "degenerate geometry: the pose is not observable from these points",
+            ransac_iterations,
+        );
         failed.world_from_cam = pose;
         failed.inliers = inliers;
         return Ok(failed);
@@ -338,7 +374,12 @@ fn final_least_squares(problem: &PoseProblem<'_>, pose: SE3, lm: &LmOptions) -> 
         if metric <= ONE_STEP_MAX_METRIC {
             // the cost is Σ rᵀWr and g its half-gradient: cost + 2gᵀδ + δᵀHδ = cost + gᵀδ at Hδ = −g
             let predicted = cost + g.dot(&step);
-            let report = LmReport { iterations: 1, initial_cost: cost, final_cost: predicted, termination: crate::optim::Termination::CostConverged };
+            let report = LmReport {
+                iterations: 1,
+                initial_cost: cost,
+                final_cost: predicted,
+                termination: crate::optim::Termination::CostConverged,
+            };
             return (pose * SE3::exp(&step), report, h);
         }
     }
@@ -386,14 +427,21 @@ fn validate(
     }
     if let Some(u) = uncertainty {
         if u.covariances.len() != n {
-            return Err(GeolocError::invalid("point_covariances", format!("has {} entries for {n} points", u.covariances.len())));
+            return Err(GeolocError::invalid(
+                "point_covariances",
+                format!("has {} entries for {n} points", u.covariances.len()),
+            ));
         }
         if let Some(s) = &u.shared
             && s.jacobians.len() != n * s.pose_covariances.len()
         {
             return Err(GeolocError::invalid(
                 "point_pose_jacobians",
-                format!("has {} entries; expected points × poses = {n} × {}", s.jacobians.len(), s.pose_covariances.len()),
+                format!(
+                    "has {} entries; expected points × poses = {n} × {}",
+                    s.jacobians.len(),
+                    s.pose_covariances.len()
+                ),
             ));
         }
     }
@@ -440,7 +488,13 @@ fn gated_indices(
         .collect()
 }
 
-fn inlier_indices(camera: &Camera, points: &[Vector3<f64>], pixels: &[Vector2<f64>], pose: &SE3, threshold: f64) -> Vec<usize> {
+fn inlier_indices(
+    camera: &Camera,
+    points: &[Vector3<f64>],
+    pixels: &[Vector2<f64>],
+    pose: &SE3,
+    threshold: f64,
+) -> Vec<usize> {
     let t2 = threshold * threshold;
     (0..points.len())
         .filter(|&j| {
@@ -515,10 +569,8 @@ fn residual_moments(
     let r = pose.rotation.matrix();
     let c = r.transpose() * cov * r;
     let (x, y, z) = (p.p_cam.x, p.p_cam.y, p.p_cam.z);
-    let bias = Vector2::new(
-        camera.fx * (x * c[(2, 2)] / z - c[(0, 2)]),
-        camera.fy * (y * c[(2, 2)] / z - c[(1, 2)]),
-    ) / (z * z);
+    let bias = Vector2::new(camera.fx * (x * c[(2, 2)] / z - c[(0, 2)]), camera.fy * (y * c[(2, 2)] / z - c[(1, 2)]))
+        / (z * z);
     (s, bias)
 }
 
@@ -535,7 +587,6 @@ struct PoseProblem<'a> {
 
 impl LeastSquares<6> for PoseProblem<'_> {
     type State = SE3;
-
 
     fn normal_equations(&self, pose: &SE3) -> (Matrix6<f64>, Vector6<f64>, f64) {
         // The hot loop of every PnP: the two rows of ∂π/∂δ in closed form and only the upper
@@ -674,14 +725,26 @@ mod tests {
         for _ in 0..20 {
             let truth = rng.pose(3.0);
             let points: Vec<Vector3<f64>> = (0..100)
-                .map(|_| truth * Vector3::new(rng.uniform_in(-2.0, 2.0), rng.uniform_in(-1.5, 1.5), rng.uniform_in(3.0, 8.0)))
+                .map(|_| {
+                    truth * Vector3::new(rng.uniform_in(-2.0, 2.0), rng.uniform_in(-1.5, 1.5), rng.uniform_in(3.0, 8.0))
+                })
                 .collect();
-            let pixels: Vec<Vector2<f64>> =
-                points.iter().map(|x| project(&camera, &truth, x).uv + Vector2::new(rng.normal(), rng.normal())).collect();
+            let pixels: Vec<Vector2<f64>> = points
+                .iter()
+                .map(|x| project(&camera, &truth, x).uv + Vector2::new(rng.normal(), rng.normal()))
+                .collect();
             let subset: Vec<usize> = (0..points.len()).collect();
             let weights = vec![Matrix2::identity(); subset.len()];
             let biases = vec![Vector2::zeros(); subset.len()];
-            let problem = PoseProblem { camera: &camera, points: &points, pixels: &pixels, subset: &subset, weights: &weights, biases: &biases, loss: RobustLoss::None };
+            let problem = PoseProblem {
+                camera: &camera,
+                points: &points,
+                pixels: &pixels,
+                subset: &subset,
+                weights: &weights,
+                biases: &biases,
+                loss: RobustLoss::None,
+            };
             let (full, full_report, _) = levenberg_marquardt_with_information(&problem, truth, &LmOptions::default());
             // start half a standard deviation or so away from the optimum, as after Huber
             let start = full * SE3::exp(&Vector6::new(3e-4, -3e-4, 2e-4, 5e-5, -3e-5, 3e-5));

@@ -54,10 +54,8 @@ impl<const K: usize> Tree for KiddoTree<K> {
 }
 
 fn build_tree<const K: usize>(data: &[f32]) -> Option<Box<dyn Tree>> {
-    let rows: Vec<[f32; K]> = data
-        .chunks_exact(K)
-        .map(|c| c.try_into().expect("invariant: chunks have K values"))
-        .collect();
+    let rows: Vec<[f32; K]> =
+        data.chunks_exact(K).map(|c| c.try_into().expect("invariant: chunks have K values")).collect();
     // kiddo has panicked on degenerate inputs in past versions: never let that unwind out
     std::panic::catch_unwind(|| ImmutableKdTree::<f32, u32, K, 32>::new_from_slice(&rows))
         .ok()
@@ -75,7 +73,11 @@ pub struct DescriptorIndex {
 
 impl std::fmt::Debug for DescriptorIndex {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("DescriptorIndex").field("len", &self.len()).field("dim", &self.dim).field("backend", &self.backend()).finish()
+        f.debug_struct("DescriptorIndex")
+            .field("len", &self.len())
+            .field("dim", &self.dim)
+            .field("backend", &self.backend())
+            .finish()
     }
 }
 
@@ -94,7 +96,10 @@ impl DescriptorIndex {
     /// As [`DescriptorIndex::new`], or `KdTree` requested above its dimension limit.
     pub fn with_backend(data: Vec<f32>, dim: usize, backend: Option<Backend>) -> Result<Self> {
         if dim == 0 || data.is_empty() || !data.len().is_multiple_of(dim) {
-            return Err(GeolocError::invalid("descriptors", format!("expected a non-empty (N, D) array, got {} values for D = {dim}", data.len())));
+            return Err(GeolocError::invalid(
+                "descriptors",
+                format!("expected a non-empty (N, D) array, got {} values for D = {dim}", data.len()),
+            ));
         }
         if let Some(i) = data.iter().position(|v| !v.is_finite()) {
             return Err(GeolocError::NonFinite { name: "descriptors".into(), index: i / dim });
@@ -102,7 +107,10 @@ impl DescriptorIndex {
         let use_tree = match backend {
             Some(Backend::Flat) => false,
             Some(Backend::KdTree) if dim > KDTREE_MAX_DIM => {
-                return Err(GeolocError::invalid("backend", format!("the k-d tree serves D ≤ {KDTREE_MAX_DIM}, got D = {dim}")));
+                return Err(GeolocError::invalid(
+                    "backend",
+                    format!("the k-d tree serves D ≤ {KDTREE_MAX_DIM}, got D = {dim}"),
+                ));
             }
             Some(Backend::KdTree) => true,
             None => dim <= KDTREE_MAX_DIM,
@@ -151,11 +159,8 @@ impl DescriptorIndex {
         let mut distances = vec![0.0_f32; q_count * k];
         let mut indices = vec![0_usize; q_count * k];
         let block = if self.tree.is_some() { QUERY_CHUNK } else { GEMM_QUERY_BLOCK };
-        distances
-            .par_chunks_mut(k * block)
-            .zip(indices.par_chunks_mut(k * block))
-            .enumerate()
-            .for_each(|(chunk, (d_out, i_out))| {
+        distances.par_chunks_mut(k * block).zip(indices.par_chunks_mut(k * block)).enumerate().for_each(
+            |(chunk, (d_out, i_out))| {
                 let first = chunk * block;
                 let count = d_out.len() / k;
                 let rows = &queries[first * self.dim..(first + count) * self.dim];
@@ -164,7 +169,8 @@ impl DescriptorIndex {
                     None if count == 1 => vec![self.scan(rows, k)],
                     None => self.scan_block(rows, k),
                 };
-                for ((mut found, d_row), i_row) in results.into_iter().zip(d_out.chunks_mut(k)).zip(i_out.chunks_mut(k)) {
+                for ((mut found, d_row), i_row) in results.into_iter().zip(d_out.chunks_mut(k)).zip(i_out.chunks_mut(k))
+                {
                     // a canonical order: distance, then index (trees may order ties freely)
                     found.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
                     found.truncate(k);
@@ -173,7 +179,8 @@ impl DescriptorIndex {
                         i_row[slot] = i;
                     }
                 }
-            });
+            },
+        );
         Ok((distances, indices))
     }
 

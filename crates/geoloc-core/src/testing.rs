@@ -97,8 +97,7 @@ pub fn look_at(centre: &Vector3<f64>, target: &Vector3<f64>) -> SE3 {
 
 /// The angle regimes every Lie identity is checked in (DESIGN.md §6): identity, tiny,
 /// just around the Taylor threshold, ordinary, and just short of π.
-pub const ANGLE_REGIMES_RAD: [f64; 7] =
-    [0.0, 1e-9, 1e-8, 0.19, 0.21, 1.3, std::f64::consts::PI - 1e-6];
+pub const ANGLE_REGIMES_RAD: [f64; 7] = [0.0, 1e-9, 1e-8, 0.19, 0.21, 1.3, std::f64::consts::PI - 1e-6];
 
 #[cfg(test)]
 mod tests {

@@ -177,10 +177,7 @@ pub fn triangulate(
     let points: Vec<TriangulatedPoint> = by_track
         .par_iter()
         .map(|obs| {
-            let views: Vec<View> = obs
-                .iter()
-                .map(|&o| View { camera: camera_ids[o], uv: pixels[o] })
-                .collect();
+            let views: Vec<View> = obs.iter().map(|&o| View { camera: camera_ids[o], uv: pixels[o] }).collect();
             triangulate_track(camera, world_from_cams, pose_covariances, &views, options)
         })
         .collect();
@@ -365,14 +362,8 @@ impl Track<'_> {
 
     fn refine(&self, subset: &[usize], x: Vector3<f64>, loss: RobustLoss) -> Vector3<f64> {
         let weights = self.weights(&x);
-        let problem = PointProblem {
-            camera: self.camera,
-            poses: self.poses,
-            views: self.views,
-            subset,
-            weights: &weights,
-            loss,
-        };
+        let problem =
+            PointProblem { camera: self.camera, poses: self.poses, views: self.views, subset, weights: &weights, loss };
         levenberg_marquardt(&problem, x, &self.options.lm).0
     }
 
@@ -457,15 +448,15 @@ fn best_pair(camera: &Camera, poses: &[SE3], views: &[View], threshold: f64) -> 
             }
             let Some(x) = dlt(camera, poses, views, &[i, j]) else { continue };
             let set: Vec<usize> = (0..views.len())
-                .filter(|&k| depth(poses, &views[k], &x) > 0.0 && residual_px(camera, poses, &views[k], &x) <= threshold)
+                .filter(|&k| {
+                    depth(poses, &views[k], &x) > 0.0 && residual_px(camera, poses, &views[k], &x) <= threshold
+                })
                 .collect();
             if set.len() < 2 {
                 continue;
             }
-            let score: f64 = views
-                .iter()
-                .map(|v| residual_px(camera, poses, v, &x).powi(2).min(threshold * threshold))
-                .sum();
+            let score: f64 =
+                views.iter().map(|v| residual_px(camera, poses, v, &x).powi(2).min(threshold * threshold)).sum();
             let better = match &best {
                 None => true,
                 Some((_, b, s)) => set.len() > b.len() || (set.len() == b.len() && score < *s),
@@ -484,8 +475,7 @@ fn best_pair(camera: &Camera, poses: &[SE3], views: &[View], threshold: f64) -> 
 /// solve (centring keeps the point away from w = 0). None when the rays are (nearly)
 /// parallel, i.e. the solution is at infinity.
 fn dlt(camera: &Camera, poses: &[SE3], views: &[View], subset: &[usize]) -> Option<Vector3<f64>> {
-    let centre = subset.iter().map(|&i| poses[views[i].camera].translation).sum::<Vector3<f64>>()
-        / subset.len() as f64;
+    let centre = subset.iter().map(|&i| poses[views[i].camera].translation).sum::<Vector3<f64>>() / subset.len() as f64;
     let mut ata = Matrix3::<f64>::zeros();
     let mut atb = Vector3::<f64>::zeros();
     for &i in subset {
@@ -533,7 +523,6 @@ struct PointProblem<'a> {
 impl LeastSquares<3> for PointProblem<'_> {
     type State = Vector3<f64>;
 
-
     fn normal_equations(&self, x: &Vector3<f64>) -> (Matrix3<f64>, Vector3<f64>, f64) {
         let mut h = Matrix3::zeros();
         let mut g = Vector3::zeros();
@@ -561,7 +550,8 @@ impl LeastSquares<3> for PointProblem<'_> {
 
 fn max_ray_angle(poses: &[SE3], views: &[View], subset: &[usize], x: &Vector3<f64>) -> f64 {
     // the largest angle is the smallest cosine: one atan2 at the end, not one per pair
-    let rays: Vec<Vector3<f64>> = subset.iter().map(|&i| (x - poses[views[i].camera].translation).normalize()).collect();
+    let rays: Vec<Vector3<f64>> =
+        subset.iter().map(|&i| (x - poses[views[i].camera].translation).normalize()).collect();
     let mut widest: Option<(f64, usize, usize)> = None;
     for a in 0..rays.len() {
         for b in a + 1..rays.len() {

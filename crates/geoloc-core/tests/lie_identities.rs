@@ -115,8 +115,14 @@ fn jacobians_times_inverses_are_identity() {
         let phi = se3::phi(xi);
         let i3 = Matrix3::identity();
         let i6 = Matrix6::identity();
-        assert!(relative_error(&(so3::left_jacobian(&phi) * so3::left_jacobian_inverse(&phi)), &i3) < IDENTITY_TOL, "{ctx}");
-        assert!(relative_error(&(so3::right_jacobian(&phi) * so3::right_jacobian_inverse(&phi)), &i3) < IDENTITY_TOL, "{ctx}");
+        assert!(
+            relative_error(&(so3::left_jacobian(&phi) * so3::left_jacobian_inverse(&phi)), &i3) < IDENTITY_TOL,
+            "{ctx}"
+        );
+        assert!(
+            relative_error(&(so3::right_jacobian(&phi) * so3::right_jacobian_inverse(&phi)), &i3) < IDENTITY_TOL,
+            "{ctx}"
+        );
         let l = se3::left_jacobian(xi) * se3::left_jacobian_inverse(xi);
         let r = se3::right_jacobian(xi) * se3::right_jacobian_inverse(xi);
         // near π the SE(3) blocks grow like |ρ|·θ; relative to that size

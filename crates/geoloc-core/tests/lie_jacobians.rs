@@ -11,7 +11,11 @@ use nalgebra::Vector3;
 const JACOBIAN_TOL: f64 = 1e-6;
 const TRANSLATIONS_M: [f64; 3] = [0.0, 1.0, 30.0];
 
-fn assert_close<const N: usize>(analytic: &nalgebra::SMatrix<f64, N, N>, numeric: &nalgebra::SMatrix<f64, N, N>, ctx: &str) {
+fn assert_close<const N: usize>(
+    analytic: &nalgebra::SMatrix<f64, N, N>,
+    numeric: &nalgebra::SMatrix<f64, N, N>,
+    ctx: &str,
+) {
     let scale = numeric.abs().max().max(1.0);
     let err = (analytic - numeric).abs().max() / scale;
     assert!(err < JACOBIAN_TOL, "{ctx}: relative error {err:e}\nanalytic {analytic}\nnumeric {numeric}");
@@ -43,8 +47,10 @@ fn so3_jacobians_match_central_differences() {
         let phi = se3::phi(&xi);
         let h = step_for(&xi);
         let r0 = SO3::exp(&phi);
-        let j_r = central_difference(|d: &Vector3<f64>| (r0.inverse() * SO3::exp(&(phi + d))).log(), &Vector3::zeros(), h);
-        let j_l = central_difference(|d: &Vector3<f64>| (SO3::exp(&(phi + d)) * r0.inverse()).log(), &Vector3::zeros(), h);
+        let j_r =
+            central_difference(|d: &Vector3<f64>| (r0.inverse() * SO3::exp(&(phi + d))).log(), &Vector3::zeros(), h);
+        let j_l =
+            central_difference(|d: &Vector3<f64>| (SO3::exp(&(phi + d)) * r0.inverse()).log(), &Vector3::zeros(), h);
         assert_close::<3>(&so3::right_jacobian(&phi), &j_r, &format!("J_r at {phi:?}"));
         assert_close::<3>(&so3::left_jacobian(&phi), &j_l, &format!("J_l at {phi:?}"));
         // the inverses are the derivatives of log under right / left perturbations

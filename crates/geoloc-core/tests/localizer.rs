@@ -61,10 +61,16 @@ fn run(corrupt_fraction: f64) -> (Vec<f64>, Vec<Source>) {
         .map(|i| {
             let pose = walk(i as f64 * 0.1, 0.0);
             let (keypoints, data) = world.observe(&mut rng, &pose);
-            Keyframe { world_from_cam: pose, keypoints, descriptors: DescriptorSet::Binary { data, width: WIDTH }, global: None }
+            Keyframe {
+                world_from_cam: pose,
+                keypoints,
+                descriptors: DescriptorSet::Binary { data, width: WIDTH },
+                global: None,
+            }
         })
         .collect();
-    let map = Map::build(world.camera, keyframes, None, RetrievalKind::Bow { branching: 8, depth: 3 }, 0).expect("valid map");
+    let map =
+        Map::build(world.camera, keyframes, None, RetrievalKind::Bow { branching: 8, depth: 3 }, 0).expect("valid map");
     let mut localizer = Localizer::new(Arc::new(map), LocalizerOptions::default());
     let (mut errors, mut sources) = (Vec::new(), Vec::new());
     let mut corrupt_rng = SplitMix64::new(5);
@@ -82,7 +88,12 @@ fn run(corrupt_fraction: f64) -> (Vec<f64>, Vec<Source>) {
             }
             data = shuffled;
         }
-        let frame = Frame { timestamp: t, keypoints: &keypoints, descriptors: Descriptors::Binary { data: &data, width: WIDTH }, global: None };
+        let frame = Frame {
+            timestamp: t,
+            keypoints: &keypoints,
+            descriptors: Descriptors::Binary { data: &data, width: WIDTH },
+            global: None,
+        };
         let r = localizer.localize(&frame).expect("valid frame");
         sources.push(r.source);
         if let Some(p) = r.world_from_cam {
@@ -127,4 +138,3 @@ fn gross_failures_are_absorbed_by_the_motion_model() {
     assert!(median(&corrupt) <= 1.2 * median(&clean), "{} vs clean {}", median(&corrupt), median(&clean));
     assert!(corrupt.iter().all(|e| e.is_finite()));
 }
-

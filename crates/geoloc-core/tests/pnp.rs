@@ -70,7 +70,10 @@ fn ransac_survives_forty_percent_outliers() {
                 outlier[j] = (pixels[j] - project(&cam, &truth, &points[j]).uv).norm() > 5.0;
             }
         }
-        let options = PnpOptions { ransac: geoloc_core::pnp::RansacOptions { seed: trial, ..Default::default() }, ..Default::default() };
+        let options = PnpOptions {
+            ransac: geoloc_core::pnp::RansacOptions { seed: trial, ..Default::default() },
+            ..Default::default()
+        };
         let res = solve_pnp(&cam, &points, &pixels, None, None, &options).expect("valid");
         if res.success {
             let (cm, deg) = error_cm_deg(&res.world_from_cam, &truth);
@@ -144,14 +147,25 @@ fn monte_carlo(seed: u64, trials: usize, sigma_px: f64, label: Option<(f64, f64)
         let poses: Vec<SE3> = centres.iter().map(|c| look_at(c, &target)).collect();
         let (train, query) = (&poses[..4], poses[4]);
         let points: Vec<Vector3<f64>> = (0..119)
-            .map(|_| target + Vector3::new(rng.uniform_in(-2.0, 2.0), rng.uniform_in(-1.5, 1.5), rng.uniform_in(-1.0, 1.0)))
+            .map(|_| {
+                target + Vector3::new(rng.uniform_in(-2.0, 2.0), rng.uniform_in(-1.5, 1.5), rng.uniform_in(-1.0, 1.0))
+            })
             .collect();
         let (labels, label_cov) = match label {
             None => (train.to_vec(), None),
             Some((st, sr)) => {
                 let noisy = train
                     .iter()
-                    .map(|p| *p * SE3::exp(&Twist::new(st * rng.normal(), st * rng.normal(), st * rng.normal(), sr * rng.normal(), sr * rng.normal(), sr * rng.normal())))
+                    .map(|p| {
+                        *p * SE3::exp(&Twist::new(
+                            st * rng.normal(),
+                            st * rng.normal(),
+                            st * rng.normal(),
+                            sr * rng.normal(),
+                            sr * rng.normal(),
+                            sr * rng.normal(),
+                        ))
+                    })
                     .collect();
                 let c = Matrix6::from_diagonal(&Vector6::new(st * st, st * st, st * st, sr * sr, sr * sr, sr * sr));
                 (noisy, Some(vec![c; 4]))

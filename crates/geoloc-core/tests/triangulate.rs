@@ -34,7 +34,8 @@ fn noise_free_tracks_are_recovered_exactly() {
     let mut rng = SplitMix64::new(1);
     let (camera, poses, points) = arc_scene(&mut rng, 5, 200);
     let (cams, tracks, pix) = all_views(&mut rng, &camera, &poses, &points, 0.0);
-    let tri = triangulate(&camera, &poses, None, &cams, &tracks, &pix, &TriangulationOptions::default()).expect("valid input");
+    let tri = triangulate(&camera, &poses, None, &cams, &tracks, &pix, &TriangulationOptions::default())
+        .expect("valid input");
     for (p, x) in tri.points.iter().zip(&points) {
         assert_eq!(p.status, TrackStatus::Valid);
         assert!((p.point - x).norm() < 1e-9, "{:?} vs {x:?}", p.point);
@@ -140,7 +141,8 @@ fn pose_jacobians_match_central_differences() {
     let options = TriangulationOptions::default();
     let h = 1e-4; // O(h²) truncation ≪ tolerance; LM's stopping noise ≪ h
     for x in &points {
-        let views: Vec<View> = (0..poses.len()).map(|c| View { camera: c, uv: observe(&mut rng, &camera, &poses[c], x, 0.0) }).collect();
+        let views: Vec<View> =
+            (0..poses.len()).map(|c| View { camera: c, uv: observe(&mut rng, &camera, &poses[c], x, 0.0) }).collect();
         // D is computed when pose covariances are given; tiny ones leave the weights ≈ 1/σ²
         let covs = vec![Matrix6::identity() * 1e-12; poses.len()];
         let base = triangulate_track(&camera, &poses, Some(&covs), &views, &options);
@@ -157,7 +159,10 @@ fn pose_jacobians_match_central_differences() {
                 let xm = triangulate_track(&camera, &minus, Some(&covs), &views, &options).point;
                 let numeric = (xp - xm) / (2.0 * h);
                 let analytic = d.column(axis);
-                assert!((numeric - analytic).norm() < 1e-4 * analytic.norm().max(1e-3), "cam {cam} axis {axis}: {numeric} vs {analytic}");
+                assert!(
+                    (numeric - analytic).norm() < 1e-4 * analytic.norm().max(1e-3),
+                    "cam {cam} axis {axis}: {numeric} vs {analytic}"
+                );
             }
         }
     }
@@ -171,7 +176,12 @@ fn pose_noise_is_propagated() {
     let (camera, poses, points) = arc_scene(&mut rng, 4, 20);
     let (sigma_t, sigma_r) = (0.01, 0.5f64.to_radians());
     let cov = Matrix6::from_diagonal(&nalgebra::Vector6::new(
-        sigma_t * sigma_t, sigma_t * sigma_t, sigma_t * sigma_t, sigma_r * sigma_r, sigma_r * sigma_r, sigma_r * sigma_r,
+        sigma_t * sigma_t,
+        sigma_t * sigma_t,
+        sigma_t * sigma_t,
+        sigma_r * sigma_r,
+        sigma_r * sigma_r,
+        sigma_r * sigma_r,
     ));
     let covs = vec![cov; poses.len()];
     let options = TriangulationOptions::default();
@@ -181,8 +191,12 @@ fn pose_noise_is_propagated() {
             .iter()
             .map(|p| {
                 let d = Twist::new(
-                    sigma_t * rng.normal(), sigma_t * rng.normal(), sigma_t * rng.normal(),
-                    sigma_r * rng.normal(), sigma_r * rng.normal(), sigma_r * rng.normal(),
+                    sigma_t * rng.normal(),
+                    sigma_t * rng.normal(),
+                    sigma_t * rng.normal(),
+                    sigma_r * rng.normal(),
+                    sigma_r * rng.normal(),
+                    sigma_r * rng.normal(),
                 );
                 *p * SE3::exp(&d)
             })

@@ -46,7 +46,13 @@ pub struct Vocabulary {
 #[pymethods]
 impl Vocabulary {
     #[staticmethod]
-    fn train(py: Python<'_>, descriptors: &Bound<'_, PyAny>, branching: usize, depth: usize, seed: u64) -> PyResult<Self> {
+    fn train(
+        py: Python<'_>,
+        descriptors: &Bound<'_, PyAny>,
+        branching: usize,
+        depth: usize,
+        seed: u64,
+    ) -> PyResult<Self> {
         let d = Borrowed::extract(descriptors, "descriptors")?;
         let view = d.view("descriptors")?;
         let inner = py.detach(|| CoreVocabulary::train(&view, branching, depth, seed)).map_err(to_py_err)?;

@@ -11,17 +11,13 @@ use crate::errors::{invalid, to_py_err};
 
 /// The rows of an (N, WIDTH) float64 array as one C-contiguous slice, after checking the
 /// width, the layout and that every value is finite.
-pub fn rows<'a, const WIDTH: usize>(
-    name: &str,
-    array: &'a PyReadonlyArray2<'_, f64>,
-) -> PyResult<&'a [f64]> {
+pub fn rows<'a, const WIDTH: usize>(name: &str, array: &'a PyReadonlyArray2<'_, f64>) -> PyResult<&'a [f64]> {
     let shape = array.shape();
     if shape[1] != WIDTH {
         return Err(invalid(name, format!("expected shape (N, {WIDTH}), got {shape:?}")));
     }
-    let values = array
-        .as_slice()
-        .map_err(|_| invalid(name, "array must be C-contiguous (use numpy.ascontiguousarray)"))?;
+    let values =
+        array.as_slice().map_err(|_| invalid(name, "array must be C-contiguous (use numpy.ascontiguousarray)"))?;
     if let Some(flat) = values.iter().position(|v| !v.is_finite()) {
         return Err(to_py_err(GeolocError::NonFinite { name: name.into(), index: flat / WIDTH }));
     }
@@ -31,9 +27,7 @@ pub fn rows<'a, const WIDTH: usize>(
 /// Row `i` of a flat row-major slice as a fixed-size array.
 #[inline]
 pub fn row<const WIDTH: usize>(values: &[f64], i: usize) -> &[f64; WIDTH] {
-    values[i * WIDTH..(i + 1) * WIDTH]
-        .try_into()
-        .expect("invariant: callers index rows of a slice checked by `rows`")
+    values[i * WIDTH..(i + 1) * WIDTH].try_into().expect("invariant: callers index rows of a slice checked by `rows`")
 }
 
 /// A row-major R×C matrix from a row of R·C values.
@@ -63,20 +57,14 @@ pub fn write_matrix<const R: usize, const C: usize>(m: &SMatrix<f64, R, C>, out:
 ///
 /// The array is allocated by numpy (which backs large arrays with huge pages, so the first
 /// touch of a 25 MB result costs a few page faults instead of thousands) and filled in place.
-pub fn fill_rows<'py, const WIDTH: usize, F>(
-    py: Python<'py>,
-    n: usize,
-    fill: F,
-) -> PyResult<Bound<'py, PyArray2<f64>>>
+pub fn fill_rows<'py, const WIDTH: usize, F>(py: Python<'py>, n: usize, fill: F) -> PyResult<Bound<'py, PyArray2<f64>>>
 where
     F: Fn(usize, &mut [f64]) -> geoloc_core::Result<()> + Sync + Send,
 {
     let array = PyArray2::<f64>::zeros(py, [n, WIDTH], false);
     {
         let mut guard = array.readwrite();
-        let out = guard
-            .as_slice_mut()
-            .map_err(|e| invalid("output", format!("internal layout error: {e}")))?;
+        let out = guard.as_slice_mut().map_err(|e| invalid("output", format!("internal layout error: {e}")))?;
         py.detach(|| try_fill_items(out, WIDTH, fill)).map_err(to_py_err)?;
     }
     Ok(array)

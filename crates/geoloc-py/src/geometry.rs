@@ -3,7 +3,9 @@
 
 use geoloc_core::camera::Camera;
 use geoloc_core::optim::RobustLoss;
-use geoloc_core::pnp::{CovarianceModel, PnpOptions, PointUncertainty, RansacOptions, SharedPoseUncertainty, solve_pnp as core_solve_pnp};
+use geoloc_core::pnp::{
+    CovarianceModel, PnpOptions, PointUncertainty, RansacOptions, SharedPoseUncertainty, solve_pnp as core_solve_pnp,
+};
 use geoloc_core::triangulate::{TriangulationOptions, triangulate as core_triangulate};
 use nalgebra::{Matrix3x6, Vector2, Vector3};
 use numpy::{IntoPyArray, PyReadonlyArray1, PyReadonlyArray2};
@@ -76,7 +78,10 @@ pub fn triangulate<'py>(
     out.set_item("mean_residual", tri.points.iter().map(|p| p.mean_residual_px).collect::<Vec<_>>().into_pyarray(py))?;
     out.set_item("max_angle", tri.points.iter().map(|p| p.max_angle_rad).collect::<Vec<_>>().into_pyarray(py))?;
     out.set_item("covariances", matrices_to_array(py, &tri.points.iter().map(|p| p.covariance).collect::<Vec<_>>()))?;
-    out.set_item("pixel_covariances", matrices_to_array(py, &tri.points.iter().map(|p| p.pixel_covariance).collect::<Vec<_>>()))?;
+    out.set_item(
+        "pixel_covariances",
+        matrices_to_array(py, &tri.points.iter().map(|p| p.pixel_covariance).collect::<Vec<_>>()),
+    )?;
     out.set_item("observation_inliers", tri.observation_inliers.into_pyarray(py))?;
     Ok(out)
 }

@@ -210,11 +210,7 @@ pub fn se3_interpolate<'py>(
     pose2: PyReadonlyArray2<'py, f64>,
     alpha: PyReadonlyArray2<'py, f64>,
 ) -> PyResult<Bound<'py, PyArray2<f64>>> {
-    let n = batch_len(&[
-        ("T1", pose1.shape()[0]),
-        ("T2", pose2.shape()[0]),
-        ("alpha", alpha.shape()[0]),
-    ])?;
+    let n = batch_len(&[("T1", pose1.shape()[0]), ("T2", pose2.shape()[0]), ("alpha", alpha.shape()[0])])?;
     let (a, b) = (rows::<16>("T1", &pose1)?, rows::<16>("T2", &pose2)?);
     let alpha = rows::<1>("alpha", &alpha)?;
     fill_rows::<16, _>(py, n, |i, out| {

@@ -22,9 +22,14 @@ fn keypoints(name: &str, a: &PyReadonlyArray2<'_, f64>) -> PyResult<Vec<Vector2<
 fn descriptor_set(name: &str, obj: &Bound<'_, PyAny>) -> PyResult<DescriptorSet> {
     if let Ok(a) = obj.extract::<PyReadonlyArray2<'_, u8>>() {
         let width = a.shape()[1];
-        return Ok(DescriptorSet::Binary { data: a.as_slice().map_err(|_| invalid(name, "must be C-contiguous"))?.to_vec(), width });
+        return Ok(DescriptorSet::Binary {
+            data: a.as_slice().map_err(|_| invalid(name, "must be C-contiguous"))?.to_vec(),
+            width,
+        });
     }
-    let a = obj.extract::<PyReadonlyArray2<'_, f32>>().map_err(|_| invalid(name, "expected a 2-D uint8 or float32 array"))?;
+    let a = obj
+        .extract::<PyReadonlyArray2<'_, f32>>()
+        .map_err(|_| invalid(name, "expected a 2-D uint8 or float32 array"))?;
     let width = a.shape()[1];
     Ok(DescriptorSet::Float { data: a.as_slice().map_err(|_| invalid(name, "must be C-contiguous"))?.to_vec(), width })
 }
@@ -57,11 +62,19 @@ impl FeatureMap {
         let camera = Camera::new(fx, fy, cx, cy).map_err(to_py_err)?;
         let poses = poses("poses", &poses_wc)?;
         if keypoints_list.len() != poses.len() || descriptors_list.len() != poses.len() {
-            return Err(invalid("keypoints", format!("need one keypoint and one descriptor array per pose ({})", poses.len())));
+            return Err(invalid(
+                "keypoints",
+                format!("need one keypoint and one descriptor array per pose ({})", poses.len()),
+            ));
         }
         let globals: Option<(Vec<f32>, usize)> = global_descriptors
             .as_ref()
-            .map(|g| Ok::<_, PyErr>((g.as_slice().map_err(|_| invalid("global_descriptors", "must be C-contiguous"))?.to_vec(), g.shape()[1])))
+            .map(|g| {
+                Ok::<_, PyErr>((
+                    g.as_slice().map_err(|_| invalid("global_descriptors", "must be C-contiguous"))?.to_vec(),
+                    g.shape()[1],
+                ))
+            })
             .transpose()?;
         let mut keyframes = Vec::with_capacity(poses.len());
         for (i, pose) in poses.iter().enumerate() {
@@ -116,7 +129,10 @@ impl FeatureLocalizer {
     ) -> PyResult<Bound<'py, PyDict>> {
         let kps = keypoints("keypoints", &keypoints_px)?;
         let desc = descriptor_set("descriptors", &descriptors)?;
-        let global = global_descriptor.as_ref().map(|g| g.as_slice().map_err(|_| invalid("global", "must be contiguous"))).transpose()?;
+        let global = global_descriptor
+            .as_ref()
+            .map(|g| g.as_slice().map_err(|_| invalid("global", "must be contiguous")))
+            .transpose()?;
         let view: Descriptors<'_> = desc.view();
         let frame = Frame { timestamp, keypoints: &kps, descriptors: view, global };
         let result = py
@@ -126,7 +142,15 @@ impl FeatureLocalizer {
         let out = PyDict::new(py);
         out.set_item("pose", result.world_from_cam.map(|p| matrices_to_array(py, &[p.matrix()])))?;
         out.set_item("covariance", result.covariance.map(|c| matrices_to_array(py, &[c])))?;
-        out.set_item("source", match result.source { Source::Geometric => "geometric", Source::Fused => "fused", Source::Motion => "motion", Source::Lost => "lost" })?;
+        out.set_item(
+            "source",
+            match result.source {
+                Source::Geometric => "geometric",
+                Source::Fused => "fused",
+                Source::Motion => "motion",
+                Source::Lost => "lost",
+            },
+        )?;
         out.set_item("reason", result.reason)?;
         out.set_item("keyframe", result.keyframe)?;
         out.set_item("inliers", result.inliers)?;

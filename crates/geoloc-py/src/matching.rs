@@ -1,7 +1,9 @@
 //! Bindings of `geoloc_core::matching`.
 
 use geoloc_core::lie::SE3;
-use geoloc_core::matching::{Descriptors, Match, MatchOptions, epipolar_filter as core_epipolar, match_descriptors as core_match};
+use geoloc_core::matching::{
+    Descriptors, Match, MatchOptions, epipolar_filter as core_epipolar, match_descriptors as core_match,
+};
 use nalgebra::Vector2;
 use numpy::ndarray::Array2;
 use numpy::{IntoPyArray, PyArray1, PyArray2, PyReadonlyArray2, PyUntypedArrayMethods};
@@ -42,7 +44,12 @@ pub fn match_binary<'py>(
     let da = a.as_slice().map_err(|_| invalid("descriptors_a", "array must be C-contiguous"))?;
     let db = b.as_slice().map_err(|_| invalid("descriptors_b", "array must be C-contiguous"))?;
     let (wa, wb) = (a.shape()[1], b.shape()[1]);
-    run(py, Descriptors::Binary { data: da, width: wa }, Descriptors::Binary { data: db, width: wb }, options(ratio, mutual, max_distance))
+    run(
+        py,
+        Descriptors::Binary { data: da, width: wa },
+        Descriptors::Binary { data: db, width: wb },
+        options(ratio, mutual, max_distance),
+    )
 }
 
 /// Float (float32 rows) descriptors, Euclidean distance.
@@ -58,7 +65,12 @@ pub fn match_float<'py>(
     let da = a.as_slice().map_err(|_| invalid("descriptors_a", "array must be C-contiguous"))?;
     let db = b.as_slice().map_err(|_| invalid("descriptors_b", "array must be C-contiguous"))?;
     let (wa, wb) = (a.shape()[1], b.shape()[1]);
-    run(py, Descriptors::Float { data: da, width: wa }, Descriptors::Float { data: db, width: wb }, options(ratio, mutual, max_distance))
+    run(
+        py,
+        Descriptors::Float { data: da, width: wa },
+        Descriptors::Float { data: db, width: wb },
+        options(ratio, mutual, max_distance),
+    )
 }
 
 /// The matches (M, 2) consistent with the epipolar geometry of two known poses.
@@ -80,8 +92,10 @@ pub fn epipolar_filter<'py>(
         poses(name, p)?.first().copied().ok_or_else(|| invalid(name, "expected one pose"))
     };
     let (pa, pb) = (first("pose_a", &pose_a)?, first("pose_b", &pose_b)?);
-    let ka: Vec<Vector2<f64>> = rows::<2>("keypoints_a", &keypoints_a)?.chunks_exact(2).map(|c| Vector2::new(c[0], c[1])).collect();
-    let kb: Vec<Vector2<f64>> = rows::<2>("keypoints_b", &keypoints_b)?.chunks_exact(2).map(|c| Vector2::new(c[0], c[1])).collect();
+    let ka: Vec<Vector2<f64>> =
+        rows::<2>("keypoints_a", &keypoints_a)?.chunks_exact(2).map(|c| Vector2::new(c[0], c[1])).collect();
+    let kb: Vec<Vector2<f64>> =
+        rows::<2>("keypoints_b", &keypoints_b)?.chunks_exact(2).map(|c| Vector2::new(c[0], c[1])).collect();
     let pairs = pairs.as_slice().map_err(|_| invalid("matches", "array must be C-contiguous"))?;
     let matches: Vec<Match> = pairs
         .chunks_exact(2)

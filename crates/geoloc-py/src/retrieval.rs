@@ -32,7 +32,9 @@ impl DescriptorIndex {
             None => None,
             Some("kdtree") => Some(Backend::KdTree),
             Some("flat") => Some(Backend::Flat),
-            Some(other) => return Err(invalid("backend", format!("expected \"kdtree\", \"flat\" or None, got {other:?}"))),
+            Some(other) => {
+                return Err(invalid("backend", format!("expected \"kdtree\", \"flat\" or None, got {other:?}")));
+            }
         };
         let data = values.to_vec();
         let inner = py.detach(|| CoreIndex::with_backend(data, dim, backend)).map_err(to_py_err)?;
@@ -40,12 +42,7 @@ impl DescriptorIndex {
     }
 
     /// (distances, indices), each (Q, k).
-    fn query<'py>(
-        &self,
-        py: Python<'py>,
-        queries: PyReadonlyArray2<'py, f32>,
-        k: usize,
-    ) -> PyResult<Neighbours<'py>> {
+    fn query<'py>(&self, py: Python<'py>, queries: PyReadonlyArray2<'py, f32>, k: usize) -> PyResult<Neighbours<'py>> {
         let (values, dim) = rows_f32("queries", &queries)?;
         if dim != self.inner.dim() {
             return Err(invalid("queries", format!("expected shape (Q, {}), got (…, {dim})", self.inner.dim())));
@@ -53,7 +50,8 @@ impl DescriptorIndex {
         let q = queries.shape()[0];
         let (d, i) = py.detach(|| self.inner.query(values, k)).map_err(to_py_err)?;
         let d = Array2::from_shape_vec((q, k), d).map_err(|e| invalid("queries", e.to_string()))?;
-        let i = Array2::from_shape_vec((q, k), i.into_iter().map(|v| v as i64).collect()).map_err(|e| invalid("queries", e.to_string()))?;
+        let i = Array2::from_shape_vec((q, k), i.into_iter().map(|v| v as i64).collect())
+            .map_err(|e| invalid("queries", e.to_string()))?;
         Ok((d.into_pyarray(py), i.into_pyarray(py)))
     }
 

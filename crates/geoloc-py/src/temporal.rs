@@ -100,7 +100,13 @@ pub fn fuse<'py>(
     let out = PyDict::new(py);
     out.set_item("pose", matrices_to_array(py, &[f.world_from_cam.matrix()]))?;
     out.set_item("covariance", matrices_to_array(py, &[f.covariance]))?;
-    out.set_item("source", match f.source { FusionSource::Fused => "fused", FusionSource::Motion => "motion" })?;
+    out.set_item(
+        "source",
+        match f.source {
+            FusionSource::Fused => "fused",
+            FusionSource::Motion => "motion",
+        },
+    )?;
     out.set_item("iterations", f.iterations)?;
     Ok(out)
 }

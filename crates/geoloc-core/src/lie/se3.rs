@@ -102,8 +102,7 @@ impl SE3 {
     pub fn from_matrix(m: &Matrix4<f64>) -> Result<Self> {
         so3::check_finite(m.as_slice())?;
         check_last_row(m)?;
-        let rotation = SO3::from_matrix(&m.fixed_view::<3, 3>(0, 0).into_owned())
-            .map_err(relabel_rigid)?;
+        let rotation = SO3::from_matrix(&m.fixed_view::<3, 3>(0, 0).into_owned()).map_err(relabel_rigid)?;
         Ok(Self { rotation, translation: m.fixed_view::<3, 1>(0, 3).into_owned() })
     }
 
@@ -146,8 +145,7 @@ impl SE3 {
         // J_l⁻¹(φ) t = t − ½ φ×t + F φ×(φ×t), without forming the matrix.
         let t = &self.translation;
         let phi_x_t = phi.cross(t);
-        let rho = t - 0.5 * phi_x_t
-            + series::jacobian_inverse_second(phi.norm()) * phi.cross(&phi_x_t);
+        let rho = t - 0.5 * phi_x_t + series::jacobian_inverse_second(phi.norm()) * phi.cross(&phi_x_t);
         twist(&rho, &phi)
     }
 
@@ -185,10 +183,7 @@ impl std::ops::Mul for SE3 {
     /// Composition T₁T₂ = (R₁R₂, R₁t₂ + t₁).
     #[inline]
     fn mul(self, rhs: SE3) -> SE3 {
-        SE3 {
-            rotation: self.rotation * rhs.rotation,
-            translation: self.rotation * rhs.translation + self.translation,
-        }
+        SE3 { rotation: self.rotation * rhs.rotation, translation: self.rotation * rhs.translation + self.translation }
     }
 }
 
@@ -253,18 +248,13 @@ pub fn right_jacobian_inverse(xi: &Twist) -> Matrix6<f64> {
 const LAST_ROW_TOLERANCE: f64 = 1e-9;
 
 fn check_last_row(m: &Matrix4<f64>) -> Result<()> {
-    let deviation = (m.fixed_view::<1, 4>(3, 0) - nalgebra::RowVector4::new(0.0, 0.0, 0.0, 1.0))
-        .abs()
-        .max();
+    let deviation = (m.fixed_view::<1, 4>(3, 0) - nalgebra::RowVector4::new(0.0, 0.0, 0.0, 1.0)).abs().max();
     if deviation > LAST_ROW_TOLERANCE {
         return Err(GeolocError::NotARotation {
             name: "T".into(),
             index: 0,
             what: "rigid transform",
-            reason: format!(
-                "last row {:?} is not (0, 0, 0, 1)",
-                m.fixed_view::<1, 4>(3, 0).iter().collect::<Vec<_>>()
-            ),
+            reason: format!("last row {:?} is not (0, 0, 0, 1)", m.fixed_view::<1, 4>(3, 0).iter().collect::<Vec<_>>()),
         });
     }
     Ok(())

@@ -14,43 +14,18 @@
 pub const TAYLOR_THRESHOLD_RAD: f64 = 0.2;
 
 /// Maclaurin coefficients in powers of θ² (exact rationals from the sin/cos series).
-const SERIES_SIN_OVER_T: [f64; 6] =
-    [1.0, -1.0 / 6.0, 1.0 / 120.0, -1.0 / 5040.0, 1.0 / 362_880.0, -1.0 / 39_916_800.0];
+const SERIES_SIN_OVER_T: [f64; 6] = [1.0, -1.0 / 6.0, 1.0 / 120.0, -1.0 / 5040.0, 1.0 / 362_880.0, -1.0 / 39_916_800.0];
 const SERIES_ONE_MINUS_COS_OVER_T2: [f64; 6] =
     [0.5, -1.0 / 24.0, 1.0 / 720.0, -1.0 / 40320.0, 1.0 / 3_628_800.0, -1.0 / 479_001_600.0];
-const SERIES_T_MINUS_SIN_OVER_T3: [f64; 6] = [
-    1.0 / 6.0,
-    -1.0 / 120.0,
-    1.0 / 5040.0,
-    -1.0 / 362_880.0,
-    1.0 / 39_916_800.0,
-    -1.0 / 6_227_020_800.0,
-];
-const SERIES_Q_SECOND: [f64; 6] = [
-    1.0 / 24.0,
-    -1.0 / 720.0,
-    1.0 / 40320.0,
-    -1.0 / 3_628_800.0,
-    1.0 / 479_001_600.0,
-    -1.0 / 87_178_291_200.0,
-];
-const SERIES_Q_THIRD: [f64; 6] = [
-    1.0 / 120.0,
-    -1.0 / 2520.0,
-    1.0 / 120_960.0,
-    -1.0 / 9_979_200.0,
-    1.0 / 1_245_404_160.0,
-    -1.0 / 217_945_728_000.0,
-];
+const SERIES_T_MINUS_SIN_OVER_T3: [f64; 6] =
+    [1.0 / 6.0, -1.0 / 120.0, 1.0 / 5040.0, -1.0 / 362_880.0, 1.0 / 39_916_800.0, -1.0 / 6_227_020_800.0];
+const SERIES_Q_SECOND: [f64; 6] =
+    [1.0 / 24.0, -1.0 / 720.0, 1.0 / 40320.0, -1.0 / 3_628_800.0, 1.0 / 479_001_600.0, -1.0 / 87_178_291_200.0];
+const SERIES_Q_THIRD: [f64; 6] =
+    [1.0 / 120.0, -1.0 / 2520.0, 1.0 / 120_960.0, -1.0 / 9_979_200.0, 1.0 / 1_245_404_160.0, -1.0 / 217_945_728_000.0];
 /// 1/θ² − (1 + cos θ)/(2θ sin θ) = Σ B₂ₖ-related terms: 1/12 + θ²/720 + θ⁴/30240 + …
-const SERIES_JINV: [f64; 6] = [
-    1.0 / 12.0,
-    1.0 / 720.0,
-    1.0 / 30240.0,
-    1.0 / 1_209_600.0,
-    1.0 / 47_900_160.0,
-    691.0 / 1_307_674_368_000.0,
-];
+const SERIES_JINV: [f64; 6] =
+    [1.0 / 12.0, 1.0 / 720.0, 1.0 / 30240.0, 1.0 / 1_209_600.0, 1.0 / 47_900_160.0, 691.0 / 1_307_674_368_000.0];
 
 #[inline]
 fn horner(coefficients: &[f64; 6], t2: f64) -> f64 {
@@ -124,12 +99,7 @@ impl ExpCoefficients {
         if theta < TAYLOR_THRESHOLD_RAD {
             let t2 = theta * theta;
             let b = horner(&SERIES_ONE_MINUS_COS_OVER_T2, t2);
-            Self {
-                cos: 1.0 - t2 * b,
-                a: horner(&SERIES_SIN_OVER_T, t2),
-                b,
-                c: horner(&SERIES_T_MINUS_SIN_OVER_T3, t2),
-            }
+            Self { cos: 1.0 - t2 * b, a: horner(&SERIES_SIN_OVER_T, t2), b, c: horner(&SERIES_T_MINUS_SIN_OVER_T3, t2) }
         } else {
             let (sin, cos) = theta.sin_cos();
             let t2 = theta * theta;
@@ -199,14 +169,8 @@ mod tests {
                 (horner(&SERIES_ONE_MINUS_COS_OVER_T2, t2), (1.0 - t.cos()) / t2),
                 (horner(&SERIES_T_MINUS_SIN_OVER_T3, t2), (t - t.sin()) / (t2 * t)),
                 (horner(&SERIES_Q_SECOND, t2), (t2 + 2.0 * t.cos() - 2.0) / (2.0 * t2 * t2)),
-                (
-                    horner(&SERIES_Q_THIRD, t2),
-                    (2.0 * t - 3.0 * t.sin() + t * t.cos()) / (2.0 * t2 * t2 * t),
-                ),
-                (
-                    horner(&SERIES_JINV, t2),
-                    1.0 / t2 - (1.0 + t.cos()) / (2.0 * t * t.sin()),
-                ),
+                (horner(&SERIES_Q_THIRD, t2), (2.0 * t - 3.0 * t.sin() + t * t.cos()) / (2.0 * t2 * t2 * t)),
+                (horner(&SERIES_JINV, t2), 1.0 / t2 - (1.0 + t.cos()) / (2.0 * t * t.sin())),
             ];
             for (series, closed) in cases {
                 assert!((series - closed).abs() <= 1e-10 * closed.abs(), "{series} vs {closed}");

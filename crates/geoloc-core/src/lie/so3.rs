@@ -125,12 +125,8 @@ impl SO3 {
     /// is a near-rotation.
     pub fn from_matrix_projected(matrix: &Matrix3<f64>) -> Result<Self> {
         check_finite(matrix.as_slice())?;
-        let not_near = |reason: String| GeolocError::NotARotation {
-            name: "R".into(),
-            index: 0,
-            what: "near-rotation",
-            reason,
-        };
+        let not_near =
+            |reason: String| GeolocError::NotARotation { name: "R".into(), index: 0, what: "near-rotation", reason };
         let det = matrix.determinant();
         if det <= 0.0 {
             return Err(not_near(format!("det = {det:.6e} ≤ 0")));

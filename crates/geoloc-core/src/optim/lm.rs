@@ -69,10 +69,7 @@ pub struct LmReport {
 impl LmReport {
     /// Whether the stop means convergence (not an iteration cap or non-finite numbers).
     pub fn converged(&self) -> bool {
-        matches!(
-            self.termination,
-            Termination::CostConverged | Termination::StepConverged | Termination::NoDescent
-        )
+        matches!(self.termination, Termination::CostConverged | Termination::StepConverged | Termination::NoDescent)
     }
 }
 
@@ -82,11 +79,7 @@ const MIN_LAMBDA: f64 = 1e-12;
 const MIN_DIAGONAL: f64 = 1e-12;
 
 /// Minimizes `problem` from `state`; see the module doc.
-pub fn levenberg_marquardt<P, const D: usize>(
-    problem: &P,
-    state: P::State,
-    options: &LmOptions,
-) -> (P::State, LmReport)
+pub fn levenberg_marquardt<P, const D: usize>(problem: &P, state: P::State, options: &LmOptions) -> (P::State, LmReport)
 where
     P: LeastSquares<D>,
 {

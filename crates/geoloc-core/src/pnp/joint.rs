@@ -90,7 +90,12 @@ impl<'a> JointProblem<'a> {
 
     /// The reduced (Schur) system S δ = b in the pose, damped by λ, and the back-substitution
     /// terms; None if a point block is singular.
-    fn reduced(&self, pose: &SE3, eps: &[Vector3<f64>], lambda: f64) -> Option<(Matrix6<f64>, Vector6<f64>, Vec<BackSubstitution>)> {
+    fn reduced(
+        &self,
+        pose: &SE3,
+        eps: &[Vector3<f64>],
+        lambda: f64,
+    ) -> Option<(Matrix6<f64>, Vector6<f64>, Vec<BackSubstitution>)> {
         let mut s = Matrix6::zeros();
         let mut b = Vector6::zeros();
         let mut back = Vec::with_capacity(self.items.len());
@@ -183,10 +188,8 @@ impl<'a> JointProblem<'a> {
                 }
             }
         }
-        let covariance = self
-            .reduced(&pose, &eps, 0.0)
-            .and_then(|(s, _, _)| s.try_inverse())
-            .map(|c| 0.5 * (c + c.transpose()));
+        let covariance =
+            self.reduced(&pose, &eps, 0.0).and_then(|(s, _, _)| s.try_inverse()).map(|c| 0.5 * (c + c.transpose()));
         (pose, covariance, LmReport { iterations, initial_cost, final_cost: cost, termination })
     }
 }

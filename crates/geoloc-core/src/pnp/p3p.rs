@@ -34,8 +34,7 @@ pub fn p3p(bearings: &[Vector3<f64>; 3], points: &[Vector3<f64>; 3]) -> Vec<SE3>
     let coeffs = [
         (1.0 + amc).powi(2) - 4.0 * a2 / b2 * cg * cg, // A0
         4.0 * (-amc * (1.0 + amc) * cb + 2.0 * a2 / b2 * cg * cg * cb - (1.0 - apc) * ca * cg), // A1
-        2.0 * (amc * amc - 1.0 + 2.0 * amc * amc * cb * cb + 2.0 * (b2 - c2) / b2 * ca * ca
-            - 4.0 * apc * ca * cb * cg
+        2.0 * (amc * amc - 1.0 + 2.0 * amc * amc * cb * cb + 2.0 * (b2 - c2) / b2 * ca * ca - 4.0 * apc * ca * cb * cg
             + 2.0 * (b2 - a2) / b2 * cg * cg), // A2
         4.0 * (amc * (1.0 - amc) * cb - (1.0 - apc) * ca * cg + 2.0 * c2 / b2 * ca * ca * cb), // A3
         (amc - 1.0).powi(2) - 4.0 * c2 / b2 * ca * ca, // A4
@@ -251,10 +250,8 @@ mod tests {
             let world: [Vector3<f64>; 3] = std::array::from_fn(|i| world_from_cam * cam_points[i]);
             let bearings: [Vector3<f64>; 3] = std::array::from_fn(|i| cam_points[i].normalize());
             let solutions = p3p(&bearings, &world);
-            let best = solutions
-                .iter()
-                .map(|s| (s.inverse() * world_from_cam).log().norm())
-                .fold(f64::INFINITY, f64::min);
+            let best =
+                solutions.iter().map(|s| (s.inverse() * world_from_cam).log().norm()).fold(f64::INFINITY, f64::min);
             errors.push(best);
         }
         errors.sort_by(f64::total_cmp);
@@ -272,7 +269,8 @@ mod tests {
             let t = rng.pose(10.0);
             let tri: [Vector3<f64>; 3] = std::array::from_fn(|_| rng.unit_vector() * 3.0);
             let moved = tri.map(|p| t * p);
-            let r = triangle_frame(&moved).expect("non-degenerate") * triangle_frame(&tri).expect("non-degenerate").transpose();
+            let r = triangle_frame(&moved).expect("non-degenerate")
+                * triangle_frame(&tri).expect("non-degenerate").transpose();
             assert!((r - t.rotation.matrix()).abs().max() < 1e-12);
         }
         let line = [Vector3::zeros(), Vector3::x(), Vector3::x() * 2.0];

@@ -13,7 +13,12 @@ use crate::testing::SplitMix64;
 
 /// P3P RANSAC with MSAC scoring and local optimization; returns the best pose (if it has
 /// at least [`MIN_INLIERS`] inliers) and the number of samples drawn.
-pub(super) fn ransac(camera: &Camera, points: &[Vector3<f64>], pixels: &[Vector2<f64>], options: &PnpOptions) -> (Option<SE3>, usize) {
+pub(super) fn ransac(
+    camera: &Camera,
+    points: &[Vector3<f64>],
+    pixels: &[Vector2<f64>],
+    options: &PnpOptions,
+) -> (Option<SE3>, usize) {
     let n = points.len();
     let opts = &options.ransac;
     let t2 = options.max_residual_px * options.max_residual_px;
@@ -122,7 +127,15 @@ fn locally_optimize(
     }
     let weights = vec![Matrix2::identity(); subset.len()];
     let biases = vec![Vector2::zeros(); subset.len()];
-    let problem = PoseProblem { camera, points, pixels, subset: &subset, weights: &weights, biases: &biases, loss: RobustLoss::None };
+    let problem = PoseProblem {
+        camera,
+        points,
+        pixels,
+        subset: &subset,
+        weights: &weights,
+        biases: &biases,
+        loss: RobustLoss::None,
+    };
     let lm = LmOptions { max_iterations: 10, ..options.lm };
     let (refined, _) = levenberg_marquardt(&problem, hypothesis, &lm);
     match msac_score(camera, points, pixels, &refined, t2, score) {
@@ -130,7 +143,6 @@ fn locally_optimize(
         None => (hypothesis, score, count),
     }
 }
-
 
 #[cfg(test)]
 mod tests {

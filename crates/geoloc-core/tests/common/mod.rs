@@ -42,10 +42,7 @@ pub fn matrix_exp<const N: usize>(a: &SMatrix<f64, N, N>) -> SMatrix<f64, N, N> 
 }
 
 /// max |a − b| / max(1, max |b|).
-pub fn relative_error<const R: usize, const C: usize>(
-    a: &SMatrix<f64, R, C>,
-    b: &SMatrix<f64, R, C>,
-) -> f64 {
+pub fn relative_error<const R: usize, const C: usize>(a: &SMatrix<f64, R, C>, b: &SMatrix<f64, R, C>) -> f64 {
     (a - b).abs().max() / b.abs().max().max(1.0)
 }
 
