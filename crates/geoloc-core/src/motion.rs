@@ -206,7 +206,7 @@ fn normal_equations(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::testing::SplitMix64;
+    use crate::testing::{SplitMix64, isotropic_pose_covariance};
 
     fn trajectory(start: &SE3, velocity: &Twist, times: &[f64]) -> Vec<SE3> {
         times.iter().map(|&t| *start * SE3::exp(&(velocity * t))).collect()
@@ -252,14 +252,7 @@ mod tests {
     fn prediction_covariance_is_calibrated() {
         let mut rng = SplitMix64::new(2);
         let (sigma_t, sigma_r) = (0.01, 0.01);
-        let cov = Matrix6::from_diagonal(&Vector6::new(
-            sigma_t * sigma_t,
-            sigma_t * sigma_t,
-            sigma_t * sigma_t,
-            sigma_r * sigma_r,
-            sigma_r * sigma_r,
-            sigma_r * sigma_r,
-        ));
+        let cov = isotropic_pose_covariance(sigma_t, sigma_r);
         let covs = vec![cov; 4];
         let times = [0.0, 1.0 / 30.0, 2.0 / 30.0, 4.0 / 30.0];
         let trials = 4000;
@@ -270,16 +263,7 @@ mod tests {
             let v = rng.twist(angle, 0.5);
             let noisy: Vec<SE3> = trajectory(&start, &v, &times)
                 .iter()
-                .map(|p| {
-                    *p * SE3::exp(&Twist::new(
-                        sigma_t * rng.normal(),
-                        sigma_t * rng.normal(),
-                        sigma_t * rng.normal(),
-                        sigma_r * rng.normal(),
-                        sigma_r * rng.normal(),
-                        sigma_r * rng.normal(),
-                    ))
-                })
+                .map(|p| *p * SE3::exp(&rng.pose_noise(sigma_t, sigma_r)))
                 .collect();
             let t_q = 5.0 / 30.0;
             let p = motion_predict(&noisy, &times, t_q, Some(&covs)).expect("valid");

@@ -3,7 +3,7 @@
 //! Deterministic and dependency-free so a failing case can be replayed from its seed on any
 //! machine.
 
-use nalgebra::Vector3;
+use nalgebra::{Matrix6, Vector3, Vector6};
 
 use crate::lie::{SE3, SO3, Twist};
 
@@ -78,12 +78,31 @@ impl SplitMix64 {
         crate::lie::se3::twist(&rho, &phi)
     }
 
+    /// Pose noise for the right perturbation T·exp(δ^): each translation axis N(0, σ_t²),
+    /// each rotation axis N(0, σ_r²) (translation first), i.e. δ ~ N(0, [`isotropic_pose_covariance`]).
+    pub fn pose_noise(&mut self, sigma_t: f64, sigma_r: f64) -> Twist {
+        Twist::new(
+            sigma_t * self.normal(),
+            sigma_t * self.normal(),
+            sigma_t * self.normal(),
+            sigma_r * self.normal(),
+            sigma_r * self.normal(),
+            sigma_r * self.normal(),
+        )
+    }
+
     /// A pose with a uniform rotation and a translation uniform in a ball of radius
     /// `max_translation`.
     pub fn pose(&mut self, max_translation: f64) -> SE3 {
         let t = self.unit_vector() * max_translation * self.uniform().cbrt();
         SE3::new(self.rotation(), t)
     }
+}
+
+/// diag(σ_t², σ_t², σ_t², σ_r², σ_r², σ_r²): the covariance of [`SplitMix64::pose_noise`].
+pub fn isotropic_pose_covariance(sigma_t: f64, sigma_r: f64) -> Matrix6<f64> {
+    let (vt, vr) = (sigma_t * sigma_t, sigma_r * sigma_r);
+    Matrix6::from_diagonal(&Vector6::new(vt, vt, vt, vr, vr, vr))
 }
 
 /// A world_from_cam pose at `centre` whose optical axis (z) points at `target`, y down.

@@ -7,9 +7,9 @@ use common::{CHI2_95_DOF6, look_at, observe};
 use geoloc_core::camera::{Camera, project};
 use geoloc_core::lie::{SE3, Twist};
 use geoloc_core::pnp::{CovarianceModel, PnpOptions, PointUncertainty, SharedPoseUncertainty, solve_pnp};
-use geoloc_core::testing::SplitMix64;
+use geoloc_core::testing::{SplitMix64, isotropic_pose_covariance};
 use geoloc_core::triangulate::{TrackStatus, TriangulationOptions, triangulate};
-use nalgebra::{Matrix3, Matrix3x6, Matrix6, Vector2, Vector3, Vector6};
+use nalgebra::{Matrix3, Matrix3x6, Vector2, Vector3};
 
 fn camera() -> Camera {
     Camera::new(525.0, 525.0, 320.0, 240.0).expect("valid")
@@ -154,20 +154,8 @@ fn monte_carlo(seed: u64, trials: usize, sigma_px: f64, label: Option<(f64, f64)
         let (labels, label_cov) = match label {
             None => (train.to_vec(), None),
             Some((st, sr)) => {
-                let noisy = train
-                    .iter()
-                    .map(|p| {
-                        *p * SE3::exp(&Twist::new(
-                            st * rng.normal(),
-                            st * rng.normal(),
-                            st * rng.normal(),
-                            sr * rng.normal(),
-                            sr * rng.normal(),
-                            sr * rng.normal(),
-                        ))
-                    })
-                    .collect();
-                let c = Matrix6::from_diagonal(&Vector6::new(st * st, st * st, st * st, sr * sr, sr * sr, sr * sr));
+                let noisy = train.iter().map(|p| *p * SE3::exp(&rng.pose_noise(st, sr))).collect();
+                let c = isotropic_pose_covariance(st, sr);
                 (noisy, Some(vec![c; 4]))
             }
         };

@@ -7,7 +7,7 @@ use common::{CHI2_95_DOF3, arc_scene, observe};
 use geoloc_core::GeolocError;
 use geoloc_core::camera::project;
 use geoloc_core::lie::{SE3, Twist};
-use geoloc_core::testing::SplitMix64;
+use geoloc_core::testing::{SplitMix64, isotropic_pose_covariance};
 use geoloc_core::triangulate::{TrackStatus, TriangulationOptions, View, triangulate, triangulate_track};
 use nalgebra::{Matrix6, Vector2, Vector3};
 
@@ -175,14 +175,7 @@ fn pose_noise_is_propagated() {
     let mut rng = SplitMix64::new(6);
     let (camera, poses, points) = arc_scene(&mut rng, 4, 20);
     let (sigma_t, sigma_r) = (0.01, 0.5f64.to_radians());
-    let cov = Matrix6::from_diagonal(&nalgebra::Vector6::new(
-        sigma_t * sigma_t,
-        sigma_t * sigma_t,
-        sigma_t * sigma_t,
-        sigma_r * sigma_r,
-        sigma_r * sigma_r,
-        sigma_r * sigma_r,
-    ));
+    let cov = isotropic_pose_covariance(sigma_t, sigma_r);
     let covs = vec![cov; poses.len()];
     let options = TriangulationOptions::default();
     let (mut inside, mut total) = (0, 0);
@@ -190,14 +183,7 @@ fn pose_noise_is_propagated() {
         let noisy: Vec<SE3> = poses
             .iter()
             .map(|p| {
-                let d = Twist::new(
-                    sigma_t * rng.normal(),
-                    sigma_t * rng.normal(),
-                    sigma_t * rng.normal(),
-                    sigma_r * rng.normal(),
-                    sigma_r * rng.normal(),
-                    sigma_r * rng.normal(),
-                );
+                let d = rng.pose_noise(sigma_t, sigma_r);
                 *p * SE3::exp(&d)
             })
             .collect();
