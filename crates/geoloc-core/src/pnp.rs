@@ -224,15 +224,7 @@ pub fn solve_pnp(
             break;
         }
         let w = weighting(camera, points, &pose, &subset, uncertainty, options.pixel_sigma);
-        let problem = PoseProblem {
-            camera,
-            points,
-            pixels,
-            subset: &subset,
-            weights: &w.weights,
-            biases: &w.biases,
-            loss: options.loss,
-        };
+        let problem = w.problem(camera, points, pixels, &subset, options.loss);
         // with the propagated model a final least-squares solve follows: the robust rounds
         // only have to settle the inlier set
         let final_solve_follows = options.covariance == CovarianceModel::Propagated && options.loss != RobustLoss::None;
@@ -298,15 +290,7 @@ pub fn solve_pnp(
         // Outliers are gone: the efficient estimator for the remaining Gaussian errors is
         // plain weighted least squares, whose covariance the propagation below is exact for.
         let w = weighting(camera, points, &pose, &subset, uncertainty, options.pixel_sigma);
-        let problem = PoseProblem {
-            camera,
-            points,
-            pixels,
-            subset: &subset,
-            weights: &w.weights,
-            biases: &w.biases,
-            loss: RobustLoss::None,
-        };
+        let problem = w.problem(camera, points, pixels, &subset, RobustLoss::None);
         let (next, r, h) = final_least_squares(&problem, pose, &options.lm);
         pose = next;
         report = Some(r);
@@ -508,6 +492,20 @@ fn inlier_indices(
 struct Weighting {
     weights: Vec<Matrix2<f64>>,
     biases: Vec<Vector2<f64>>,
+}
+
+impl Weighting {
+    /// The pose problem over `subset` with these weights and biases.
+    fn problem<'a>(
+        &'a self,
+        camera: &'a Camera,
+        points: &'a [Vector3<f64>],
+        pixels: &'a [Vector2<f64>],
+        subset: &'a [usize],
+        loss: RobustLoss,
+    ) -> PoseProblem<'a> {
+        PoseProblem { camera, points, pixels, subset, weights: &self.weights, biases: &self.biases, loss }
+    }
 }
 
 /// Wⱼ and bⱼ for the correspondences in `subset` at `pose` (marginal point covariances).
