@@ -99,11 +99,8 @@ def fuse(
     gate_sigma: float,
     gate: str,
 ) -> dict[str, Any]: ...
-def match_binary(
-    a: NDArray[np.uint8], b: NDArray[np.uint8], ratio: float | None, mutual: bool, max_distance: float | None
-) -> tuple[NDArray[np.int64], NDArray[np.float32]]: ...
-def match_float(
-    a: NDArray[np.float32], b: NDArray[np.float32], ratio: float | None, mutual: bool, max_distance: float | None
+def match_descriptors(
+    a: NDArray[Any], b: NDArray[Any], ratio: float | None, mutual: bool, max_distance: float | None
 ) -> tuple[NDArray[np.int64], NDArray[np.float32]]: ...
 def epipolar_filter(
     intrinsics: tuple[float, float, float, float],

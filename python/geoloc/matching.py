@@ -40,12 +40,10 @@ def match_descriptors(
         raise InvalidInputError("descriptors_b: binary (uint8) and float descriptors cannot be compared")
     r = None if ratio is None else float(ratio)
     md = None if max_distance is None else float(max_distance)
-    if a.dtype == np.uint8:
-        pairs, dist = _core.match_binary(np.ascontiguousarray(a), np.ascontiguousarray(b), r, bool(mutual), md)
-    else:
-        fa = np.ascontiguousarray(as_float64(a, "descriptors_a"), dtype=np.float32)
-        fb = np.ascontiguousarray(as_float64(b, "descriptors_b"), dtype=np.float32)
-        pairs, dist = _core.match_float(fa, fb, r, bool(mutual), md)
+    if a.dtype != np.uint8:
+        a = np.asarray(as_float64(a, "descriptors_a"), dtype=np.float32)
+        b = np.asarray(as_float64(b, "descriptors_b"), dtype=np.float32)
+    pairs, dist = _core.match_descriptors(np.ascontiguousarray(a), np.ascontiguousarray(b), r, bool(mutual), md)
     return pairs, dist
 
 

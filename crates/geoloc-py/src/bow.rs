@@ -1,41 +1,11 @@
 //! Bindings of `geoloc_core::bow`: the vocabulary and the image database as Python classes.
 
 use geoloc_core::bow::{BowDatabase as CoreDatabase, Vocabulary as CoreVocabulary};
-use geoloc_core::matching::Descriptors;
-use numpy::{IntoPyArray, PyArray1, PyReadonlyArray2, PyUntypedArrayMethods};
+use numpy::{IntoPyArray, PyArray1};
 use pyo3::prelude::*;
 
-use crate::errors::{invalid, to_py_err};
-
-/// Borrowed descriptors from a uint8 (binary) or float32 (float) numpy array.
-enum Borrowed<'py> {
-    Binary(PyReadonlyArray2<'py, u8>),
-    Float(PyReadonlyArray2<'py, f32>),
-}
-
-impl<'py> Borrowed<'py> {
-    fn extract(obj: &Bound<'py, PyAny>, name: &str) -> PyResult<Self> {
-        if let Ok(a) = obj.extract::<PyReadonlyArray2<'py, u8>>() {
-            return Ok(Self::Binary(a));
-        }
-        obj.extract::<PyReadonlyArray2<'py, f32>>()
-            .map(Self::Float)
-            .map_err(|_| invalid(name, "expected a 2-D uint8 (binary) or float32 array"))
-    }
-
-    fn view(&self, name: &str) -> PyResult<Descriptors<'_>> {
-        match self {
-            Self::Binary(a) => Ok(Descriptors::Binary {
-                data: a.as_slice().map_err(|_| invalid(name, "array must be C-contiguous"))?,
-                width: a.shape()[1],
-            }),
-            Self::Float(a) => Ok(Descriptors::Float {
-                data: a.as_slice().map_err(|_| invalid(name, "array must be C-contiguous"))?,
-                width: a.shape()[1],
-            }),
-        }
-    }
-}
+use crate::convert::BorrowedDescriptors;
+use crate::errors::to_py_err;
 
 /// A hierarchical visual vocabulary; see `geoloc.retrieval.Vocabulary`.
 #[pyclass(module = "geoloc._core", frozen)]
@@ -53,14 +23,14 @@ impl Vocabulary {
         depth: usize,
         seed: u64,
     ) -> PyResult<Self> {
-        let d = Borrowed::extract(descriptors, "descriptors")?;
+        let d = BorrowedDescriptors::extract(descriptors, "descriptors")?;
         let view = d.view("descriptors")?;
         let inner = py.detach(|| CoreVocabulary::train(&view, branching, depth, seed)).map_err(to_py_err)?;
         Ok(Self { inner })
     }
 
     fn words<'py>(&self, py: Python<'py>, descriptors: &Bound<'py, PyAny>) -> PyResult<Bound<'py, PyArray1<u32>>> {
-        let d = Borrowed::extract(descriptors, "descriptors")?;
+        let d = BorrowedDescriptors::extract(descriptors, "descriptors")?;
         let view = d.view("descriptors")?;
         let words = py.detach(|| self.inner.words_of(&view)).map_err(to_py_err)?;
         Ok(words.into_pyarray(py))

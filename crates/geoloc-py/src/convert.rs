@@ -122,3 +122,44 @@ pub fn matrices_to_array<'py, const R: usize, const C: usize>(
         .expect("invariant: the buffer has items × R·C values");
     numpy::IntoPyArray::into_pyarray(array, py)
 }
+
+/// Local descriptors borrowed from numpy: uint8 rows are binary (Hamming), float32 rows float.
+pub enum BorrowedDescriptors<'py> {
+    /// (N, W) uint8.
+    Binary(numpy::PyReadonlyArray2<'py, u8>),
+    /// (N, W) float32.
+    Float(numpy::PyReadonlyArray2<'py, f32>),
+}
+
+impl<'py> BorrowedDescriptors<'py> {
+    /// Borrows `obj` as either kind, or a `ValueError` naming `name`.
+    pub fn extract(obj: &Bound<'py, PyAny>, name: &str) -> PyResult<Self> {
+        if let Ok(a) = obj.extract::<numpy::PyReadonlyArray2<'py, u8>>() {
+            return Ok(Self::Binary(a));
+        }
+        obj.extract::<numpy::PyReadonlyArray2<'py, f32>>()
+            .map(Self::Float)
+            .map_err(|_| invalid(name, "expected a 2-D uint8 (binary) or float32 array"))
+    }
+
+    /// The core view of the rows.
+    pub fn view(&self, name: &str) -> PyResult<geoloc_core::matching::Descriptors<'_>> {
+        use geoloc_core::matching::Descriptors;
+        let contiguous = || invalid(name, "array must be C-contiguous");
+        Ok(match self {
+            Self::Binary(a) => {
+                Descriptors::Binary { data: a.as_slice().map_err(|_| contiguous())?, width: a.shape()[1] }
+            }
+            Self::Float(a) => Descriptors::Float { data: a.as_slice().map_err(|_| contiguous())?, width: a.shape()[1] },
+        })
+    }
+
+    /// An owned copy of the rows.
+    pub fn to_owned_set(&self, name: &str) -> PyResult<geoloc_core::matching::DescriptorSet> {
+        use geoloc_core::matching::{DescriptorSet, Descriptors};
+        Ok(match self.view(name)? {
+            Descriptors::Binary { data, width } => DescriptorSet::Binary { data: data.to_vec(), width },
+            Descriptors::Float { data, width } => DescriptorSet::Float { data: data.to_vec(), width },
+        })
+    }
+}

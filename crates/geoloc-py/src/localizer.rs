@@ -5,33 +5,17 @@ use std::sync::{Arc, Mutex};
 
 use geoloc_core::camera::Camera;
 use geoloc_core::localizer::{Frame, Localizer as CoreLocalizer, LocalizerOptions, Source};
-use geoloc_core::map::{DescriptorSet, Keyframe, Map as CoreMap, RetrievalKind};
-use geoloc_core::matching::Descriptors;
+use geoloc_core::map::{Keyframe, Map as CoreMap, RetrievalKind};
 use nalgebra::Vector2;
 use numpy::{PyReadonlyArray1, PyReadonlyArray2, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
-use crate::convert::{matrices, matrices_to_array, poses, rows};
+use crate::convert::{BorrowedDescriptors, matrices, matrices_to_array, poses, rows};
 use crate::errors::{invalid, to_py_err};
 
 fn keypoints(name: &str, a: &PyReadonlyArray2<'_, f64>) -> PyResult<Vec<Vector2<f64>>> {
     Ok(rows::<2>(name, a)?.chunks_exact(2).map(|c| Vector2::new(c[0], c[1])).collect())
-}
-
-fn descriptor_set(name: &str, obj: &Bound<'_, PyAny>) -> PyResult<DescriptorSet> {
-    if let Ok(a) = obj.extract::<PyReadonlyArray2<'_, u8>>() {
-        let width = a.shape()[1];
-        return Ok(DescriptorSet::Binary {
-            data: a.as_slice().map_err(|_| invalid(name, "must be C-contiguous"))?.to_vec(),
-            width,
-        });
-    }
-    let a = obj
-        .extract::<PyReadonlyArray2<'_, f32>>()
-        .map_err(|_| invalid(name, "expected a 2-D uint8 or float32 array"))?;
-    let width = a.shape()[1];
-    Ok(DescriptorSet::Float { data: a.as_slice().map_err(|_| invalid(name, "must be C-contiguous"))?.to_vec(), width })
 }
 
 /// A map of keyframes (features level).
@@ -81,7 +65,10 @@ impl FeatureMap {
             keyframes.push(Keyframe {
                 world_from_cam: *pose,
                 keypoints: keypoints(&format!("keypoints[{i}]"), &keypoints_list[i])?,
-                descriptors: descriptor_set(&format!("descriptors[{i}]"), &descriptors_list[i])?,
+                descriptors: {
+                    let name = format!("descriptors[{i}]");
+                    BorrowedDescriptors::extract(&descriptors_list[i], &name)?.to_owned_set(&name)?
+                },
                 global: globals.as_ref().map(|(g, d)| g[i * d..(i + 1) * d].to_vec()),
             });
         }
@@ -128,12 +115,12 @@ impl FeatureLocalizer {
         global_descriptor: Option<PyReadonlyArray1<'py, f32>>,
     ) -> PyResult<Bound<'py, PyDict>> {
         let kps = keypoints("keypoints", &keypoints_px)?;
-        let desc = descriptor_set("descriptors", &descriptors)?;
+        let borrowed = BorrowedDescriptors::extract(&descriptors, "descriptors")?;
         let global = global_descriptor
             .as_ref()
             .map(|g| g.as_slice().map_err(|_| invalid("global", "must be contiguous")))
             .transpose()?;
-        let view: Descriptors<'_> = desc.view();
+        let view = borrowed.view("descriptors")?;
         let frame = Frame { timestamp, keypoints: &kps, descriptors: view, global };
         let result = py
             .detach(|| self.inner.lock().ok().map(|mut loc| loc.localize(&frame)))

@@ -1,15 +1,13 @@
 //! Bindings of `geoloc_core::matching`.
 
 use geoloc_core::lie::SE3;
-use geoloc_core::matching::{
-    Descriptors, Match, MatchOptions, epipolar_filter as core_epipolar, match_descriptors as core_match,
-};
+use geoloc_core::matching::{Match, MatchOptions, epipolar_filter as core_epipolar, match_descriptors as core_match};
 use nalgebra::Vector2;
 use numpy::ndarray::Array2;
-use numpy::{IntoPyArray, PyArray1, PyArray2, PyReadonlyArray2, PyUntypedArrayMethods};
+use numpy::{IntoPyArray, PyArray1, PyArray2, PyReadonlyArray2};
 use pyo3::prelude::*;
 
-use crate::convert::{poses, rows};
+use crate::convert::{BorrowedDescriptors, poses, rows};
 use crate::errors::{invalid, to_py_err};
 
 /// (pairs (M, 2) int64, distances (M,) float32).
@@ -25,52 +23,22 @@ fn options(ratio: Option<f32>, mutual: bool, max_distance: Option<f32>) -> Match
     MatchOptions { ratio, mutual, max_distance }
 }
 
-/// Matches two borrowed descriptor sets without the GIL.
-fn run<'py>(py: Python<'py>, a: Descriptors<'_>, b: Descriptors<'_>, options: MatchOptions) -> PyResult<Matches<'py>> {
-    let m = py.detach(|| core_match(&a, &b, &options)).map_err(to_py_err)?;
+/// Matches two descriptor arrays (both uint8: Hamming; both float32: Euclidean) without the GIL.
+#[pyfunction]
+pub fn match_descriptors<'py>(
+    py: Python<'py>,
+    a: Bound<'py, PyAny>,
+    b: Bound<'py, PyAny>,
+    ratio: Option<f32>,
+    mutual: bool,
+    max_distance: Option<f32>,
+) -> PyResult<Matches<'py>> {
+    let (ba, bb) =
+        (BorrowedDescriptors::extract(&a, "descriptors_a")?, BorrowedDescriptors::extract(&b, "descriptors_b")?);
+    let (va, vb) = (ba.view("descriptors_a")?, bb.view("descriptors_b")?);
+    let options = options(ratio, mutual, max_distance);
+    let m = py.detach(|| core_match(&va, &vb, &options)).map_err(to_py_err)?;
     to_arrays(py, m)
-}
-
-/// Binary (uint8 rows) descriptors, Hamming distance.
-#[pyfunction]
-pub fn match_binary<'py>(
-    py: Python<'py>,
-    a: PyReadonlyArray2<'py, u8>,
-    b: PyReadonlyArray2<'py, u8>,
-    ratio: Option<f32>,
-    mutual: bool,
-    max_distance: Option<f32>,
-) -> PyResult<Matches<'py>> {
-    let da = a.as_slice().map_err(|_| invalid("descriptors_a", "array must be C-contiguous"))?;
-    let db = b.as_slice().map_err(|_| invalid("descriptors_b", "array must be C-contiguous"))?;
-    let (wa, wb) = (a.shape()[1], b.shape()[1]);
-    run(
-        py,
-        Descriptors::Binary { data: da, width: wa },
-        Descriptors::Binary { data: db, width: wb },
-        options(ratio, mutual, max_distance),
-    )
-}
-
-/// Float (float32 rows) descriptors, Euclidean distance.
-#[pyfunction]
-pub fn match_float<'py>(
-    py: Python<'py>,
-    a: PyReadonlyArray2<'py, f32>,
-    b: PyReadonlyArray2<'py, f32>,
-    ratio: Option<f32>,
-    mutual: bool,
-    max_distance: Option<f32>,
-) -> PyResult<Matches<'py>> {
-    let da = a.as_slice().map_err(|_| invalid("descriptors_a", "array must be C-contiguous"))?;
-    let db = b.as_slice().map_err(|_| invalid("descriptors_b", "array must be C-contiguous"))?;
-    let (wa, wb) = (a.shape()[1], b.shape()[1]);
-    run(
-        py,
-        Descriptors::Float { data: da, width: wa },
-        Descriptors::Float { data: db, width: wb },
-        options(ratio, mutual, max_distance),
-    )
 }
 
 /// The matches (M, 2) consistent with the epipolar geometry of two known poses.
@@ -121,8 +89,7 @@ pub fn epipolar_filter<'py>(
 
 /// Registers the functions of this file on the module.
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
-    m.add_function(wrap_pyfunction!(match_binary, m)?)?;
-    m.add_function(wrap_pyfunction!(match_float, m)?)?;
+    m.add_function(wrap_pyfunction!(match_descriptors, m)?)?;
     m.add_function(wrap_pyfunction!(epipolar_filter, m)?)?;
     Ok(())
 }
