@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from pathlib import Path
+
+import pytest
 
 import geoloc
 
@@ -42,4 +45,66 @@ def test_no_command_prints_help_and_fails() -> None:
 def test_bad_option_values_are_refused() -> None:
     result = _run("selfcheck", "--samples", "0")
     assert result.returncode == 2
-    assert "--samples must be at least 1" in result.stderr
+    assert "argument --samples: must be between 1 and" in result.stderr
+
+
+@pytest.mark.parametrize(
+    ("args", "names"),
+    [
+        (("montecarlo", "--trials", "1000000000"), "--trials"),
+        (("montecarlo", "--trials", "ten"), "--trials"),
+        (("montecarlo", "--seed", "-1"), "--seed"),
+        (("montecarlo", "--seed", str(2**70)), "--seed"),
+        (("selfcheck", "--samples", "1000000000"), "--samples"),
+        (("montecarlo", "--covariance", "magic"), "--covariance"),
+    ],
+)
+def test_out_of_range_options_are_one_line_naming_the_option(args: tuple[str, ...], names: str) -> None:
+    result = _run(*args)
+    assert result.returncode == 2
+    assert "Traceback" not in result.stderr
+    error_lines = [line for line in result.stderr.splitlines() if "error" in line]
+    assert len(error_lines) == 1 and names in error_lines[0], result.stderr
+
+
+def test_output_in_a_missing_folder_is_refused_and_not_created(tmp_path: Path) -> None:
+    missing = tmp_path / "no" / "such" / "dir"
+    result = _run("montecarlo", "--trials", "1", "--json", str(missing / "x.json"))
+    assert result.returncode == 2
+    assert "Traceback" not in result.stderr and "--json" in result.stderr and "does not exist" in result.stderr
+    assert not (tmp_path / "no").exists()
+    folder = _run("montecarlo", "--trials", "1", "--json", str(tmp_path))
+    assert folder.returncode == 2 and "is a folder" in folder.stderr
+
+
+def _failing_handler(error: Exception):  # type: ignore[no-untyped-def]
+    def handler(args):  # type: ignore[no-untyped-def]
+        raise error
+
+    return handler
+
+
+@pytest.mark.parametrize(
+    ("error", "status", "text"),
+    [
+        (geoloc.InvalidInputError("dataset: folder 'x' does not exist"), 2, "error: dataset: folder 'x' does not exist"),
+        (OSError(28, "No space left on device"), 1, "No space left on device"),
+        (RuntimeError("boom"), 1, "internal error: RuntimeError: boom"),
+    ],
+)
+def test_failures_are_one_line_unless_debug(monkeypatch, capsys, error, status, text) -> None:  # type: ignore[no-untyped-def]
+    from geoloc import cli
+
+    original = cli.build_parser
+
+    def patched():  # type: ignore[no-untyped-def]
+        parser, handlers = original()
+        handlers["selfcheck"] = _failing_handler(error)
+        return parser, handlers
+
+    monkeypatch.setattr(cli, "build_parser", patched)
+    assert cli.main(["selfcheck"]) == status
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and text in err and "Traceback" not in err
+    assert cli.main(["--debug", "selfcheck"]) == status
+    assert "Traceback" in capsys.readouterr().err

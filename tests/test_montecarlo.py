@@ -47,4 +47,4 @@ def test_command_prints_the_table_and_writes_json(tmp_path: Path) -> None:
     data = json.loads(out.read_text())
     assert len(data["columns"]) == 12 and data["trials"] == 10
     bad = subprocess.run([sys.executable, "-m", "geoloc", "montecarlo", "--trials", "0"], capture_output=True, text=True)
-    assert bad.returncode == 2 and "--trials must be at least 1" in bad.stderr
+    assert bad.returncode == 2 and "argument --trials: must be between 1 and" in bad.stderr
