@@ -42,6 +42,20 @@ pub enum GeolocError {
         /// The measured violation.
         reason: String,
     },
+    /// A file could not be read or written (missing, a folder, not writable, disk full).
+    #[error("{path}: {reason}")]
+    Io {
+        /// The file's path.
+        path: String,
+        /// What failed.
+        reason: String,
+    },
+    /// A file's content is not what it must be (truncated, corrupt, another format version).
+    #[error("{reason}")]
+    Format {
+        /// What is wrong, naming the file where known.
+        reason: String,
+    },
 }
 
 impl GeolocError {
@@ -60,6 +74,7 @@ impl GeolocError {
             }
             Self::NonFinite { .. } => Self::NonFinite { name: name.to_owned(), index },
             Self::InvalidInput { reason, .. } => Self::InvalidInput { name: format!("{name}[{index}]"), reason },
+            other @ (Self::Io { .. } | Self::Format { .. }) => other,
         }
     }
 }

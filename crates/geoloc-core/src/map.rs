@@ -3,6 +3,8 @@
 //! camera, and the retrieval structure built from them (a descriptor index when a network
 //! provides global descriptors, else a bag-of-words vocabulary and database).
 
+pub mod file;
+
 use nalgebra::{Matrix6, Vector2};
 
 use crate::bow::{BowDatabase, Vocabulary};
