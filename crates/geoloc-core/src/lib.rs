@@ -9,6 +9,7 @@
 
 pub mod bow;
 pub mod camera;
+pub mod checksum;
 pub mod error;
 pub mod fusion;
 pub mod keyframes;

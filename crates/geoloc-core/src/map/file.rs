@@ -27,6 +27,7 @@ use std::path::{Path, PathBuf};
 
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 
+use crate::checksum::Fnv1a;
 use crate::error::{GeolocError, Result};
 
 /// The value of the `format` field.
@@ -143,31 +144,6 @@ fn io_error(path: &Path, what: &str, e: &std::io::Error) -> GeolocError {
     GeolocError::Io { path: path.display().to_string(), reason: format!("{what}: {e}") }
 }
 
-/// FNV-1a, 64 bit: a fast, dependency-free checksum (not a cryptographic hash).
-#[derive(Clone, Copy)]
-struct Fnv1a(u64);
-
-impl Fnv1a {
-    const OFFSET: u64 = 0xcbf2_9ce4_8422_2325;
-    const PRIME: u64 = 0x0000_0100_0000_01b3;
-
-    fn new() -> Self {
-        Self(Self::OFFSET)
-    }
-
-    fn update(&mut self, bytes: &[u8]) {
-        for &b in bytes {
-            self.0 = (self.0 ^ u64::from(b)).wrapping_mul(Self::PRIME);
-        }
-    }
-
-    /// Hashes a length-prefixed field, so field boundaries cannot shift unnoticed.
-    fn field(&mut self, bytes: &[u8]) {
-        self.update(&(bytes.len() as u64).to_le_bytes());
-        self.update(bytes);
-    }
-}
-
 fn checksum<'a>(header: &str, tensors: impl Iterator<Item = (&'a str, Dtype, &'a [usize], &'a [u8])>) -> String {
     let mut h = Fnv1a::new();
     h.field(header.as_bytes());
@@ -179,7 +155,7 @@ fn checksum<'a>(header: &str, tensors: impl Iterator<Item = (&'a str, Dtype, &'a
         }
         h.field(bytes);
     }
-    format!("fnv1a64:{:016x}", h.0)
+    format!("fnv1a64:{:016x}", h.finish())
 }
 
 #[derive(serde::Serialize, serde::Deserialize)]
