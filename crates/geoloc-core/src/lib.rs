@@ -11,6 +11,7 @@ pub mod bow;
 pub mod camera;
 pub mod checksum;
 pub mod error;
+pub mod frames;
 pub mod fusion;
 pub mod keyframes;
 pub mod lie;
