@@ -244,3 +244,12 @@ def test_folder_bad_input(tmp_path: Path) -> None:
     with pytest.raises(geoloc.InvalidInputError, match="expected 4 values"):
         datasets.load_folder(tmp_path, intrinsics=(50, 50, 32))  # type: ignore[arg-type]
     assert datasets.load_folder(tmp_path, intrinsics=(50, 50, 32, 24)).camera.width == 64
+
+
+def test_import_geoloc_needs_numpy_only() -> None:
+    import subprocess
+    import sys
+
+    code = "import sys, geoloc, geoloc.datasets, geoloc.evaluation, geoloc.features; print(sorted({'cv2', 'matplotlib'} & set(sys.modules)))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
+    assert out == "[]"
