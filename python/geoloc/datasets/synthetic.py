@@ -95,7 +95,9 @@ def _texture(rng: np.random.Generator, width_m: float, height_m: float, shade: f
         a = np.sort(angles[k, :corners])
         pts = centres[k] + r * radii[k, :corners, None] * np.column_stack([np.cos(a), np.sin(a)])
         cv2.fillPoly(img, [np.round(pts * 16).astype(np.int32)], colour, cv2.LINE_AA, shift=4)
-    shaded: NDArray[np.uint8] = np.clip(np.asarray(img, dtype=np.float32) * shade, 0, 255).astype(np.uint8)
+    # Mirrored left-right: a rectangle's (u, v) is a left-handed pair seen from its visible
+    # side (u × v points at the viewer), so this makes letters read the right way round.
+    shaded: NDArray[np.uint8] = np.clip(np.asarray(img[:, ::-1], dtype=np.float32) * shade, 0, 255).astype(np.uint8)
     shaded.setflags(write=False)
     return shaded
 
