@@ -21,6 +21,7 @@ ORTHONORMAL_TOL = 1e-12
 SAME_POSE_TOL = 1e-7  # the plain copies were re-printed with %.18e from 8-digit originals
 JPEG_MEAN_ABS_DIFF = 6.0  # grey levels: the plain layout is the JPEG (PSNR 33–36 dB) of the PNGs
 ORIGINAL_FRAMES = range(150, 160)
+GRAY_MEAN_ABS_DIFF = 2.0  # grey levels: libjpeg's luma vs cvtColor of the decoded colour
 TIME_TOL = 1e-9
 SHIFT_S = 0.015  # < default max_time_difference 0.02 s
 
@@ -60,6 +61,9 @@ def test_7scenes_original_format_agrees_with_the_plain_layout() -> None:
     assert np.abs(original.poses - plain.poses).max() < SAME_POSE_TOL
     png, jpg = original[0].image.astype(float), plain[0].image.astype(float)
     assert np.abs(png - jpg).mean() < JPEG_MEAN_ABS_DIFF  # same frame, same channel order
+    gray = plain.gray(0)  # decoded as grey: the JPEG's luma, close to converting the colour
+    assert gray.shape == (480, 640) and gray.dtype == np.uint8
+    assert np.abs(gray.astype(float) - cv2.cvtColor(plain[0].image, cv2.COLOR_BGR2GRAY)).mean() < GRAY_MEAN_ABS_DIFF
     depth_camera = datasets.load_7scenes(ORIGINAL, intrinsics="file").camera
     assert depth_camera.intrinsics == (585.0, 585.0, 320.0, 240.0)
 
@@ -124,6 +128,7 @@ def test_sequence_slicing_and_iteration() -> None:
     assert seq[-1].index == 19
     assert np.array_equal(stepped[1].image, seq[4].image)
     assert [f.index for f in seq[2:5]] == [2, 3, 4]
+    assert np.array_equal(stepped.gray(1), cv2.cvtColor(seq[4].image, cv2.COLOR_BGR2GRAY))
     with pytest.raises(geoloc.InvalidInputError, match="selects no frames"):
         seq[30:40]
     with pytest.raises(geoloc.InvalidInputError, match="selects no frames"):

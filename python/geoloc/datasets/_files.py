@@ -20,8 +20,8 @@ def file_loader(files: list[Path], camera: Camera, numbers: list[int] | None = N
     with ``numbers``, the file of frame number ``numbers[i]`` for source index numbers[i]."""
     by_key = dict(zip(range(len(files)) if numbers is None else numbers, files))
 
-    def load(key: int) -> NDArray[np.uint8]:
-        return load_image(by_key[key], camera)
+    def load(key: int, gray: bool) -> NDArray[np.uint8]:
+        return load_image(by_key[key], camera, gray)
 
     return load
 

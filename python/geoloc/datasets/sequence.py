@@ -26,8 +26,9 @@ from ..exceptions import DatasetError, InvalidInputError
 
 __all__ = ["Frame", "Sequence", "load_image"]
 
-ImageLoader = Callable[[int], NDArray[np.uint8]]
-"""``loader(source_index) -> (H, W, 3) uint8 BGR`` image of one frame."""
+ImageLoader = Callable[[int, bool], NDArray[np.uint8]]
+"""``loader(source_index, gray)``: the frame's (H, W, 3) uint8 BGR image, or with
+``gray=True`` its (H, W) uint8 grey image."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -46,8 +47,10 @@ class Frame:
     index: int
 
 
-def load_image(path: str | os.PathLike[str], camera: Camera) -> NDArray[np.uint8]:
-    """Read one colour image as (H, W, 3) uint8 BGR and check its size against ``camera``.
+def load_image(path: str | os.PathLike[str], camera: Camera, gray: bool = False) -> NDArray[np.uint8]:
+    """Read one image as (H, W, 3) uint8 BGR — or, with ``gray``, decoded directly as
+    (H, W) grey (for JPEG that is libjpeg's own luma, not a conversion of decoded colour) —
+    and check its size against ``camera``.
 
     Raises :class:`DatasetError` naming the file when it is missing, cannot be decoded or
     is not ``camera.width × camera.height``.
@@ -56,7 +59,7 @@ def load_image(path: str | os.PathLike[str], camera: Camera) -> NDArray[np.uint8
     p = Path(path)
     if not p.is_file():
         raise DatasetError(f"image file {str(p)!r} does not exist")
-    image = cv2.imread(str(p), cv2.IMREAD_COLOR)
+    image = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_COLOR)
     if image is None:
         raise DatasetError(f"image file {str(p)!r} cannot be read as an image")
     check_image_size(image, camera, f"image file {str(p)!r}")
@@ -155,7 +158,7 @@ class Sequence:
             i %= n
             source = int(self._source_indices[i])
             return Frame(
-                image=self._load(source),
+                image=self._load(source, False),
                 timestamp=float(self._timestamps[i]),
                 pose=None if self._poses is None else self._poses[i].copy(),
                 index=source,
@@ -188,6 +191,18 @@ class Sequence:
             self._load,
             self._source_indices[picked],
         )
+
+    def gray(self, i: int) -> NDArray[np.uint8]:
+        """Frame i's image as (H, W) uint8 grey, what feature extraction needs.
+
+        Files are decoded directly as grey (cheaper than colour; for JPEG this is the
+        encoded luma). On the 7-Scenes JPEGs this is what the core's reference figures were
+        measured with; converting the BGR image instead moves ORB keypoints slightly.
+        """
+        n = len(self)
+        if not isinstance(i, (int, np.integer)) or not -n <= int(i) < n:
+            raise IndexError(f"frame index {i!r} out of range for a sequence of {n} frames")
+        return self._load(int(self._source_indices[int(i) % n]), True)
 
     def __iter__(self) -> Iterator[Frame]:
         for i in range(len(self)):

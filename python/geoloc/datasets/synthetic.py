@@ -219,17 +219,19 @@ def synthetic_room(
     poses = room_trajectory(int(n_frames))
     cv2 = import_cv2("the synthetic scene")
 
-    def load(i: int) -> NDArray[np.uint8]:
+    def load(i: int, gray: bool) -> NDArray[np.uint8]:
         image, _ = room.render(poses[i])
-        if gain == 1.0 and offset == 0.0 and blur == 0.0 and noise == 0.0:
-            return image
-        out = image.astype(np.float32) * gain + offset
-        if blur > 0:
-            out = cv2.GaussianBlur(out, (0, 0), float(blur))
-        if noise > 0:
-            rng = np.random.default_rng([int(seed), i, 0x9015E])
-            out = out + rng.normal(0.0, float(noise), out.shape).astype(np.float32)
-        return np.clip(np.round(out), 0, 255).astype(np.uint8)
+        if not (gain == 1.0 and offset == 0.0 and blur == 0.0 and noise == 0.0):
+            out = image.astype(np.float32) * gain + offset
+            if blur > 0:
+                out = cv2.GaussianBlur(out, (0, 0), float(blur))
+            if noise > 0:
+                rng = np.random.default_rng([int(seed), i, 0x9015E])
+                out = out + rng.normal(0.0, float(noise), out.shape).astype(np.float32)
+            image = np.clip(np.round(out), 0, 255).astype(np.uint8)
+        if gray:
+            return np.asarray(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY), dtype=np.uint8)
+        return image
 
     times = np.arange(n_frames, dtype=np.float64) / FRAME_RATE_HZ
     name = f"synthetic-room-seed{seed}"
