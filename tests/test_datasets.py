@@ -68,6 +68,17 @@ def test_7scenes_original_format_agrees_with_the_plain_layout() -> None:
     assert depth_camera.intrinsics == (585.0, 585.0, 320.0, 240.0)
 
 
+def test_any_sequence_writes_a_tum_folder(tmp_path: Path) -> None:
+    _need(ORIGINAL)
+    seq = datasets.load_7scenes(ORIGINAL)[2:5]
+    loaded = datasets.load_tum(seq.write_tum(tmp_path / "kitchen"))
+    assert loaded.camera == seq.camera and loaded.poses is not None and seq.poses is not None
+    assert np.allclose(loaded.poses, seq.poses, atol=1e-12)
+    assert np.array_equal(loaded[1].image, seq[1].image)
+    with pytest.raises(geoloc.DatasetError, match="parent folder"):
+        seq.write_tum(tmp_path / "missing" / "kitchen")
+
+
 def _copy_frames(tmp_path: Path, numbers: range) -> Path:
     _need(ORIGINAL)
     folder = tmp_path / "seq-01"
@@ -255,6 +266,6 @@ def test_import_geoloc_needs_numpy_only() -> None:
     import subprocess
     import sys
 
-    code = "import sys, geoloc, geoloc.datasets, geoloc.evaluation, geoloc.features; print(sorted({'cv2', 'matplotlib'} & set(sys.modules)))"
+    code = "import sys, geoloc, geoloc.datasets, geoloc.evaluation, geoloc.features, geoloc.plots; print(sorted({'cv2', 'matplotlib'} & set(sys.modules)))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
     assert out == "[]"

@@ -6,7 +6,7 @@ translation first; perturbations and covariances are on the right (``T @ exp(δ^
 
 from __future__ import annotations
 
-from . import datasets, evaluation, features, geometry, lie, localizer, matching, retrieval
+from . import datasets, evaluation, features, geometry, lie, localizer, matching, plots, retrieval
 from ._core import __version__
 from .camera import Camera
 from .evaluation import format_tum_line
@@ -33,5 +33,6 @@ __all__ = [
     "localizer",
     "matching",
     "motion_predict",
+    "plots",
     "retrieval",
 ]
