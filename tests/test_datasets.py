@@ -144,6 +144,8 @@ def test_sequence_slicing_and_iteration() -> None:
         seq[30:40]
     with pytest.raises(geoloc.InvalidInputError, match="selects no frames"):
         seq[np.zeros(20, dtype=bool)]
+    with pytest.raises(geoloc.InvalidInputError, match="selects no frames"):
+        seq[[]]
     with pytest.raises(IndexError):
         seq[20]
     with pytest.raises(geoloc.InvalidInputError, match="mask"):

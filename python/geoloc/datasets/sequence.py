@@ -168,6 +168,8 @@ class Sequence:
             what = f"slice {key.start}:{key.stop}:{key.step}".replace("None", "")
         else:
             arr = np.asarray(key)
+            if arr.size == 0:
+                arr = arr.astype(np.int64)
             if arr.dtype == bool:
                 if arr.shape != (n,):
                     raise InvalidInputError(f"mask: expected shape ({n},), got {arr.shape}")
