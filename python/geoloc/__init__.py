@@ -6,26 +6,33 @@ translation first; perturbations and covariances are on the right (``T @ exp(δ^
 
 from __future__ import annotations
 
-from . import geometry, lie, localizer, matching, retrieval
+from . import datasets, evaluation, features, geometry, lie, localizer, matching, plots, retrieval
 from ._core import __version__
 from .camera import Camera
-from .exceptions import GeolocError, InvalidInputError, NotARotationError
+from .evaluation import format_tum_line
+from .exceptions import DatasetError, GeolocError, InvalidInputError, NotARotationError
 from .fusion import FusionResult, fuse
 from .motion import MotionPrediction, motion_predict
 
 __all__ = [
     "Camera",
+    "DatasetError",
     "FusionResult",
     "GeolocError",
     "InvalidInputError",
     "MotionPrediction",
     "NotARotationError",
     "__version__",
+    "datasets",
+    "evaluation",
+    "features",
+    "format_tum_line",
     "fuse",
     "geometry",
     "lie",
     "localizer",
     "matching",
     "motion_predict",
+    "plots",
     "retrieval",
 ]

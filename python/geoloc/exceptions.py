@@ -6,7 +6,7 @@ the builtin :class:`ValueError`, so ``except ValueError`` keeps working.
 
 from __future__ import annotations
 
-__all__ = ["GeolocError", "InvalidInputError", "NotARotationError"]
+__all__ = ["DatasetError", "GeolocError", "InvalidInputError", "NotARotationError"]
 
 
 class GeolocError(Exception):
@@ -23,3 +23,9 @@ class NotARotationError(InvalidInputError):
     Real datasets often ship slightly non-orthonormal rotations; project them first with
     :func:`geoloc.lie.so3_project` / :func:`geoloc.lie.se3_project`.
     """
+
+
+class DatasetError(InvalidInputError):
+    """A dataset on disk cannot be read as asked: a missing folder or file, no images, an
+    unreadable pose or trajectory file, mismatched counts, an image of another size. The
+    message names the file or folder."""

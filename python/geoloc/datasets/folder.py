@@ -1,0 +1,106 @@
+"""Any folder of images with a TUM trajectory: the dataset format of last resort.
+
+Images are all files with an image extension (png, jpg, jpeg, bmp, tif, tiff), sorted by
+name. The trajectory (``traj.txt`` by default, TUM format ``timestamp tx ty tz qx qy qz
+qw``) is matched to them in one of two ways (``match=``):
+
+* ``"timestamp"``: every image name (without extension) is its timestamp in seconds
+  (``1305031102.175304.png``, as TUM and :meth:`Sequence.write_tum` name them); each image
+  takes the pose nearest in time (≤ ``max_time_difference``), images without one are dropped;
+* ``"row"``: the k-th image (by name) has the k-th pose and its timestamp; the counts must
+  be equal;
+* ``"auto"`` (default): ``"timestamp"`` when every image name is a number, else ``"row"``.
+  A trajectory file may also say so itself in a comment line ``# match: row`` (or
+  ``# match: timestamp``), which ``"auto"`` obeys.
+
+``trajectory=None`` (or a missing default ``traj.txt``) gives a sequence without poses,
+timestamped by name when names are numbers, else by index / 30 s.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from ..camera import Camera
+from ..exceptions import DatasetError, InvalidInputError
+from ._files import existing_folder, file_loader
+from .sequence import Sequence
+from .tum import associate, read_tum_trajectory, resolve_camera
+
+__all__ = ["IMAGE_EXTENSIONS", "load_folder"]
+
+IMAGE_EXTENSIONS = frozenset({".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"})
+DEFAULT_TRAJECTORY = "traj.txt"
+FALLBACK_FRAME_RATE_HZ = 30.0
+
+
+def load_folder(
+    path: str | os.PathLike[str],
+    trajectory: str | os.PathLike[str] | None = DEFAULT_TRAJECTORY,
+    intrinsics: tuple[float, float, float, float] | Camera | None = None,
+    match: Literal["auto", "timestamp", "row"] = "auto",
+    max_time_difference: float = 0.02,
+) -> Sequence:
+    """Images of ``path`` (sorted by name) + an optional TUM ``trajectory`` (relative to
+    ``path`` unless absolute) as a :class:`Sequence`; see the module doc for ``match``.
+    The camera size is the first image's; every image must have it."""
+    from .._opencv import import_cv2
+
+    root = existing_folder(path)
+    if match not in ("auto", "timestamp", "row"):
+        raise InvalidInputError(f"match: expected 'auto', 'timestamp' or 'row', got {match!r}")
+    files = sorted(p for p in root.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS and p.is_file())
+    if not files:
+        raise DatasetError(f"path: {str(root)!r} has no images ({', '.join(sorted(IMAGE_EXTENSIONS))})")
+    if intrinsics is None:
+        raise DatasetError(f"intrinsics: a plain image folder has no calibration; pass intrinsics=(fx, fy, cx, cy) for {str(root)!r}")
+    first = import_cv2("reading images").imread(str(files[0]), 0)
+    if first is None:
+        raise DatasetError(f"image file {str(files[0])!r} cannot be read as an image")
+    camera = resolve_camera(intrinsics, root, (first.shape[1], first.shape[0]))
+    name_times = _name_timestamps(files)
+
+    traj_file = None if trajectory is None else (root / trajectory)
+    if traj_file is None or (not traj_file.exists() and str(trajectory) == DEFAULT_TRAJECTORY):
+        times = name_times if name_times is not None else np.arange(len(files)) / FALLBACK_FRAME_RATE_HZ
+        return Sequence(root.name, camera, times, None, file_loader(files, camera))
+    if not traj_file.exists():
+        raise DatasetError(f"trajectory: file {str(traj_file)!r} does not exist")
+    traj_times, poses = read_tum_trajectory(traj_file)
+    mode = match if match != "auto" else _declared_match(traj_file) or ("timestamp" if name_times is not None else "row")
+    if mode == "row":
+        if len(poses) != len(files):
+            raise DatasetError(
+                f"trajectory: {str(traj_file)!r} has {len(poses)} poses for {len(files)} images in {str(root)!r} "
+                "(row-for-row matching needs equal counts)"
+            )
+        return Sequence(root.name, camera, traj_times, poses, file_loader(files, camera))
+    if name_times is None:
+        raise DatasetError(f"match: timestamp matching needs image names that are timestamps in {str(root)!r}")
+    pick = associate(name_times, traj_times, max_time_difference)
+    keep = pick >= 0
+    if not keep.any():
+        raise DatasetError(f"trajectory: no image of {str(root)!r} has a pose within {max_time_difference} s in {str(traj_file)!r}")
+    kept = np.flatnonzero(keep).tolist()
+    return Sequence(
+        root.name, camera, name_times[keep], poses[pick[keep]], file_loader([files[k] for k in kept], camera, kept), kept
+    )
+
+
+def _name_timestamps(files: list[Path]) -> np.ndarray | None:
+    try:
+        return np.array([float(f.stem) for f in files])
+    except ValueError:
+        return None
+
+
+def _declared_match(path: Path) -> Literal["timestamp", "row"] | None:
+    for line in path.read_text(encoding="utf-8", errors="replace").splitlines():
+        text = line.strip().lstrip("#").strip().lower().replace(" ", "")
+        if line.lstrip().startswith("#") and text in ("match:row", "match:timestamp"):
+            return "row" if text.endswith("row") else "timestamp"
+    return None

@@ -1,0 +1,201 @@
+"""The TUM RGB-D benchmark format (Sturm et al., IROS 2012), read and written.
+
+A TUM folder holds ``rgb.txt`` (``timestamp filename`` per line) and, for recordings with
+ground truth, ``groundtruth.txt`` (``timestamp tx ty tz qx qy qz qw``: the world_from_cam
+translation and its rotation as a unit quaternion in **x, y, z, w** order). ``#`` starts
+a comment line. Images and poses come at different rates; each image takes the pose with
+the nearest timestamp, and images without one within ``max_time_difference`` are dropped
+(as the benchmark's own ``associate.py`` does).
+
+Intrinsics, in this order of precedence:
+1. ``intrinsics=`` given to :func:`load_tum` — ``(fx, fy, cx, cy)``, or a :class:`Camera`
+   (which may carry distortion);
+2. a ``camera.txt`` in the folder, as :meth:`Sequence.write_tum` writes it
+   (:func:`write_camera_file`);
+3. the published Kinect calibration of the benchmark, chosen from the folder name
+   (``freiburg1`` / ``freiburg2`` / ``freiburg3``, e.g. ``rgbd_dataset_freiburg1_xyz``),
+   distortion included: fr1 and fr2 images are distorted; fr3 images were undistorted by
+   the sensor, so their coefficients are zero.
+Otherwise loading fails and asks for intrinsics.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .. import lie
+from ..camera import Camera
+from ..exceptions import DatasetError, InvalidInputError
+from ._files import data_rows, existing_folder, file_loader, floats
+from .sequence import Sequence
+
+__all__ = [
+    "TUM_CAMERAS",
+    "associate",
+    "load_tum",
+    "read_camera_file",
+    "read_tum_trajectory",
+    "resolve_camera",
+    "write_camera_file",
+]
+
+TUM_IMAGE_SIZE = (640, 480)
+
+TUM_CAMERAS: dict[str, Camera] = {
+    # https://cvg.cit.tum.de/data/datasets/rgbd-dataset/file_formats ("Intrinsic Camera
+    # Calibration of the Kinect"): fx fy cx cy, then OpenCV's k1 k2 p1 p2 k3.
+    "freiburg1": Camera(517.3, 516.5, 318.6, 255.3, 640, 480, (0.2624, -0.9531, -0.0054, 0.0026, 1.1633)),
+    "freiburg2": Camera(520.9, 521.0, 325.1, 249.7, 640, 480, (0.2312, -0.7849, -0.0033, -0.0001, 0.9172)),
+    "freiburg3": Camera(535.4, 539.2, 320.1, 247.6, 640, 480, None),
+}
+
+CAMERA_FILE_HEADER = "# geoloc camera: fx fy cx cy width height [OpenCV distortion k1 k2 p1 p2 [k3 ...]]"
+
+Intrinsics = tuple[float, float, float, float] | Camera
+
+
+def read_camera_file(path: str | os.PathLike[str]) -> Camera:
+    """The camera of a ``camera.txt``: one line ``fx fy cx cy width height [dist...]``."""
+    p = Path(path)
+    rows = data_rows(p)
+    if len(rows) != 1 or len(rows[0]) < 6:
+        raise DatasetError(f"camera file {str(p)!r}: expected one line 'fx fy cx cy width height [dist...]'")
+    v = floats(rows[0], p, 1)
+    dist = tuple(v[6:]) or None
+    try:
+        return Camera(v[0], v[1], v[2], v[3], int(v[4]), int(v[5]), dist)
+    except InvalidInputError as exc:
+        raise DatasetError(f"camera file {str(p)!r}: {exc}") from None
+
+
+def write_camera_file(path: str | os.PathLike[str], camera: Camera) -> None:
+    """Write ``camera`` as the one-line ``camera.txt`` that :func:`read_camera_file` reads."""
+    from .._io import write_text_atomic
+
+    values = [*camera.intrinsics, camera.width, camera.height, *(camera.dist or ())]
+    write_text_atomic(path, CAMERA_FILE_HEADER + "\n" + " ".join(repr(v) for v in values) + "\n")
+
+
+def read_tum_trajectory(path: str | os.PathLike[str]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Timestamps (N,) and world_from_cam poses (N, 4, 4) of a TUM trajectory file.
+
+    Each line is ``timestamp tx ty tz qx qy qz qw`` (quaternion x, y, z, w; normalized
+    here); ``#`` comments and blank lines are skipped; commas also separate values.
+    """
+    p = Path(path)
+    rows = data_rows(p)
+    if not rows:
+        raise DatasetError(f"trajectory file {str(p)!r} has no poses")
+    values = np.empty((len(rows), 8))
+    for k, row in enumerate(rows):
+        if len(row) != 8:
+            raise DatasetError(
+                f"trajectory file {str(p)!r}: pose {k + 1} has {len(row)} values, expected 8 "
+                "(timestamp tx ty tz qx qy qz qw)"
+            )
+        values[k] = floats(row, p, k + 1)
+    q_xyzw = values[:, 4:8]
+    norms = np.linalg.norm(q_xyzw, axis=1)
+    if (norms < 0.5).any() or (norms > 1.5).any():
+        bad = int(np.flatnonzero((norms < 0.5) | (norms > 1.5))[0])
+        raise DatasetError(f"trajectory file {str(p)!r}: pose {bad + 1} has no unit quaternion (norm {norms[bad]:.3g})")
+    q_wxyz = np.concatenate([q_xyzw[:, 3:], q_xyzw[:, :3]], axis=1) / norms[:, None]
+    poses = np.tile(np.eye(4), (len(rows), 1, 1))
+    poses[:, :3, :3] = lie.so3_from_quaternion_wxyz(q_wxyz)
+    poses[:, :3, 3] = values[:, 1:4]
+    return values[:, 0].copy(), poses
+
+
+def associate(
+    query_times: NDArray[np.float64], reference_times: NDArray[np.float64], max_time_difference: float
+) -> NDArray[np.int64]:
+    """For each query time, the index of the nearest reference time, or -1 when the nearest
+    is more than ``max_time_difference`` seconds away. Ties go to the earlier reference."""
+    ref = np.asarray(reference_times, dtype=np.float64)
+    order = np.argsort(ref, kind="stable")
+    sorted_ref = ref[order]
+    q = np.asarray(query_times, dtype=np.float64)
+    right = np.clip(np.searchsorted(sorted_ref, q), 0, len(ref) - 1)
+    left = np.clip(right - 1, 0, len(ref) - 1)
+    take_left = np.abs(q - sorted_ref[left]) <= np.abs(sorted_ref[right] - q)
+    nearest = np.where(take_left, left, right)
+    out = order[nearest].astype(np.int64)
+    out[np.abs(sorted_ref[nearest] - q) > max_time_difference] = -1
+    return out
+
+
+def resolve_camera(intrinsics: Intrinsics | None, root: Path, size: tuple[int, int], name: str = "intrinsics") -> Camera:
+    """A Camera from ``(fx, fy, cx, cy)`` (image ``size``) or a Camera given as is."""
+    if isinstance(intrinsics, Camera):
+        return intrinsics
+    if intrinsics is None:
+        raise DatasetError(f"{name}: no intrinsics for {str(root)!r}; pass intrinsics=(fx, fy, cx, cy)")
+    try:
+        values = [float(v) for v in intrinsics]
+    except (TypeError, ValueError):
+        raise InvalidInputError(f"{name}: expected (fx, fy, cx, cy) or a geoloc.Camera, got {intrinsics!r}") from None
+    if len(values) != 4:
+        raise InvalidInputError(f"{name}: expected 4 values (fx, fy, cx, cy), got {len(values)}")
+    return Camera(values[0], values[1], values[2], values[3], size[0], size[1])
+
+
+def load_tum(
+    path: str | os.PathLike[str], intrinsics: Intrinsics | None = None, max_time_difference: float = 0.02
+) -> Sequence:
+    """A TUM RGB-D folder (``rgb.txt`` + optional ``groundtruth.txt``) as a :class:`Sequence`.
+
+    Images are associated with ground-truth poses by nearest timestamp (at most
+    ``max_time_difference`` s apart; others are dropped); without ``groundtruth.txt``
+    every image is kept and ``seq.poses`` is None. ``Frame.index`` is the image's entry
+    number in ``rgb.txt`` (dropped images leave gaps). Intrinsics: see the module doc.
+    """
+    root = existing_folder(path)
+    if not np.isfinite(max_time_difference) or max_time_difference < 0:
+        raise InvalidInputError(f"max_time_difference: expected seconds ≥ 0, got {max_time_difference!r}")
+    rgb = root / "rgb.txt"
+    rows = data_rows(rgb)
+    if not rows:
+        raise DatasetError(f"{str(rgb)!r} lists no images")
+    for k, row in enumerate(rows):
+        if len(row) < 2:
+            raise DatasetError(f"{str(rgb)!r}: entry {k + 1} has no file name (expected 'timestamp filename')")
+    times = np.array([floats(r[:1], rgb, k + 1)[0] for k, r in enumerate(rows)])
+    files = [root / " ".join(r[1:]) for r in rows]
+    camera = _tum_camera(intrinsics, root)
+    gt_file = root / "groundtruth.txt"
+    if gt_file.exists():
+        gt_times, gt_poses = read_tum_trajectory(gt_file)
+        match = associate(times, gt_times, max_time_difference)
+        keep = match >= 0
+        if not keep.any():
+            raise DatasetError(
+                f"no image of {str(rgb)!r} has a pose in {str(gt_file)!r} within {max_time_difference} s "
+                "(raise max_time_difference?)"
+            )
+        kept = np.flatnonzero(keep).tolist()
+        return Sequence(
+            root.name, camera, times[keep], gt_poses[match[keep]], file_loader([files[k] for k in kept], camera, kept), kept
+        )
+    return Sequence(root.name, camera, times, None, file_loader(files, camera))
+
+
+# ---------------------------------------------------------------------------- helpers
+
+
+def _tum_camera(intrinsics: Intrinsics | None, root: Path) -> Camera:
+    if intrinsics is not None:
+        return resolve_camera(intrinsics, root, TUM_IMAGE_SIZE)
+    if (root / "camera.txt").exists():
+        return read_camera_file(root / "camera.txt")
+    found = re.search(r"freiburg([123])", root.resolve().name)
+    if found:
+        return TUM_CAMERAS["freiburg" + found.group(1)]
+    raise DatasetError(
+        f"intrinsics: {str(root)!r} has no camera.txt and its name names no TUM camera "
+        "(freiburg1/2/3); pass intrinsics=(fx, fy, cx, cy)"
+    )
