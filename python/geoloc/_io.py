@@ -43,6 +43,9 @@ def _write_atomic(path: str | os.PathLike[str], name: str, write: Callable[[Text
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, target)
+    except OSError as e:
+        Path(tmp).unlink(missing_ok=True)
+        raise InvalidInputError(f"{name}: cannot write {str(target)!r} ({e.strerror or e})") from None
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
