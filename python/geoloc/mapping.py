@@ -1,0 +1,266 @@
+"""Image-level mapping and localization: :class:`Map` (build, save, load) and :class:`Localizer`.
+
+A map is built from a :class:`geoloc.datasets.Sequence` with known world_from_cam poses:
+every (selected) frame becomes a keyframe with its OpenCV features (ORB by default, SIFT as
+an option) and, for retrieval, either a bag-of-words vocabulary trained on those features (no
+network needed; the default) or the global descriptors of a network (any callable
+``images -> (N, D) float32``, e.g. :class:`geoloc.descriptor.OnnxDescriptor`). The map is the
+core's map plus the settings needed to describe a query the same way; it is saved to one
+``.geoloc`` file (safetensors, written atomically by geoloc-core) that Python and the robot
+binary ``geoloc-rs`` both read.
+
+:class:`Localizer` runs the per-frame pipeline of DESIGN.md §1 on images: decode → features →
+retrieval → keyframe group → triangulation → PnP with covariance → motion model → gated fusion.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .camera import Camera
+from .exceptions import InvalidInputError
+from .features import FeatureExtractor, Features
+from .localizer import FeatureLocalizer, FeatureMap, LocalizationResult
+
+__all__ = ["GlobalDescriptor", "Localizer", "Map", "MapLocalization"]
+
+#: The frontend settings' schema version inside the map file.
+FRONTEND_VERSION = 1
+
+
+class GlobalDescriptor(Protocol):
+    """What a network retrieval needs: images → (N, D) float32, and a name to record."""
+
+    def __call__(self, images: list[NDArray[np.uint8]]) -> NDArray[np.float32]: ...
+
+
+ProgressCallback = Callable[[int, int], None]
+
+
+def _as_int(value: Any, name: str, low: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or int(value) < low:
+        raise InvalidInputError(f"{name}: expected an integer ≥ {low}, got {value!r}")
+    return int(value)
+
+
+def _descriptor_record(descriptor: Any) -> dict[str, Any]:
+    record: dict[str, Any] = {"kind": type(descriptor).__name__}
+    for key in ("name", "sha256", "input_size", "dim"):
+        value = getattr(descriptor, key, None)
+        if isinstance(value, (str, int, float)) or (isinstance(value, tuple) and all(isinstance(v, int) for v in value)):
+            record[key] = list(value) if isinstance(value, tuple) else value
+    return record
+
+
+class Map:
+    """Keyframes with known poses, their features and the retrieval structure; see the module doc."""
+
+    def __init__(self, feature_map: FeatureMap, extractor: FeatureExtractor, frontend: dict[str, Any]) -> None:
+        self._feature_map = feature_map
+        self._extractor = extractor
+        self._frontend = frontend
+
+    @classmethod
+    def build(
+        cls,
+        sequence: Any,
+        retrieval: str | GlobalDescriptor = "bow",
+        features: str = "orb",
+        *,
+        n_features: int = 1000,
+        root_sift: bool = False,
+        keyframe_step: int = 1,
+        branching: int = 10,
+        depth: int = 3,
+        seed: int = 0,
+        progress: ProgressCallback | None = None,
+    ) -> Map:
+        """Build a map from ``sequence`` (every ``keyframe_step``-th frame becomes a keyframe).
+
+        ``retrieval`` is ``"bow"`` (a ``branching``^``depth``-word vocabulary trained on the
+        keyframes' descriptors, seeded by ``seed``) or a global-descriptor network;
+        ``features`` is ``"orb"`` or ``"sift"`` with ``n_features`` per image.
+        ``progress(done, total)`` is called after each keyframe.
+        """
+        from .datasets import Sequence
+
+        if not isinstance(sequence, Sequence):
+            raise InvalidInputError(f"sequence: expected a geoloc.datasets.Sequence, got {type(sequence).__name__}")
+        if sequence.poses is None:
+            raise InvalidInputError(f"sequence: {sequence.name!r} has no poses; a map needs world_from_cam poses")
+        step = _as_int(keyframe_step, "keyframe_step", 1)
+        if isinstance(retrieval, str) and retrieval != "bow":
+            raise InvalidInputError(f"retrieval: expected 'bow' or a global-descriptor network, got {retrieval!r}")
+        if not isinstance(retrieval, str) and not callable(retrieval):
+            raise InvalidInputError(f"retrieval: expected 'bow' or a callable network, got {type(retrieval).__name__}")
+        extractor = FeatureExtractor(features, _as_int(n_features, "n_features", 1), root_sift=bool(root_sift))  # type: ignore[arg-type]
+        indices = np.arange(0, len(sequence), step)
+        camera = sequence.camera
+        keypoints, descriptors, images = [], [], []
+        for done, i in enumerate(indices, start=1):
+            gray = sequence.gray(int(i))
+            f = extractor(gray, camera)
+            keypoints.append(f.keypoints)
+            descriptors.append(f.descriptors)
+            if not isinstance(retrieval, str):
+                images.append(gray)
+            if progress is not None:
+                progress(done, len(indices))
+        global_descriptors = None if isinstance(retrieval, str) else np.asarray(retrieval(images), dtype=np.float32)
+        feature_map = FeatureMap(
+            camera,
+            sequence.poses[indices],
+            keypoints,
+            descriptors,
+            global_descriptors=global_descriptors,
+            retrieval="bow" if isinstance(retrieval, str) else "global",
+            branching=branching,
+            depth=depth,
+            seed=seed,
+        )
+        frontend = {
+            "version": FRONTEND_VERSION,
+            "features": {"kind": extractor.kind, "n_features": extractor.n_features, "root_sift": extractor.root_sift},
+            "camera": {"width": camera.width, "height": camera.height, "dist": list(camera.dist or ())},
+            "retrieval": "bow" if isinstance(retrieval, str) else _descriptor_record(retrieval),
+            "source": {"sequence": sequence.name, "frames": [int(i) for i in indices]},
+        }
+        return cls(feature_map, extractor, frontend)
+
+    @property
+    def camera(self) -> Camera:
+        """The camera the map was built with (queries must use the same intrinsics)."""
+        return self._feature_map.camera
+
+    @property
+    def features(self) -> FeatureExtractor:
+        """The feature extractor queries are described with."""
+        return self._extractor
+
+    @property
+    def settings(self) -> dict[str, Any]:
+        """What the map records about how it was built (features, retrieval, source frames)."""
+        copy: dict[str, Any] = json.loads(json.dumps(self._frontend))
+        return copy
+
+    def __len__(self) -> int:
+        return len(self._feature_map)
+
+    def __repr__(self) -> str:
+        return f"Map({len(self)} keyframes, features={self._extractor!r}, retrieval={self._frontend['retrieval']!r})"
+
+    def save(self, path: str | os.PathLike[str]) -> None:
+        """Write the map to one ``.geoloc`` file, atomically (an interrupted save keeps the old file)."""
+        from ._io import check_output_path
+
+        target = check_output_path(path, "path")
+        self._feature_map._save(str(target), json.dumps(self._frontend, sort_keys=True))  # type: ignore[attr-defined]
+
+    @classmethod
+    def load(cls, path: str | os.PathLike[str]) -> Map:
+        """Read a map written by :meth:`save`; a truncated, corrupt or other-version file is refused."""
+        feature_map, frontend = FeatureMap._load(str(Path(path)))  # type: ignore[attr-defined]
+        if not isinstance(frontend, dict) or frontend.get("version") != FRONTEND_VERSION:
+            raise InvalidInputError(f"path: {str(path)!r} was not written by this version of geoloc's Python package")
+        f = frontend["features"]
+        cam = frontend["camera"]
+        core_camera = feature_map.camera
+        fx, fy, cx, cy = core_camera.intrinsics
+        camera = Camera(fx, fy, cx, cy, width=cam["width"], height=cam["height"], dist=cam["dist"] or None)
+        feature_map.camera = camera
+        return cls(feature_map, FeatureExtractor(f["kind"], f["n_features"], root_sift=f["root_sift"]), frontend)
+
+
+@dataclass(frozen=True)
+class MapLocalization:
+    """One localized image: ``pose`` (4, 4) world_from_cam and ``covariance`` (6, 6, right
+    perturbation, translation first) or None when lost; ``source`` "geometric" / "fused" /
+    "motion" / "lost"; ``reason``; ``keyframe`` retrieved; PnP ``inliers``; ``timings`` in ms
+    per stage (``decode``, ``features``, the core's stages, ``total``)."""
+
+    pose: NDArray[np.float64] | None
+    covariance: NDArray[np.float64] | None
+    source: str
+    reason: str
+    keyframe: int
+    inliers: int
+    timings: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def timings_ms(self) -> dict[str, float]:
+        """Alias of :attr:`timings` (milliseconds)."""
+        return self.timings
+
+
+class Localizer:
+    """Localizes images frame after frame against a :class:`Map`, keeping the motion history."""
+
+    def __init__(
+        self,
+        map: Map,
+        camera: Camera | None = None,
+        *,
+        pixel_sigma: float = 1.0,
+        max_residual: float = 5.0,
+        gate_sigma: float = 3.0,
+        history: int = 4,
+        global_descriptor: GlobalDescriptor | None = None,
+    ) -> None:
+        if not isinstance(map, Map):
+            raise InvalidInputError(f"map: expected a geoloc.Map, got {type(map).__name__}")
+        if camera is not None and not isinstance(camera, Camera):
+            raise InvalidInputError(f"camera: expected a geoloc.Camera, got {type(camera).__name__}")
+        if camera is not None and camera.intrinsics != map.camera.intrinsics:
+            raise InvalidInputError(
+                f"camera: intrinsics {camera.intrinsics} differ from the map's {map.camera.intrinsics}; "
+                "queries must be described with the map's camera"
+            )
+        if map.settings["retrieval"] != "bow" and global_descriptor is None:
+            raise InvalidInputError("global_descriptor: this map retrieves by a network; pass the same network here")
+        self.map = map
+        self.camera = camera or map.camera
+        self._global = global_descriptor
+        self._core = FeatureLocalizer(
+            map._feature_map, pixel_sigma=pixel_sigma, max_residual=max_residual, gate_sigma=gate_sigma, history=history
+        )
+
+    def _decode(self, image: Any) -> NDArray[np.uint8]:
+        if isinstance(image, (str, os.PathLike)):
+            from ._opencv import import_cv2
+
+            cv2 = import_cv2("reading images")
+            gray = cv2.imread(os.fspath(image), cv2.IMREAD_GRAYSCALE)
+            if gray is None:
+                raise InvalidInputError(f"image: cannot read {os.fspath(image)!r} (missing or not an image)")
+            return np.asarray(gray, dtype=np.uint8)
+        return np.asarray(image)
+
+    def localize(self, image: Any, timestamp: float) -> MapLocalization:
+        """Localize one image (a path, (H, W) gray or (H, W, 3) BGR uint8 of the map's size)
+        taken at ``timestamp`` (seconds, increasing)."""
+        start = time.perf_counter()
+        pixels = self._decode(image)
+        decoded = time.perf_counter()
+        f: Features = self.map.features(pixels, self.camera)
+        described = time.perf_counter()
+        g = None
+        if self._global is not None:
+            g = np.asarray(self._global([pixels]), dtype=np.float32)[0]
+        r: LocalizationResult = self._core.localize(timestamp, f.keypoints, f.descriptors, g)
+        end = time.perf_counter()
+        timings = {"decode": 1e3 * (decoded - start), "features": 1e3 * (described - decoded)}
+        timings.update(r.timings_ms)
+        timings["total"] = 1e3 * (end - start)
+        return MapLocalization(r.pose, r.covariance, r.source, r.reason, r.keyframe, r.inliers, timings)
+
+    def reset(self) -> None:
+        """Forget the motion history (the next frame is localized by geometry alone)."""
+        self._core.reset()
