@@ -71,32 +71,6 @@ fn centre_of(desc: &Descriptors<'_>, members: &[usize]) -> DescriptorSet {
     }
 }
 
-fn concat(parts: Vec<DescriptorSet>) -> DescriptorSet {
-    match parts.first() {
-        Some(DescriptorSet::Binary { width, .. }) => {
-            let width = *width;
-            DescriptorSet::Binary {
-                data: parts
-                    .into_iter()
-                    .flat_map(|p| if let DescriptorSet::Binary { data, .. } = p { data } else { Vec::new() })
-                    .collect(),
-                width,
-            }
-        }
-        Some(DescriptorSet::Float { width, .. }) => {
-            let width = *width;
-            DescriptorSet::Float {
-                data: parts
-                    .into_iter()
-                    .flat_map(|p| if let DescriptorSet::Float { data, .. } = p { data } else { Vec::new() })
-                    .collect(),
-                width,
-            }
-        }
-        None => DescriptorSet::Float { data: Vec::new(), width: 0 },
-    }
-}
-
 /// One node of the vocabulary tree: the centres of its children and where they lead.
 #[derive(Clone, Debug, PartialEq)]
 struct Node {
@@ -279,19 +253,19 @@ fn seed_centres(desc: &Descriptors<'_>, members: &[usize], k: usize, rng: &mut S
 /// empty cluster keeps its seed as centre).
 fn lloyd(desc: &Descriptors<'_>, members: &[usize], seeds: &[usize]) -> (DescriptorSet, Vec<Vec<usize>>) {
     let k = seeds.len();
-    let mut centres = concat(seeds.iter().map(|&s| centre_of(desc, &[s])).collect());
+    let mut centres = DescriptorSet::stack(&seeds.iter().map(|&s| centre_of(desc, &[s])).collect::<Vec<_>>());
     let mut clusters = vec![Vec::new(); k];
     for _ in 0..LLOYD_ITERATIONS {
         clusters = vec![Vec::new(); k];
         for &m in members {
             clusters[nearest_centre(&desc.row(m), &centres.view())].push(m);
         }
-        let next = concat(
-            clusters
+        let next = DescriptorSet::stack(
+            &clusters
                 .iter()
                 .zip(seeds)
                 .map(|(c, &seed)| if c.is_empty() { centre_of(desc, &[seed]) } else { centre_of(desc, c) })
-                .collect(),
+                .collect::<Vec<_>>(),
         );
         if next == centres {
             break;

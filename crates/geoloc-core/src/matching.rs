@@ -163,6 +163,26 @@ impl DescriptorSet {
         self.len() == 0
     }
 
+    /// The rows of `parts` one after the other (all of the first part's kind and width; a
+    /// part of another kind is skipped — callers check kinds first). Empty float rows of
+    /// width 0 for no parts.
+    pub fn stack<'a>(parts: impl IntoIterator<Item = &'a DescriptorSet>) -> Self {
+        let mut parts = parts.into_iter().peekable();
+        match parts.peek() {
+            Some(Self::Binary { width, .. }) => {
+                let width = *width;
+                let data = parts.filter_map(|p| if let Self::Binary { data, .. } = p { Some(data) } else { None });
+                Self::Binary { data: data.flatten().copied().collect(), width }
+            }
+            Some(Self::Float { width, .. }) => {
+                let width = *width;
+                let data = parts.filter_map(|p| if let Self::Float { data, .. } = p { Some(data) } else { None });
+                Self::Float { data: data.flatten().copied().collect(), width }
+            }
+            None => Self::Float { data: Vec::new(), width: 0 },
+        }
+    }
+
     /// The rows `rows`, in that order.
     pub fn select(&self, rows: &[usize]) -> Self {
         match self {
