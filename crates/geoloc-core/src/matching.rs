@@ -380,24 +380,34 @@ pub fn epipolar_filter(
     pairs: &[Match],
     max_px: f64,
 ) -> Result<Vec<Match>> {
+    let keep = epipolar_mask(camera, pose_a, pose_b, keypoints_a, keypoints_b, pairs, max_px)?;
+    Ok(pairs.iter().zip(keep).filter(|(_, k)| *k).map(|(m, _)| *m).collect())
+}
+
+/// [`epipolar_filter`] as a mask over `pairs` (true: kept).
+///
+/// # Errors
+/// As [`epipolar_filter`].
+pub fn epipolar_mask(
+    camera: &Camera,
+    pose_a: &SE3,
+    pose_b: &SE3,
+    keypoints_a: &[Vector2<f64>],
+    keypoints_b: &[Vector2<f64>],
+    pairs: &[Match],
+    max_px: f64,
+) -> Result<Vec<bool>> {
     if !(max_px.is_finite() && max_px > 0.0) {
         return Err(GeolocError::invalid("max_px", format!("must be finite and > 0, got {max_px}")));
     }
     if let Some(i) = pairs.iter().position(|m| m.a >= keypoints_a.len() || m.b >= keypoints_b.len()) {
-        let m = pairs[i];
         return Err(GeolocError::invalid(
             "pairs",
-            format!(
-                "pairs[{i}] = ({}, {}) indexes past the keypoints ({}, {})",
-                m.a,
-                m.b,
-                keypoints_a.len(),
-                keypoints_b.len()
-            ),
+            format!("pairs[{i}] = ({}, {}) indexes past the keypoints", pairs[i].a, pairs[i].b),
         ));
     }
     let f = fundamental_matrix(camera, pose_a, pose_b);
-    Ok(pairs.iter().copied().filter(|m| sampson_distance(&f, &keypoints_a[m.a], &keypoints_b[m.b]) <= max_px).collect())
+    Ok(pairs.iter().map(|m| sampson_distance(&f, &keypoints_a[m.a], &keypoints_b[m.b]) <= max_px).collect())
 }
 
 #[cfg(test)]

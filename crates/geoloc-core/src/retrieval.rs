@@ -55,6 +55,30 @@ pub enum Backend {
     Flat,
 }
 
+impl Backend {
+    /// Every backend, in declaration order.
+    pub const ALL: [Self; 2] = [Self::KdTree, Self::Flat];
+
+    /// The name: `"kdtree"` or `"flat"` (the one place that spells it).
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::KdTree => "kdtree",
+            Self::Flat => "flat",
+        }
+    }
+}
+
+impl std::str::FromStr for Backend {
+    type Err = GeolocError;
+
+    fn from_str(s: &str) -> Result<Self> {
+        Self::ALL
+            .into_iter()
+            .find(|b| b.as_str() == s)
+            .ok_or_else(|| GeolocError::invalid("backend", format!("expected \"kdtree\" or \"flat\", got {s:?}")))
+    }
+}
+
 trait Tree: Send + Sync {
     fn nearest(&self, query: &[f32], k: usize) -> Vec<(f32, usize)>;
 }
@@ -490,6 +514,14 @@ mod tests {
         let (d, i) = index.query(&[1e30, 0.0], 3).expect("finite");
         assert_eq!(i, vec![1, 0, 2]);
         assert!(d.iter().all(|v| v.is_finite()));
+    }
+
+    #[test]
+    fn backend_names_round_trip() {
+        for b in Backend::ALL {
+            assert_eq!(b.as_str().parse::<Backend>(), Ok(b));
+        }
+        assert!(matches!("ann".parse::<Backend>(), Err(GeolocError::InvalidInput { name, .. }) if name == "backend"));
     }
 
     #[test]

@@ -1,0 +1,99 @@
+"""Same input, same bytes (issue 8 item 3): the feature-level map and localizer on a seeded
+synthetic scene — with a stopped camera, i.e. a run of identical keyframes and of identical
+query frames, where BoW scores tie exactly — give byte-identical poses, covariances and
+sources in separate processes, with GEOLOC_NUM_THREADS=1 and 2, and with parallelism off.
+
+Before the fix, BoW vectors lived in a per-process randomly seeded HashMap and their sums ran
+in f32 in its iteration order, so near-ties flipped between processes.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+SCRIPT = r"""
+import hashlib, sys
+import numpy as np
+import geoloc
+from geoloc import lie
+from geoloc.localizer import FeatureLocalizer, FeatureMap
+from geoloc.montecarlo import look_at
+
+cam = geoloc.Camera(525, 525, 320, 240)
+rng = np.random.default_rng(0)
+pts = rng.uniform([-8, -1.5, 3], [8, 1.5, 6], (1500, 3))
+desc = rng.integers(0, 256, (1500, 32), dtype=np.uint8)
+
+def walk(t, offset):
+    c = np.array([-1.5 + 0.6 * min(t, 1.2), offset + 0.05 * np.sin(2 * t), 0.0])  # stops at t = 1.2 s
+    return look_at(c, c + np.array([0.0, 0.0, 5.0]))
+
+def observe(rng, pose):
+    p = lie.se3_transform_points(lie.se3_inverse(pose), pts)
+    uv = p[:, :2] / p[:, 2:] * 525 + [320, 240]
+    ok = (p[:, 2] > 0.5) & (uv[:, 0] >= 0) & (uv[:, 0] < 640) & (uv[:, 1] >= 0) & (uv[:, 1] < 480)
+    d = desc[ok].copy()
+    flips = rng.integers(0, 256, size=(len(d), 3))
+    for k in range(3):
+        d[np.arange(len(d)), flips[:, k] // 8] ^= (1 << (flips[:, k] % 8)).astype(np.uint8)
+    return uv[ok] + 0.5 * rng.normal(size=(ok.sum(), 2)), d
+
+poses, kps, descs = [], [], []
+for i in range(30):
+    pose = walk(0.1 * i, 0.0)
+    if i > 14 and poses:
+        k, d = kps[-1], descs[-1]  # the stopped camera: identical keyframes
+    else:
+        k, d = observe(rng, pose)
+    poses.append(pose); kps.append(k); descs.append(d)
+m = FeatureMap(cam, np.stack(poses), kps, descs, branching=8, depth=3, seed=1)
+loc = FeatureLocalizer(m)
+h = hashlib.sha256()
+frame = None
+for f in range(40):
+    t = 0.3 + f / 30
+    if t < 1.2 or frame is None:
+        frame = observe(rng, walk(t, 0.1))  # after 1.2 s: identical query frames
+    r = loc.localize(t, *frame)
+    h.update(r.source.encode() + r.reason.encode() + np.int64(r.keyframe).tobytes())
+    if r.pose is not None:
+        h.update(np.ascontiguousarray(r.pose).tobytes() + np.ascontiguousarray(r.covariance).tobytes())
+print(h.hexdigest())
+"""
+
+
+def _digest(env_extra: dict[str, str]) -> str:
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("GEOLOC_", "RAYON_"))}
+    env.update(env_extra)
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT / "python"), env.get("PYTHONPATH", "")]))
+    env.setdefault("PYTHONHASHSEED", "random")
+    out = subprocess.run([sys.executable, "-c", SCRIPT], env=env, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    return out.stdout.strip()
+
+
+@pytest.fixture(scope="module")
+def reference() -> str:
+    return _digest({})
+
+
+def test_two_processes_give_the_same_bytes(reference: str) -> None:
+    assert len(reference) == len(hashlib.sha256().hexdigest())
+    assert _digest({}) == reference
+
+
+@pytest.mark.parametrize(
+    "env",
+    [{"GEOLOC_NUM_THREADS": "1"}, {"GEOLOC_NUM_THREADS": "2"}, {"GEOLOC_PARALLELISM": "false"}, {"RAYON_NUM_THREADS": "2"}],
+    ids=["1-thread", "2-threads", "parallelism-off", "rayon-2"],
+)
+def test_thread_settings_give_the_same_bytes(reference: str, env: dict[str, str]) -> None:
+    assert _digest(env) == reference
