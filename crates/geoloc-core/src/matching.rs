@@ -244,9 +244,23 @@ pub struct Match {
 
 /// Best and second-best of `i` (of `from`) among all rows of `to`: (best index, best, second).
 fn best_two(from: &Descriptors<'_>, i: usize, to: &Descriptors<'_>) -> (usize, f32, f32) {
+    // the kind is matched once per query row, not once per distance (the hot loop)
+    match (from.row(i), *to) {
+        (Row::Binary(q), Descriptors::Binary { data, width }) => {
+            best_two_of(data.chunks_exact(width).map(|r| hamming(q, r) as f32))
+        }
+        (q @ Row::Float(_), Descriptors::Float { data, width }) => {
+            best_two_of(data.chunks_exact(width).map(|r| q.distance(&Row::Float(r))))
+        }
+        _ => (usize::MAX, f32::INFINITY, f32::INFINITY),
+    }
+}
+
+/// (index of the smallest, smallest, second smallest) of `distances` (first index on ties).
+#[inline]
+fn best_two_of(distances: impl Iterator<Item = f32>) -> (usize, f32, f32) {
     let (mut best, mut d1, mut d2) = (usize::MAX, f32::INFINITY, f32::INFINITY);
-    for j in 0..to.len() {
-        let d = from.distance(i, to, j);
+    for (j, d) in distances.enumerate() {
         if d < d1 {
             (d2, d1, best) = (d1, d, j);
         } else if d < d2 {
