@@ -552,5 +552,13 @@ mod tests {
         assert!(index.query(&[f32::INFINITY, 0.0, 0.0], 1).is_err());
         let (d, i) = index.query(&[], 1).expect("no queries is fine");
         assert!(d.is_empty() && i.is_empty());
+        let name_of = |e: GeolocError| match e {
+            GeolocError::InvalidInput { name, .. } | GeolocError::NonFinite { name, .. } => name,
+            other => panic!("{other:?}"),
+        };
+        assert_eq!(name_of(index.query(&[1.0; 3], 3).expect_err("k > N")), "k");
+        assert_eq!(name_of(index.query(&[1.0; 4], 1).expect_err("ragged")), "queries");
+        assert_eq!(name_of(index.query(&[0.0, f32::NAN, 0.0], 1).expect_err("NaN")), "queries");
+        assert_eq!(name_of(DescriptorIndex::new(vec![f32::NAN; 6], 3).expect_err("NaN")), "descriptors");
     }
 }
