@@ -22,29 +22,19 @@ ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = r"""
 import hashlib, sys
 import numpy as np
-import geoloc
-from geoloc import lie
 from geoloc.localizer import FeatureLocalizer, FeatureMap
-from geoloc.montecarlo import look_at
 
-cam = geoloc.Camera(525, 525, 320, 240)
+from test_localizer import CAM as cam, _observe, _walk
+
 rng = np.random.default_rng(0)
 pts = rng.uniform([-8, -1.5, 3], [8, 1.5, 6], (1500, 3))
 desc = rng.integers(0, 256, (1500, 32), dtype=np.uint8)
 
 def walk(t, offset):
-    c = np.array([-1.5 + 0.6 * min(t, 1.2), offset + 0.05 * np.sin(2 * t), 0.0])  # stops at t = 1.2 s
-    return look_at(c, c + np.array([0.0, 0.0, 5.0]))
+    return _walk(min(t, 1.2), offset)  # the camera stops at t = 1.2 s
 
 def observe(rng, pose):
-    p = lie.se3_transform_points(lie.se3_inverse(pose), pts)
-    uv = p[:, :2] / p[:, 2:] * 525 + [320, 240]
-    ok = (p[:, 2] > 0.5) & (uv[:, 0] >= 0) & (uv[:, 0] < 640) & (uv[:, 1] >= 0) & (uv[:, 1] < 480)
-    d = desc[ok].copy()
-    flips = rng.integers(0, 256, size=(len(d), 3))
-    for k in range(3):
-        d[np.arange(len(d)), flips[:, k] // 8] ^= (1 << (flips[:, k] % 8)).astype(np.uint8)
-    return uv[ok] + 0.5 * rng.normal(size=(ok.sum(), 2)), d
+    return _observe(rng, pose, pts, desc)
 
 poses, kps, descs = [], [], []
 for i in range(30):
@@ -73,7 +63,8 @@ print(h.hexdigest())
 def _digest(env_extra: dict[str, str]) -> str:
     env = {k: v for k, v in os.environ.items() if not k.startswith(("GEOLOC_", "RAYON_"))}
     env.update(env_extra)
-    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT / "python"), env.get("PYTHONPATH", "")]))
+    paths = [str(ROOT / "python"), str(ROOT / "tests"), env.get("PYTHONPATH", "")]
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, paths))
     env.setdefault("PYTHONHASHSEED", "random")
     out = subprocess.run([sys.executable, "-c", SCRIPT], env=env, capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr

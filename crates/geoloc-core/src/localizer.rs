@@ -438,7 +438,7 @@ impl Localizer {
             }
             let matches =
                 match_descriptors(&kf[seed].descriptors.view(), &kf[g].descriptors.view(), &self.options.matching)?;
-            let kept = epipolar_filter(
+            let keep = epipolar_filter(
                 &self.map.camera,
                 &kf[seed].world_from_cam,
                 &kf[g].world_from_cam,
@@ -447,7 +447,7 @@ impl Localizer {
                 &matches,
                 self.options.epipolar_px,
             )?;
-            for m in kept {
+            for (m, _) in matches.iter().zip(keep).filter(|(_, k)| *k) {
                 obs.push(local, m.a, kf[g].keypoints[m.b]);
             }
         }

@@ -380,29 +380,12 @@ pub fn sampson_distance(f: &Matrix3<f64>, xa: &Vector2<f64>, xb: &Vector2<f64>) 
     if den <= 0.0 { f64::INFINITY } else { (num * num / den).sqrt() }
 }
 
-/// Keeps the `pairs` whose keypoints are within `max_px` (Sampson) of the epipolar geometry
-/// of the two known poses. Keypoints are undistorted pixels.
+/// Which `pairs` have keypoints within `max_px` (Sampson) of the epipolar geometry of the
+/// two known poses: a mask over `pairs` (true: kept). Keypoints are undistorted pixels.
 ///
 /// # Errors
 /// A pair indexing past the keypoints (`pairs`), or a non-positive `max_px`.
 pub fn epipolar_filter(
-    camera: &Camera,
-    pose_a: &SE3,
-    pose_b: &SE3,
-    keypoints_a: &[Vector2<f64>],
-    keypoints_b: &[Vector2<f64>],
-    pairs: &[Match],
-    max_px: f64,
-) -> Result<Vec<Match>> {
-    let keep = epipolar_mask(camera, pose_a, pose_b, keypoints_a, keypoints_b, pairs, max_px)?;
-    Ok(pairs.iter().zip(keep).filter(|(_, k)| *k).map(|(m, _)| *m).collect())
-}
-
-/// [`epipolar_filter`] as a mask over `pairs` (true: kept).
-///
-/// # Errors
-/// As [`epipolar_filter`].
-pub fn epipolar_mask(
     camera: &Camera,
     pose_a: &SE3,
     pose_b: &SE3,
@@ -509,7 +492,8 @@ mod tests {
         let f = fundamental_matrix(&cam, &pa, &pb);
         assert!(sampson_distance(&f, &ka[50], &kb[50]) < 1e-9);
         let matches: Vec<Match> = (0..100).map(|i| Match { a: i, b: i, distance: 0.0 }).collect();
-        let kept = epipolar_filter(&cam, &pa, &pb, &ka, &kb, &matches, 2.0).expect("valid");
+        let mask = epipolar_filter(&cam, &pa, &pb, &ka, &kb, &matches, 2.0).expect("valid");
+        let kept: Vec<Match> = matches.iter().zip(mask).filter(|(_, k)| *k).map(|(m, _)| *m).collect();
         // a vertical shift can lie along a near-vertical epipolar line for a few points
         assert!(kept.iter().all(|m| m.a >= 20 || sampson_distance(&f, &ka[m.a], &kb[m.b]) <= 2.0));
         assert!(kept.iter().filter(|m| m.a >= 20).count() == 80);
@@ -547,10 +531,13 @@ mod tests {
         );
         let cam = Camera::new(1.0, 1.0, 0.0, 0.0).expect("valid");
         let m = [Match { a: 3, b: 0, distance: 0.0 }];
-        let name_of = |r: Result<Vec<Match>>| match r {
-            Err(GeolocError::InvalidInput { name, .. } | GeolocError::NonFinite { name, .. }) => name,
-            other => panic!("expected a named error, got {other:?}"),
-        };
+        fn name_of<T>(r: Result<T>) -> String {
+            match r {
+                Err(GeolocError::InvalidInput { name, .. } | GeolocError::NonFinite { name, .. }) => name,
+                Err(other) => panic!("expected a named error, got {other:?}"),
+                Ok(_) => panic!("expected a named error, got Ok"),
+            }
+        }
         let (i, k) = (SE3::identity(), [Vector2::zeros(); 4]);
         assert_eq!(name_of(epipolar_filter(&cam, &i, &i, &[], &[], &m, 1.0)), "pairs");
         assert_eq!(name_of(epipolar_filter(&cam, &i, &i, &k, &k, &[], 0.0)), "max_px");

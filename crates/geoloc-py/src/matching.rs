@@ -2,7 +2,7 @@
 
 use geoloc_core::camera::Camera;
 use geoloc_core::lie::SE3;
-use geoloc_core::matching::{Match, MatchOptions, epipolar_mask, match_descriptors as core_match};
+use geoloc_core::matching::{Match, MatchOptions, epipolar_filter as core_epipolar, match_descriptors as core_match};
 use nalgebra::Vector2;
 use numpy::ndarray::Array2;
 use numpy::{IntoPyArray, PyArray1, PyArray2, PyReadonlyArray2};
@@ -79,7 +79,7 @@ pub fn epipolar_filter<'py>(
     let (pa, pb) = (first("pose_a", &pose_a)?, first("pose_b", &pose_b)?);
     let (ka, kb) = (keypoints("keypoints_a", &keypoints_a)?, keypoints("keypoints_b", &keypoints_b)?);
     let pairs = pairs_of(&pairs)?;
-    let mask = epipolar_mask(&cam, &pa, &pb, &ka, &kb, &pairs, max_px).map_err(to_py_err)?;
+    let mask = core_epipolar(&cam, &pa, &pb, &ka, &kb, &pairs, max_px).map_err(to_py_err)?;
     Ok(mask.into_pyarray(py))
 }
 
