@@ -1,6 +1,7 @@
 # Stub of the compiled module geoloc._core (crates/geoloc-py); checked against the built
 # module by mypy.stubtest in tests/test_stubs.py. Every function maps rows: (N, in) float64,
 # C-contiguous, finite → (N, out) float64; matrices are flattened row-major.
+import os
 from typing import Any, final
 
 import numpy as np
@@ -168,6 +169,11 @@ class FeatureMap:
         seed: int | np.integer[Any] | None = None,
     ) -> FeatureMap: ...
     def __len__(self) -> int: ...
+    @property
+    def intrinsics(self) -> tuple[float, float, float, float]: ...
+    def save(self, path: str | os.PathLike[str], frontend: str) -> None: ...
+    @staticmethod
+    def load(path: str | os.PathLike[str]) -> tuple[FeatureMap, str]: ...
 
 @final
 class Localization:

@@ -11,7 +11,10 @@ motion history. Image-level mapping (feature extraction, datasets) builds on the
 
 from __future__ import annotations
 
-from typing import Literal, Sequence
+import json
+import os
+
+from typing import Any, Literal, Mapping, Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -75,6 +78,7 @@ class FeatureMap:
                 raise InvalidInputError(f"pose_covariances: expected shape ({n}, 6, 6), got {c.shape}")
             covs = np.ascontiguousarray(c.reshape(n, 36))
         self.camera = camera
+        self.frontend: dict[str, Any] = {}
         self._map = _core.FeatureMap(
             camera.intrinsics, flat, kps, descs, global_descriptors=g, pose_covariances=covs,
             retrieval=retrieval, branching=branching, depth=depth, seed=seed,
@@ -82,6 +86,30 @@ class FeatureMap:
 
     def __len__(self) -> int:
         return len(self._map)
+
+    def save(self, path: str | os.PathLike[str], frontend: Mapping[str, Any] | None = None) -> None:
+        """Write the map to one ``.geoloc`` file (safetensors), atomically: an interrupted save
+        keeps the previous file. ``frontend`` (a JSON-able dict) records the caller's settings."""
+        text = json.dumps(dict(frontend or {}), sort_keys=True, allow_nan=False)
+        self._map.save(os.fspath(path), text)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike[str], camera: Camera | None = None) -> FeatureMap:
+        """Read a map written by :meth:`save`, checking it whole first: a truncated, corrupt or
+        other-version file raises :class:`geoloc.exceptions.FileFormatError`. ``camera`` gives
+        the image size and distortion (the file stores the intrinsics); its intrinsics must
+        match. The caller's settings are in ``.frontend``."""
+        core, text = _core.FeatureMap.load(os.fspath(path))
+        intrinsics = core.intrinsics
+        if camera is None:
+            camera = Camera(*intrinsics)
+        elif not isinstance(camera, Camera) or camera.intrinsics != intrinsics:
+            raise InvalidInputError(f"camera: must be a geoloc.Camera with the map's intrinsics {intrinsics}")
+        self = cls.__new__(cls)
+        self.camera = camera
+        self._map = core
+        self.frontend = json.loads(text)
+        return self
 
 
 LocalizationResult.__doc__ = """One frame: ``pose`` (4, 4) world_from_cam and ``covariance`` (6, 6, right

@@ -19,6 +19,10 @@
 //! image order), and ties rank by image index, so scores and rankings are bit-identical in
 //! every process and with any thread count.
 
+mod arrays;
+
+pub use arrays::VocabularyArrays;
+
 use crate::error::{GeolocError, Result};
 use crate::matching::{DescriptorSet, Descriptors, Row};
 use crate::parallel::map_indices;

@@ -4,6 +4,9 @@
 //! provides global descriptors, else a bag-of-words vocabulary and database).
 
 pub mod file;
+mod persist;
+
+pub use persist::{CameraHeader, MapHeader, RetrievalHeader};
 
 use nalgebra::{Matrix6, Vector2};
 
@@ -128,6 +131,21 @@ fn check_covariance(name: &str, c: &Matrix6<f64>) -> Result<()> {
         return Err(GeolocError::invalid(name, format!("must be positive semi-definite, has eigenvalue {smallest:e}")));
     }
     Ok(())
+}
+
+impl std::fmt::Debug for Map {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let retrieval = match &self.retrieval {
+            Retrieval::Global(index) => format!("global ({}-D)", index.dim()),
+            Retrieval::Bow { vocabulary, .. } => format!("bow ({} words)", vocabulary.len()),
+        };
+        f.debug_struct("Map")
+            .field("camera", &self.camera)
+            .field("keyframes", &self.keyframes.len())
+            .field("pose_covariances", &self.pose_covariances.is_some())
+            .field("retrieval", &retrieval)
+            .finish()
+    }
 }
 
 impl Map {

@@ -1,6 +1,7 @@
 //! Bindings of `geoloc_core::{map, localizer}` at the level of features (keypoints and
 //! descriptors); images and feature extraction live in Python.
 
+use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 
 use geoloc_core::camera::Camera;
@@ -93,6 +94,25 @@ impl FeatureMap {
 
     fn __len__(&self) -> usize {
         self.inner.keyframes.len()
+    }
+
+    /// (fx, fy, cx, cy) of the map's camera.
+    #[getter]
+    fn intrinsics(&self) -> (f64, f64, f64, f64) {
+        let c = self.inner.camera;
+        (c.fx, c.fy, c.cx, c.cy)
+    }
+
+    /// Writes the map to `path` atomically; `frontend` is the caller's settings (JSON object text).
+    fn save(&self, py: Python<'_>, path: PathBuf, frontend: &str) -> PyResult<()> {
+        py.detach(|| self.inner.save(&path, frontend)).map_err(to_py_err)
+    }
+
+    /// Reads a map written by `save`: the map and its frontend settings (JSON text).
+    #[staticmethod]
+    fn load(py: Python<'_>, path: PathBuf) -> PyResult<(Self, String)> {
+        let (map, header) = py.detach(|| CoreMap::load(&path)).map_err(to_py_err)?;
+        Ok((Self { inner: Arc::new(map) }, header.frontend.to_string()))
     }
 }
 
