@@ -242,7 +242,7 @@ impl Localizer {
             (Ok((tg, cg)), Some(pred)) => {
                 match fuse(&pred.world_from_cam, &pred.covariance, &tg, &cg, self.options.gate_sigma, self.options.gate)
                 {
-                    Ok(f) if f.source == FusionSource::Fused => {
+                    Ok(f) if f.details == FusionSource::Fused => {
                         (Some(f.world_from_cam), Some(f.covariance), Source::Fused, "ok".to_string())
                     }
                     Ok(f) => (

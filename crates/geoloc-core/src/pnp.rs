@@ -39,7 +39,9 @@ use nalgebra::{Matrix2, Matrix2x3, Matrix3, Matrix3x6, Matrix6, Vector2, Vector3
 
 use crate::camera::{Camera, j_uv_point, j_uv_pose, project};
 use crate::error::{GeolocError, Result};
-use crate::lie::{SE3, SO3};
+use crate::lie::SE3;
+use crate::optim::covariance::inverse_information;
+pub use crate::optim::covariance::isometric_sigmas;
 use crate::optim::{
     LeastSquares, LmOptions, LmReport, RobustLoss, levenberg_marquardt, levenberg_marquardt_with_information,
 };
@@ -173,10 +175,6 @@ const ROBUST_ROUND_COST_TOLERANCE: f64 = 1e-4;
 pub const MIN_POINTS_RANSAC: usize = 4;
 /// Fewest inliers a pose (6 DoF) is accepted from.
 pub const MIN_INLIERS: usize = 4;
-/// Reciprocal condition number of the information matrix below which the pose is
-/// unobservable (collinear points, a single point cluster seen head-on, …).
-const MIN_RECIPROCAL_CONDITION: f64 = 1e-12;
-
 /// Estimates world_from_cam from `points` (world) and their undistorted `pixels`; see the
 /// module doc.
 ///
@@ -372,14 +370,6 @@ fn final_least_squares(problem: &PoseProblem<'_>, pose: SE3, lm: &LmOptions) -> 
 
 /// δᵀHδ below which the final least-squares solve is a single Gauss–Newton step.
 const ONE_STEP_MAX_METRIC: f64 = 1.0;
-
-/// σ_p = mean √diag(C_ρ), σ_r = Θ(exp(√diag(C_φ))) (the paper's isometric σ).
-pub fn isometric_sigmas(c: &Matrix6<f64>) -> (f64, f64) {
-    let sd = Vector6::from_fn(|i, _| c[(i, i)].max(0.0).sqrt());
-    let sigma_p = (sd[0] + sd[1] + sd[2]) / 3.0;
-    let sigma_r = SO3::exp(&Vector3::new(sd[3], sd[4], sd[5])).angle();
-    (sigma_p, sigma_r)
-}
 
 fn validate(
     points: &[Vector3<f64>],
@@ -635,16 +625,6 @@ impl LeastSquares<6> for PoseProblem<'_> {
     fn retract(&self, pose: &SE3, delta: &Vector6<f64>) -> SE3 {
         *pose * SE3::exp(delta)
     }
-}
-
-/// H = Σ w JᵀWJ with its inverse, if the pose is observable.
-fn inverse_information(h: &Matrix6<f64>) -> Option<Matrix6<f64>> {
-    let eig = h.symmetric_eigen();
-    let (lo, hi) = eig.eigenvalues.iter().fold((f64::INFINITY, 0.0_f64), |(lo, hi), &v| (lo.min(v), hi.max(v)));
-    if lo.is_nan() || lo <= MIN_RECIPROCAL_CONDITION * hi {
-        return None;
-    }
-    h.try_inverse()
 }
 
 fn paper_covariance(

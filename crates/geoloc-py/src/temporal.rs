@@ -67,8 +67,8 @@ pub fn motion_predict<'py>(
     let out = PyDict::new(py);
     out.set_item("pose", matrices_to_array(py, &[pred.world_from_cam.matrix()]))?;
     out.set_item("covariance", matrices_to_array(py, &[pred.covariance]))?;
-    out.set_item("velocity", pred.velocity.as_slice().to_vec().into_pyarray(py))?;
-    out.set_item("rms_residual", pred.rms_residual)?;
+    out.set_item("velocity", pred.details.velocity.as_slice().to_vec().into_pyarray(py))?;
+    out.set_item("rms_residual", pred.details.rms_residual)?;
     Ok(out)
 }
 
@@ -102,12 +102,12 @@ pub fn fuse<'py>(
     out.set_item("covariance", matrices_to_array(py, &[f.covariance]))?;
     out.set_item(
         "source",
-        match f.source {
+        match f.details {
             FusionSource::Fused => "fused",
             FusionSource::Motion => "motion",
         },
     )?;
-    out.set_item("iterations", f.iterations)?;
+    out.set_item("iterations", f.report.map_or(0, |r| r.iterations))?;
     Ok(out)
 }
 
