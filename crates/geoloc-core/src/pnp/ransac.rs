@@ -83,7 +83,7 @@ fn sample_three(rng: &mut SplitMix64, n: usize) -> [usize; 3] {
 
 /// MSAC score Σ min(‖r‖², t²) (behind-camera points count t²) and inlier count; None as
 /// soon as the partial score exceeds `bound` (cannot beat the best).
-fn msac_score(
+pub(super) fn msac_score(
     camera: &Camera,
     points: &[Vector3<f64>],
     pixels: &[Vector2<f64>],
