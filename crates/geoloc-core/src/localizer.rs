@@ -329,22 +329,22 @@ impl Localizer {
             &pixels,
             &self.options.triangulation,
         )?;
-        let valid: Vec<usize> =
-            tracked.iter().copied().filter(|&i| tri.points[i].status == TrackStatus::Valid).collect();
+        let by_id = |i: usize| tri.point(i).expect("invariant: tracked holds exactly the triangulated track ids");
+        let valid: Vec<usize> = tracked.iter().copied().filter(|&i| by_id(i).status == TrackStatus::Valid).collect();
         let k = group.len();
         let shared = covs.map(|c| {
             let mut jac = vec![Matrix3x6::zeros(); valid.len() * k];
             for (row, &i) in valid.iter().enumerate() {
-                for (cam, d) in &tri.points[i].pose_jacobians {
+                for (cam, d) in &by_id(i).pose_jacobians {
                     jac[row * k + cam] = *d;
                 }
             }
             (jac, c)
         });
         let points = Arc::new(MapPoints {
-            points: valid.iter().map(|&i| tri.points[i].point).collect(),
+            points: valid.iter().map(|&i| by_id(i).point).collect(),
             descriptors: kf[seed].descriptors.select(&valid),
-            pixel_covariances: valid.iter().map(|&i| tri.points[i].pixel_covariance).collect(),
+            pixel_covariances: valid.iter().map(|&i| by_id(i).pixel_covariance).collect(),
             shared,
         });
         self.cache.insert(key, Arc::clone(&points));

@@ -174,9 +174,12 @@ fn monte_carlo(seed: u64, trials: usize, sigma_px: f64, label: Option<(f64, f64)
         let tri_opts = TriangulationOptions { pixel_sigma: sigma_px, ..Default::default() };
         let tri = triangulate(&cam, &labels, label_cov.as_deref(), &cams, &tracks, &pix, &tri_opts).expect("valid");
         let (mut pts, mut px, mut covs, mut jacs) = (vec![], vec![], vec![], vec![]);
-        for (t, p) in tri.points.iter().enumerate() {
+        // every id up to the largest observed one draws its query observation (as when the
+        // result had a row per id), so the random sequence does not depend on the layout
+        for t in 0..tri.track_ids.last().map_or(0, |m| m + 1) {
             let uv = observe(&mut rng, &cam, &query, &points[t], sigma_px);
-            if p.status != TrackStatus::Valid || !(0.0..640.0).contains(&uv.x) || !(0.0..480.0).contains(&uv.y) {
+            let Some(p) = tri.point(t).filter(|p| p.status == TrackStatus::Valid) else { continue };
+            if !(0.0..640.0).contains(&uv.x) || !(0.0..480.0).contains(&uv.y) {
                 continue;
             }
             pts.push(p.point);
