@@ -2,7 +2,8 @@
 //! matrices flattened row-major. Shapes, dtypes and leading batch axes are handled by
 //! `python/geoloc/lie.py`; these functions check widths, layout, finiteness and rotations.
 
-use geoloc_core::lie::{SE3, SO3, rotation_angle as core_rotation_angle, se3, so3};
+use geoloc_core::lie::{SE3, SO3, Twist, check_rotation_vector, check_twist, se3, so3, try_rotation_angle};
+use nalgebra::Vector3;
 use numpy::{PyArray2, PyReadonlyArray2, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 
@@ -16,6 +17,20 @@ fn rotation_of(name: &str, x: &[f64; 9], i: usize) -> geoloc_core::Result<SO3> {
 /// One 16-value row as a rigid transform, strictly checked; errors name `name[i]`.
 fn pose_of(name: &str, x: &[f64; 16], i: usize) -> geoloc_core::Result<SE3> {
     SE3::from_matrix(&matrix_from_row::<4, 4>(x)).map_err(|e| e.at(name, i))
+}
+
+/// One 3-value row as a rotation vector within the exponential map's range; errors name `phi[i]`.
+fn phi_of(x: &[f64; 3], i: usize) -> geoloc_core::Result<Vector3<f64>> {
+    let phi = vector_from_row(x);
+    check_rotation_vector(&phi).map_err(|e| e.at("phi", i))?;
+    Ok(phi)
+}
+
+/// One 6-value row as a twist within the exponential map's range; errors name `xi[i]`.
+fn xi_of(x: &[f64; 6], i: usize) -> geoloc_core::Result<Twist> {
+    let xi = vector_from_row(x);
+    check_twist(&xi).map_err(|e| e.at("xi", i))?;
+    Ok(xi)
 }
 
 /// Row `i` of a flat (N, 16) slice as a rigid transform.
@@ -55,7 +70,7 @@ unary! {
 }
 unary! {
     /// exp(φ^) of each row φ.
-    fn so3_exp(phi: 3) -> 9 = |_i, x, out| { write_matrix(SO3::exp(&vector_from_row(x)).matrix(), out); Ok(()) }
+    fn so3_exp(phi: 3) -> 9 = |i, x, out| { write_matrix(SO3::exp(&phi_of(x, i)?).matrix(), out); Ok(()) }
 }
 unary! {
     /// log(R)^∨ of each rotation row.
@@ -73,9 +88,10 @@ unary! {
     }
 }
 unary! {
-    /// Θ(R) ∈ [0, π] of each 3×3 row (atan2 form; tolerates near-rotations).
-    fn rotation_angle(rotation: 9) -> 1 = |_i, x, out| {
-        out[0] = core_rotation_angle(&matrix_from_row::<3, 3>(x));
+    /// Θ(R) ∈ [0, π] of each 3×3 row (atan2 form; near-rotations within 1e-2 accepted,
+    /// other matrices refused).
+    fn rotation_angle(rotation: 9) -> 1 = |i, x, out| {
+        out[0] = try_rotation_angle(&matrix_from_row::<3, 3>(x)).map_err(|e| e.at("R", i))?;
         Ok(())
     }
 }
@@ -96,19 +112,19 @@ unary! {
 }
 unary! {
     /// J_l(φ) of each row.
-    fn so3_left_jacobian(phi: 3) -> 9 = |_i, x, out| { write_matrix(&so3::left_jacobian(&vector_from_row(x)), out); Ok(()) }
+    fn so3_left_jacobian(phi: 3) -> 9 = |i, x, out| { write_matrix(&so3::left_jacobian(&phi_of(x, i)?), out); Ok(()) }
 }
 unary! {
     /// J_r(φ) of each row.
-    fn so3_right_jacobian(phi: 3) -> 9 = |_i, x, out| { write_matrix(&so3::right_jacobian(&vector_from_row(x)), out); Ok(()) }
+    fn so3_right_jacobian(phi: 3) -> 9 = |i, x, out| { write_matrix(&so3::right_jacobian(&phi_of(x, i)?), out); Ok(()) }
 }
 unary! {
     /// J_l⁻¹(φ) of each row.
-    fn so3_left_jacobian_inv(phi: 3) -> 9 = |_i, x, out| { write_matrix(&so3::left_jacobian_inverse(&vector_from_row(x)), out); Ok(()) }
+    fn so3_left_jacobian_inv(phi: 3) -> 9 = |i, x, out| { write_matrix(&so3::left_jacobian_inverse(&phi_of(x, i)?), out); Ok(()) }
 }
 unary! {
     /// J_r⁻¹(φ) of each row.
-    fn so3_right_jacobian_inv(phi: 3) -> 9 = |_i, x, out| { write_matrix(&so3::right_jacobian_inverse(&vector_from_row(x)), out); Ok(()) }
+    fn so3_right_jacobian_inv(phi: 3) -> 9 = |i, x, out| { write_matrix(&so3::right_jacobian_inverse(&phi_of(x, i)?), out); Ok(()) }
 }
 unary! {
     /// ξ^ (4×4) of each twist row (ρ, φ).
@@ -124,7 +140,7 @@ unary! {
 }
 unary! {
     /// exp(ξ^) of each twist row (ρ, φ).
-    fn se3_exp(xi: 6) -> 16 = |_i, x, out| { write_matrix(&SE3::exp(&vector_from_row(x)).matrix(), out); Ok(()) }
+    fn se3_exp(xi: 6) -> 16 = |i, x, out| { write_matrix(&SE3::exp(&xi_of(x, i)?).matrix(), out); Ok(()) }
 }
 unary! {
     /// log(T)^∨ = (ρ, φ) of each rigid-transform row.
@@ -157,19 +173,19 @@ unary! {
 }
 unary! {
     /// 𝒥_l(ξ) of each twist row.
-    fn se3_left_jacobian(xi: 6) -> 36 = |_i, x, out| { write_matrix(&se3::left_jacobian(&vector_from_row(x)), out); Ok(()) }
+    fn se3_left_jacobian(xi: 6) -> 36 = |i, x, out| { write_matrix(&se3::left_jacobian(&xi_of(x, i)?), out); Ok(()) }
 }
 unary! {
     /// 𝒥_r(ξ) of each twist row.
-    fn se3_right_jacobian(xi: 6) -> 36 = |_i, x, out| { write_matrix(&se3::right_jacobian(&vector_from_row(x)), out); Ok(()) }
+    fn se3_right_jacobian(xi: 6) -> 36 = |i, x, out| { write_matrix(&se3::right_jacobian(&xi_of(x, i)?), out); Ok(()) }
 }
 unary! {
     /// 𝒥_l⁻¹(ξ) of each twist row.
-    fn se3_left_jacobian_inv(xi: 6) -> 36 = |_i, x, out| { write_matrix(&se3::left_jacobian_inverse(&vector_from_row(x)), out); Ok(()) }
+    fn se3_left_jacobian_inv(xi: 6) -> 36 = |i, x, out| { write_matrix(&se3::left_jacobian_inverse(&xi_of(x, i)?), out); Ok(()) }
 }
 unary! {
     /// 𝒥_r⁻¹(ξ) of each twist row.
-    fn se3_right_jacobian_inv(xi: 6) -> 36 = |_i, x, out| { write_matrix(&se3::right_jacobian_inverse(&vector_from_row(x)), out); Ok(()) }
+    fn se3_right_jacobian_inv(xi: 6) -> 36 = |i, x, out| { write_matrix(&se3::right_jacobian_inverse(&xi_of(x, i)?), out); Ok(()) }
 }
 
 /// T₁T₂ for each pair of rows.
