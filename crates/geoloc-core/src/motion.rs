@@ -384,6 +384,25 @@ mod tests {
         assert!(p.covariance[(0, 0)] > 1e-6 && p.covariance[(3, 3)] < p.covariance[(0, 0)]);
     }
 
+    /// Issue #11: a query time that would overflow the extrapolation, and covariances that
+    /// are not positive semi-definite, are refused by name.
+    #[test]
+    fn overflowing_query_and_negative_covariances_are_named() {
+        let poses = vec![SE3::identity(); 3];
+        let times = [0.0, 0.1, 0.2];
+        let name = |r: Result<MotionPrediction>| match r {
+            Err(GeolocError::InvalidInput { name, .. }) => name,
+            other => panic!("expected InvalidInput, got {other:?}"),
+        };
+        assert_eq!(name(motion_predict(&poses, &times, 1e300, None)), "t_query");
+        assert_eq!(name(motion_predict(&poses, &[0.0, 0.1, 1e300], 1e300, None)), "timestamps");
+        let mut covs = vec![Matrix6::identity() * 1e-4; 3];
+        covs[2] = -covs[2];
+        assert_eq!(name(motion_predict(&poses, &times, 0.3, Some(&covs))), "covariances[2]");
+        let ok = motion_predict(&poses, &times, 0.2 + MAX_TIME_SPAN_S, None).expect("at the bound");
+        assert!(ok.world_from_cam.matrix().iter().all(|v| v.is_finite()));
+    }
+
     #[test]
     fn bad_input() {
         let poses = vec![SE3::identity(); 3];
