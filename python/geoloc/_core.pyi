@@ -41,37 +41,90 @@ def se3_interpolate(
 def se3_transform_points(
     pose: NDArray[np.float64], points: NDArray[np.float64]
 ) -> NDArray[np.float64]: ...
+def track_statuses() -> list[tuple[int, str, str]]: ...
+@final
+class Triangulated:
+    @property
+    def track_ids(self) -> NDArray[np.uint64]: ...
+    @property
+    def points(self) -> NDArray[np.float64]: ...
+    @property
+    def status(self) -> NDArray[np.uint8]: ...
+    def reasons(self) -> list[str]: ...
+    @property
+    def mean_residual(self) -> NDArray[np.float64]: ...
+    @property
+    def max_angle(self) -> NDArray[np.float64]: ...
+    @property
+    def covariances(self) -> NDArray[np.float64]: ...
+    @property
+    def pixel_covariances(self) -> NDArray[np.float64]: ...
+    @property
+    def pose_jacobians(self) -> NDArray[np.float64] | None: ...
+    @property
+    def observation_inliers(self) -> NDArray[np.bool_]: ...
+
 def triangulate(
     poses_wc: NDArray[np.float64],
     intrinsics: tuple[float, float, float, float],
     cam_ids: NDArray[np.int64],
     track_ids: NDArray[np.int64],
     pixels: NDArray[np.float64],
-    pose_covariances: NDArray[np.float64] | None,
-    loss: str,
-    loss_width: float,
-    pixel_sigma: float,
-    max_residual: float,
-    min_angle: float,
-) -> dict[str, Any]: ...
+    *,
+    pose_covariances: NDArray[np.float64] | None = None,
+    loss: str = "huber",
+    huber: float = 1.0,
+    pixel_sigma: float = 1.0,
+    max_residual: float = 5.0,
+    min_angle: float = ...,
+) -> Triangulated: ...
+@final
+class PnPResult:
+    @property
+    def success(self) -> bool: ...
+    @property
+    def reason(self) -> str: ...
+    @property
+    def pose(self) -> NDArray[np.float64]: ...
+    @property
+    def covariance(self) -> NDArray[np.float64]: ...
+    @property
+    def inliers(self) -> NDArray[np.bool_]: ...
+    @property
+    def rms(self) -> float: ...
+    @property
+    def sigma_p(self) -> float: ...
+    @property
+    def sigma_r(self) -> float: ...
+    @property
+    def ransac_iterations(self) -> int: ...
+    @property
+    def lm_iterations(self) -> int: ...
+    @property
+    def lm_converged(self) -> bool: ...
+    @property
+    def lm_termination(self) -> str | None: ...
+
 def solve_pnp(
     points3d: NDArray[np.float64],
     pixels: NDArray[np.float64],
     intrinsics: tuple[float, float, float, float],
-    init_pose: NDArray[np.float64] | None,
-    point_covariances: NDArray[np.float64] | None,
-    point_pose_jacobians: NDArray[np.float64] | None,
-    pose_covariances: NDArray[np.float64] | None,
-    loss: str,
-    loss_width: float,
-    pixel_sigma: float,
-    max_residual: float,
-    covariance: str,
-    min_iterations: int,
-    max_iterations: int,
-    confidence: float,
-    seed: int,
-) -> dict[str, Any]: ...
+    *,
+    init_pose: NDArray[np.float64] | None = None,
+    point_covariances: NDArray[np.float64] | None = None,
+    point_pose_jacobians: NDArray[np.float64] | None = None,
+    pose_covariances: NDArray[np.float64] | None = None,
+    loss: str = "huber",
+    huber: float = 1.0,
+    pixel_sigma: float = 1.0,
+    max_residual: float = 5.0,
+    covariance: str = "propagated",
+    ransac: bool | None = None,
+    min_iterations: int | None = None,
+    max_iterations: int | None = None,
+    confidence: float = 0.9999,
+    seed: int | None = None,
+) -> PnPResult: ...
 def keyframe_score(
     pose1: NDArray[np.float64], pose2: NDArray[np.float64], d_m: float, ell: float, alpha_m: float
 ) -> NDArray[np.float64]: ...
@@ -85,20 +138,50 @@ def select_keyframes(
     alpha_m: float,
     min_score: float,
 ) -> NDArray[np.uint64]: ...
+@final
+class MotionPrediction:
+    @property
+    def pose(self) -> NDArray[np.float64]: ...
+    @property
+    def covariance(self) -> NDArray[np.float64]: ...
+    @property
+    def iterations(self) -> int: ...
+    @property
+    def termination(self) -> str | None: ...
+    @property
+    def velocity(self) -> NDArray[np.float64]: ...
+    @property
+    def rms_residual(self) -> float: ...
+
+@final
+class FusionResult:
+    @property
+    def pose(self) -> NDArray[np.float64]: ...
+    @property
+    def covariance(self) -> NDArray[np.float64]: ...
+    @property
+    def iterations(self) -> int: ...
+    @property
+    def termination(self) -> str | None: ...
+    @property
+    def source(self) -> str: ...
+
 def motion_predict(
     poses_wc: NDArray[np.float64],
     timestamps: NDArray[np.float64],
     t_query: float,
-    covariances: NDArray[np.float64] | None,
-) -> dict[str, Any]: ...
+    *,
+    covariances: NDArray[np.float64] | None = None,
+) -> MotionPrediction: ...
 def fuse(
     pose_m: NDArray[np.float64],
     cov_m: NDArray[np.float64],
     pose_g: NDArray[np.float64],
     cov_g: NDArray[np.float64],
-    gate_sigma: float,
-    gate: str,
-) -> dict[str, Any]: ...
+    *,
+    gate_sigma: float = 3.0,
+    gate: str = "isometric",
+) -> FusionResult: ...
 def match_descriptors(
     a: NDArray[Any], b: NDArray[Any], ratio: float | None, mutual: bool, max_distance: float | None
 ) -> tuple[NDArray[np.int64], NDArray[np.float32]]: ...

@@ -141,15 +141,16 @@ def _trial(
     uv, inside = _project(cam, target, points)
     uv = uv + rng.normal(0, sigma, uv.shape)
     valid = np.zeros(len(points), dtype=bool)
-    valid[: len(tri.valid)] = tri.valid  # tracks beyond the last observed one gave no point
+    valid[tri.track_ids] = tri.valid  # one row per observed track; unobserved tracks gave no point
     use = np.flatnonzero(inside & valid)
+    rows = tri.rows(use)
     out: dict[str, tuple[Array, Array, geometry.PnPResult] | None] = {}
     for model in models:
         if model == "paper":
-            res = geometry.solve_pnp(tri.points[use], uv[use], cam, covariance="paper", pixel_sigma=sigma)
+            res = geometry.solve_pnp(tri.points[rows], uv[use], cam, covariance="paper", pixel_sigma=sigma)
         else:
             res = geometry.solve_pnp(
-                tri.points[use], uv[use], cam, pixel_sigma=sigma, uncertainty=tri.uncertainty(use)
+                tri.points[rows], uv[use], cam, pixel_sigma=sigma, uncertainty=tri.uncertainty(rows)
             )
         out[model] = (target, res.pose, res) if res.success else None
     return out

@@ -28,6 +28,29 @@ pub enum Gate {
     ChiSquared,
 }
 
+impl Gate {
+    /// The option string: "isometric" or "chi2".
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Isometric => "isometric",
+            Self::ChiSquared => "chi2",
+        }
+    }
+}
+
+impl std::str::FromStr for Gate {
+    type Err = GeolocError;
+
+    /// Parses [`Gate::as_str`]; the error names the argument "gate".
+    fn from_str(s: &str) -> Result<Self> {
+        match s {
+            "isometric" => Ok(Self::Isometric),
+            "chi2" => Ok(Self::ChiSquared),
+            other => Err(GeolocError::invalid("gate", format!("expected \"isometric\" or \"chi2\", got {other:?}"))),
+        }
+    }
+}
+
 /// Where the fused pose came from.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum FusionSource {
@@ -35,6 +58,16 @@ pub enum FusionSource {
     Fused,
     /// The geometric pose failed the gate: the motion prediction alone.
     Motion,
+}
+
+impl FusionSource {
+    /// "fused" or "motion".
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Fused => "fused",
+            Self::Motion => "motion",
+        }
+    }
 }
 
 /// The fused pose T_F, C_F (right perturbation, translation first), the Gauss–Newton report
@@ -259,6 +292,14 @@ mod tests {
         // equal covariances: the midpoint, with half the covariance
         assert!((f.world_from_cam.translation.x - 0.005).abs() < 1e-9);
         assert!((f.covariance - cm * 0.5).abs().max() < 1e-9);
+    }
+
+    #[test]
+    fn option_strings_round_trip() {
+        for gate in [Gate::Isometric, Gate::ChiSquared] {
+            assert_eq!(gate.as_str().parse::<Gate>(), Ok(gate));
+        }
+        assert!(matches!("χ²".parse::<Gate>(), Err(GeolocError::InvalidInput { name, .. }) if name == "gate"));
     }
 
     #[test]

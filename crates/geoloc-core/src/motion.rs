@@ -127,13 +127,13 @@ fn validate(
         return Err(GeolocError::invalid("timestamps", "must be distinct"));
     }
     let t_ref = sorted[m - 1];
-    if !((t_query - t_ref).abs() <= MAX_TIME_SPAN_S) {
+    if (t_query - t_ref).abs() > MAX_TIME_SPAN_S {
         return Err(GeolocError::invalid(
             "t_query",
             format!("is {:e} s from the latest timestamp; at most {MAX_TIME_SPAN_S:e} s", t_query - t_ref),
         ));
     }
-    if !(t_ref - sorted[0] <= MAX_TIME_SPAN_S) {
+    if t_ref - sorted[0] > MAX_TIME_SPAN_S {
         return Err(GeolocError::invalid("timestamps", format!("span more than {MAX_TIME_SPAN_S:e} s")));
     }
     let Some(c) = covariances else { return Ok(vec![Matrix6::identity(); m]) };

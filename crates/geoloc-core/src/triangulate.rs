@@ -84,6 +84,35 @@ pub enum TrackStatus {
 }
 
 impl TrackStatus {
+    /// Every status, in code order.
+    pub const ALL: [Self; 7] = [
+        Self::Valid,
+        Self::TooFewViews,
+        Self::Degenerate,
+        Self::BehindCamera,
+        Self::LargeResidual,
+        Self::SmallAngle,
+        Self::Ambiguous,
+    ];
+
+    /// The numeric code (the `#[repr(u8)]` discriminant).
+    pub fn code(self) -> u8 {
+        self as u8
+    }
+
+    /// A short snake_case name ("valid", "too_few_views", …).
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Valid => "valid",
+            Self::TooFewViews => "too_few_views",
+            Self::Degenerate => "degenerate",
+            Self::BehindCamera => "behind_camera",
+            Self::LargeResidual => "large_residual",
+            Self::SmallAngle => "small_angle",
+            Self::Ambiguous => "ambiguous",
+        }
+    }
+
     /// A short human-readable reason.
     pub fn reason(self) -> &'static str {
         match self {

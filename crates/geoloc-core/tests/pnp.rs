@@ -336,3 +336,13 @@ fn ransac_with_init_keeps_the_better_start() {
     assert!(!res.success || error_cm_deg(&res.world_from_cam, &truth).0 > 5.0);
     assert_eq!(res.ransac_iterations, 0);
 }
+
+#[test]
+fn covariance_option_strings_round_trip() {
+    for model in [CovarianceModel::Propagated, CovarianceModel::Paper] {
+        assert_eq!(model.as_str().parse::<CovarianceModel>(), Ok(model));
+    }
+    assert!(
+        matches!("exact".parse::<CovarianceModel>(), Err(geoloc_core::GeolocError::InvalidInput { name, .. }) if name == "covariance")
+    );
+}

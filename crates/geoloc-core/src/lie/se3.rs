@@ -277,7 +277,7 @@ fn check_last_row(m: &Matrix4<f64>) -> Result<()> {
     if deviation > LAST_ROW_TOLERANCE {
         return Err(GeolocError::NotARotation {
             name: "T".into(),
-            index: 0,
+            index: None,
             what: "rigid transform",
             reason: format!("last row {:?} is not (0, 0, 0, 1)", m.fixed_view::<1, 4>(3, 0).iter().collect::<Vec<_>>()),
         });

@@ -106,7 +106,7 @@ pub fn try_rotation_angle(r: &Matrix3<f64>) -> Result<f64> {
     if gram_error > NEAR_ROTATION_TOLERANCE || (det - 1.0).abs() > NEAR_ROTATION_TOLERANCE {
         return Err(GeolocError::NotARotation {
             name: "R".into(),
-            index: 0,
+            index: None,
             what: "near-rotation",
             reason: format!(
                 "max |RᵀR − I| = {gram_error:.3e}, det R = {det:.6} (tolerance {NEAR_ROTATION_TOLERANCE:e})"
@@ -157,7 +157,7 @@ impl SO3 {
     /// Accepts `matrix` if it is finite and a rotation within [`ROTATION_TOLERANCE`].
     ///
     /// # Errors
-    /// [`GeolocError::NonFinite`] or [`GeolocError::NotARotation`] (index 0; batch callers
+    /// [`GeolocError::NonFinite`] or [`GeolocError::NotARotation`] (no index; batch callers
     /// re-index with [`GeolocError::at`]).
     pub fn from_matrix(matrix: &Matrix3<f64>) -> Result<Self> {
         check_finite(matrix.as_slice())?;
@@ -165,7 +165,7 @@ impl SO3 {
         if gram_error > ROTATION_TOLERANCE || (det - 1.0).abs() > ROTATION_TOLERANCE {
             return Err(GeolocError::NotARotation {
                 name: "R".into(),
-                index: 0,
+                index: None,
                 what: "rotation",
                 reason: format!(
                     "max |RᵀR − I| = {gram_error:.3e}, det R = {det:.9} \
@@ -188,7 +188,7 @@ impl SO3 {
     pub fn from_matrix_projected(matrix: &Matrix3<f64>) -> Result<Self> {
         check_finite(matrix.as_slice())?;
         let not_near =
-            |reason: String| GeolocError::NotARotation { name: "R".into(), index: 0, what: "near-rotation", reason };
+            |reason: String| GeolocError::NotARotation { name: "R".into(), index: None, what: "near-rotation", reason };
         // The polar factor of cM is that of M for c > 0: scale by a power of two (exact in
         // floating point, so near-rotations give the same bits) to keep the SVD from
         // overflowing (1e200·I) or underflowing (1e-200·I).
