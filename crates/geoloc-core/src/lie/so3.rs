@@ -85,11 +85,12 @@ pub fn rotation_angle(r: &Matrix3<f64>) -> f64 {
 /// re-index with [`GeolocError::at`]).
 pub fn check_rotation_vector(phi: &Vector3<f64>) -> Result<()> {
     check_finite(phi.as_slice()).map_err(|e| e.at("phi", 0))?;
-    let theta = phi.norm();
+    // the largest entry first: ‖φ‖ itself overflows to ∞ beyond 1e154
+    let theta = if phi.amax() > MAX_ROTATION_VECTOR_NORM { phi.amax() } else { phi.norm() };
     if theta > MAX_ROTATION_VECTOR_NORM {
         return Err(GeolocError::invalid(
             "phi",
-            format!("‖φ‖ = {theta:e} rad exceeds {MAX_ROTATION_VECTOR_NORM:e} (the exponential map would overflow)"),
+            format!("‖φ‖ ≥ {theta:e} rad exceeds {MAX_ROTATION_VECTOR_NORM:e} (the exponential map would overflow)"),
         ));
     }
     Ok(())
