@@ -233,96 +233,86 @@ where
         };
         return (state, report, evaluation);
     }
-    if options.gauss_newton {
-        gauss_newton(problem, state, evaluation, options)
-    } else {
-        lm(problem, state, evaluation, options)
-    }
-}
-
-fn lm<P, const D: usize>(
-    problem: &P,
-    state: P::State,
-    evaluation: Evaluation<D>,
-    options: &LmOptions,
-) -> (P::State, LmReport, Evaluation<D>)
-where
-    P: LeastSquares<D>,
-{
     let (mut x, mut current) = (state, evaluation);
     let initial_cost = current.cost;
-    let mut lambda = options.initial_lambda;
+    let mut lambda = if options.gauss_newton { 0.0 } else { options.initial_lambda };
     let report = |iterations, final_cost, termination| LmReport { iterations, initial_cost, final_cost, termination };
     for iteration in 1..=options.max_iterations {
-        let (norm, predicted_decrease, candidate) =
-            match problem.damped_step(&x, current.linearization.as_ref(), lambda) {
-                DampedStep::Step { norm, predicted_decrease, candidate } => (norm, predicted_decrease, candidate),
-                DampedStep::NonFinite => return (x, report(iteration, current.cost, Termination::NonFinite), current),
-                DampedStep::NotPositiveDefinite => {
-                    lambda *= 10.0;
-                    if lambda > MAX_LAMBDA {
-                        return (x, report(iteration, current.cost, Termination::NoDescent), current);
-                    }
-                    continue;
-                }
-            };
-        if norm < options.step_tolerance {
-            return (x, report(iteration, current.cost, Termination::StepConverged), current);
-        }
-        // When even the model's predicted decrease is below the tolerance we are at the
-        // minimum to working precision — stop here instead of raising λ through a dozen
-        // rejected steps.
-        if predicted_decrease <= options.cost_tolerance * current.cost {
-            return (x, report(iteration, current.cost, Termination::CostConverged), current);
-        }
-        // Evaluate the candidate right away (for plain problems: linearize it): steps are
-        // mostly accepted, and this saves the separate cost pass of each accepted step.
-        let next = problem.evaluate(&candidate);
-        if next.cost.is_finite() && next.cost < current.cost {
-            let decrease = (current.cost - next.cost) / current.cost.max(f64::MIN_POSITIVE);
-            (x, current) = (candidate, next);
-            lambda = (lambda * 0.1).max(MIN_LAMBDA);
-            if decrease < options.cost_tolerance {
-                return (x, report(iteration, current.cost, Termination::CostConverged), current);
-            }
+        let step = problem.damped_step(&x, current.linearization.as_ref(), lambda);
+        let stop = if options.gauss_newton {
+            gauss_newton_step(problem, step, &mut x, &mut current, options)
         } else {
-            lambda *= 10.0;
-            if lambda > MAX_LAMBDA {
-                return (x, report(iteration, current.cost, Termination::NoDescent), current);
-            }
+            lm_step(problem, step, &mut x, &mut current, &mut lambda, options)
+        };
+        if let Some(termination) = stop {
+            return (x, report(iteration, current.cost, termination), current);
         }
     }
     (x, report(options.max_iterations, current.cost, Termination::MaxIterations), current)
 }
 
-/// Gauss–Newton: every undamped step is taken; stops after a step below the tolerance.
-fn gauss_newton<P, const D: usize>(
+/// One LM iteration: take the step if it lowers the cost (λ shrinks), else grow λ. Returns
+/// why to stop, if the loop should.
+fn lm_step<P, const D: usize>(
     problem: &P,
-    state: P::State,
-    evaluation: Evaluation<D>,
+    step: DampedStep<P::State>,
+    x: &mut P::State,
+    current: &mut Evaluation<D>,
+    lambda: &mut f64,
     options: &LmOptions,
-) -> (P::State, LmReport, Evaluation<D>)
+) -> Option<Termination>
 where
     P: LeastSquares<D>,
 {
-    let (mut x, mut current) = (state, evaluation);
-    let initial_cost = current.cost;
-    let report = |iterations, final_cost, termination| LmReport { iterations, initial_cost, final_cost, termination };
-    for iteration in 1..=options.max_iterations {
-        let (norm, candidate) = match problem.damped_step(&x, current.linearization.as_ref(), 0.0) {
-            DampedStep::Step { norm, candidate, .. } => (norm, candidate),
-            DampedStep::NonFinite => return (x, report(iteration, current.cost, Termination::NonFinite), current),
-            DampedStep::NotPositiveDefinite => {
-                return (x, report(iteration, current.cost, Termination::Singular), current);
-            }
-        };
-        x = candidate;
-        current = problem.evaluate(&x);
-        if norm < options.step_tolerance {
-            return (x, report(iteration, current.cost, Termination::StepConverged), current);
-        }
+    let raise = |lambda: &mut f64| {
+        *lambda *= 10.0;
+        (*lambda > MAX_LAMBDA).then_some(Termination::NoDescent)
+    };
+    let (norm, predicted_decrease, candidate) = match step {
+        DampedStep::Step { norm, predicted_decrease, candidate } => (norm, predicted_decrease, candidate),
+        DampedStep::NonFinite => return Some(Termination::NonFinite),
+        DampedStep::NotPositiveDefinite => return raise(lambda),
+    };
+    if norm < options.step_tolerance {
+        return Some(Termination::StepConverged);
     }
-    (x, report(options.max_iterations, current.cost, Termination::MaxIterations), current)
+    // When even the model's predicted decrease is below the tolerance we are at the minimum
+    // to working precision — stop here instead of raising λ through a dozen rejected steps.
+    if predicted_decrease <= options.cost_tolerance * current.cost {
+        return Some(Termination::CostConverged);
+    }
+    // Evaluate the candidate right away (for plain problems: linearize it): steps are mostly
+    // accepted, and this saves the separate cost pass of each accepted step.
+    let next = problem.evaluate(&candidate);
+    if !(next.cost.is_finite() && next.cost < current.cost) {
+        return raise(lambda);
+    }
+    let decrease = (current.cost - next.cost) / current.cost.max(f64::MIN_POSITIVE);
+    (*x, *current) = (candidate, next);
+    *lambda = (*lambda * 0.1).max(MIN_LAMBDA);
+    (decrease < options.cost_tolerance).then_some(Termination::CostConverged)
+}
+
+/// One Gauss–Newton iteration: the undamped step is always taken; stop after one below the
+/// tolerance, or when H is singular.
+fn gauss_newton_step<P, const D: usize>(
+    problem: &P,
+    step: DampedStep<P::State>,
+    x: &mut P::State,
+    current: &mut Evaluation<D>,
+    options: &LmOptions,
+) -> Option<Termination>
+where
+    P: LeastSquares<D>,
+{
+    let (norm, candidate) = match step {
+        DampedStep::Step { norm, candidate, .. } => (norm, candidate),
+        DampedStep::NonFinite => return Some(Termination::NonFinite),
+        DampedStep::NotPositiveDefinite => return Some(Termination::Singular),
+    };
+    *x = candidate;
+    *current = problem.evaluate(x);
+    (norm < options.step_tolerance).then_some(Termination::StepConverged)
 }
 
 #[cfg(test)]
