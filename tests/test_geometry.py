@@ -189,3 +189,103 @@ def test_camera_validation_and_undistort_without_distortion() -> None:
     pts = np.array([[10.0, 20.0]])
     np.testing.assert_array_equal(cam.undistort_points(pts), pts)
     np.testing.assert_array_equal(cam.K, [[500, 0, 320], [0, 500, 240], [0, 0, 1]])
+
+
+# --- issue #11 regressions: each example of the issue, one test --------------------------
+
+
+def _two_view_tracks(ids: list[int]) -> tuple[Array, NDArray[np.int64], NDArray[np.int64], Array]:
+    poses = np.stack([look_at(np.array([x, 0.0, 0.0]), np.array([0.0, 0.0, 5.0])) for x in (-0.5, 0.5)])
+    pts = np.array([[0.0, 0.0, 5.0], [0.3, 0.2, 4.0]])
+    cam_ids = np.array([0, 1, 0, 1])
+    track_ids = np.array([ids[0], ids[0], ids[1], ids[1]], dtype=np.int64)
+    px = np.vstack([_project(poses[c], pts[i // 2][None]) for i, c in enumerate(cam_ids)])
+    return poses, cam_ids, track_ids, px
+
+
+@pytest.mark.parametrize("big", [10**9, 2**62])
+def test_triangulate_huge_track_ids_cost_no_memory(big: int) -> None:
+    poses, cam_ids, track_ids, px = _two_view_tracks([0, big])
+    tri = geometry.triangulate(poses, CAM, cam_ids, track_ids, px)
+    assert tri.track_ids.tolist() == [0, big] and tri.points.shape == (2, 3)
+    dense = geometry.triangulate(poses, CAM, cam_ids, np.array([0, 0, 1, 1]), px)
+    np.testing.assert_array_equal(tri.points, dense.points)
+    assert tri.rows([big]).tolist() == [1]
+
+
+def test_solve_pnp_iteration_counts_are_capped() -> None:
+    rng = np.random.default_rng(0)
+    _, pts = _random_view(rng, 20)
+    px = rng.uniform([0, 0], [640, 480], (20, 2))
+    with pytest.raises(geoloc.InvalidInputError, match="min_iterations: must be at most 1000000"):
+        geometry.solve_pnp(pts, px, CAM, min_iterations=10**9, max_iterations=10**9)
+    with pytest.raises(geoloc.InvalidInputError, match="max_iterations: must be at most"):
+        geometry.solve_pnp(pts, px, CAM, max_iterations=10**9)
+
+
+def test_solve_pnp_random_pixels_are_not_a_pose() -> None:
+    for seed in range(20):
+        rng = np.random.default_rng(seed)
+        _, pts = _random_view(rng, 200)
+        px = rng.uniform([0, 0], [640, 480], (200, 2))
+        res = geometry.solve_pnp(pts, px, CAM, seed=seed)
+        assert not res.success, (seed, int(res.inliers.sum()))
+        assert "chance" in res.reason or "RANSAC" in res.reason, res.reason
+
+
+def test_solve_pnp_refuses_negative_covariances() -> None:
+    rng = np.random.default_rng(1)
+    T, pts = _random_view(rng, 12)
+    px = _project(T, pts)
+    covs = np.tile(np.eye(3) * 1e-4, (12, 1, 1))
+    covs[3] *= -1
+    with pytest.raises(geoloc.InvalidInputError, match=r"point_covariances\[3\]: is not positive semi-definite"):
+        geometry.solve_pnp(pts, px, CAM, point_covariances=covs)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"seed": 2**70}, "seed: .* is too large"),
+        ({"seed": -1}, "seed: expected a non-negative integer"),
+        ({"min_iterations": -1}, "min_iterations: expected a non-negative integer"),
+        ({"max_iterations": 2**70}, "max_iterations: .* is too large"),
+        ({"seed": 1.5}, "seed: expected a non-negative integer"),
+    ],
+)
+def test_solve_pnp_counts_are_checked_not_overflowed(kwargs: dict[str, object], match: str) -> None:
+    rng = np.random.default_rng(2)
+    T, pts = _random_view(rng, 12)
+    with pytest.raises(geoloc.InvalidInputError, match=match):
+        geometry.solve_pnp(pts, _project(T, pts), CAM, **kwargs)  # type: ignore[arg-type]
+
+
+def test_solve_pnp_accepts_numpy_integers() -> None:
+    rng = np.random.default_rng(3)
+    T, pts = _random_view(rng, 30)
+    res = geometry.solve_pnp(pts, _project(T, pts), CAM, seed=np.int64(5), min_iterations=np.uint16(10))
+    assert res.success and res.pose.shape == (4, 4) and res.covariance.shape == (6, 6)
+
+
+def test_solve_pnp_ransac_flag_with_an_initial_pose() -> None:
+    """ransac=True with init_pose also runs RANSAC and keeps the better start; the default
+    (None) trusts the initial pose; ransac=False needs one."""
+    rng = np.random.default_rng(4)
+    T, pts = _random_view(rng, 60)
+    px = _project(T, pts) + rng.normal(size=(60, 2))
+    wrong = T @ lie.se3_exp([0.0, 0.0, 0.0, 0.0, np.pi, 0.0])
+    both = geometry.solve_pnp(pts, px, CAM, init_pose=wrong, ransac=True)
+    assert both.success and both.ransac_iterations > 0
+    assert np.linalg.norm(both.pose[:3, 3] - T[:3, 3]) < 0.05
+    trusted = geometry.solve_pnp(pts, px, CAM, init_pose=wrong)
+    assert trusted.ransac_iterations == 0
+    assert not trusted.success or np.linalg.norm(trusted.pose[:3, 3] - T[:3, 3]) > 0.05
+    good = geometry.solve_pnp(pts, px, CAM, init_pose=T, ransac=True)
+    plain = geometry.solve_pnp(pts, px, CAM, init_pose=T)
+    np.testing.assert_allclose(good.pose, plain.pose, atol=1e-5)  # same optimum from either start
+
+
+def test_track_status_texts_come_from_core() -> None:
+    assert geometry.TRACK_STATUS[0] == "ok"
+    assert geometry.TRACK_STATUS[6] == "only two of three or more views agree"
+    assert sorted(geometry.TRACK_STATUS) == list(range(7))

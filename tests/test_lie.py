@@ -299,3 +299,30 @@ def test_core_refuses_bad_layouts_without_panicking() -> None:
         core.se3_compose(np.zeros((2, 16)), np.zeros((3, 16)))
     with pytest.raises(TypeError):
         core.so3_exp(np.zeros((2, 3), dtype=np.float32))
+
+
+# --- issue #11 regressions ---------------------------------------------------------------
+
+
+def test_exp_refuses_overflowing_magnitudes() -> None:
+    with pytest.raises(geoloc.InvalidInputError, match=r"phi: ‖φ‖ ≥ 1e300 rad exceeds 1e12"):
+        lie.so3_exp([1e300, 0.0, 0.0])
+    with pytest.raises(geoloc.InvalidInputError, match=r"xi\[1\]"):
+        lie.se3_exp([[0.0] * 6, [1e200, 0, 0, 0, 0, 0.1]])
+    with pytest.raises(geoloc.InvalidInputError, match=r"phi: "):
+        lie.so3_right_jacobian([0.0, 1e300, 0.0])
+    assert np.isfinite(lie.so3_exp([1e6, 0.0, 0.0])).all()
+
+
+def test_so3_project_is_immune_to_scale() -> None:
+    R = lie.so3_exp([0.3, -0.2, 0.1])
+    for scale in (1e200, 1e-200):
+        np.testing.assert_allclose(lie.so3_project(scale * R), R, atol=1e-14)
+    np.testing.assert_allclose(lie.so3_project(1e200 * np.eye(3)), np.eye(3), atol=1e-15)
+
+
+def test_rotation_angle_refuses_non_rotations() -> None:
+    with pytest.raises(geoloc.NotARotationError, match=r"R is not a near-rotation"):
+        lie.rotation_angle(np.ones((3, 3)))
+    # a real dataset's near-rotation (det ≈ 0.9995) still has its angle
+    assert lie.rotation_angle(0.9998 * lie.so3_exp([0.0, 0.0, 0.5])) == pytest.approx(0.5, abs=1e-3)

@@ -26,6 +26,17 @@ def test_columns_and_scores_are_sane() -> None:
     assert propagated_label.nees > paper_label.nees + 0.3
 
 
+def test_counts_and_seeds_are_checked() -> None:
+    """Issue #11: a huge trial count or a negative / oversized seed is refused up front."""
+    import geoloc
+
+    with pytest.raises(geoloc.InvalidInputError, match="trials: expected an integer in"):
+        montecarlo.montecarlo(trials=10**9)
+    for seed in (-1, 2**70):
+        with pytest.raises(geoloc.InvalidInputError, match="seed: expected a non-negative integer"):
+            montecarlo.montecarlo(trials=1, seed=seed)
+
+
 def test_bad_arguments() -> None:
     with pytest.raises(ValueError, match="trials"):
         montecarlo.montecarlo(trials=0)

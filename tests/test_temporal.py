@@ -87,3 +87,38 @@ def test_fusion_gates_a_ten_sigma_outlier_and_fuses_otherwise() -> None:
         geoloc.fuse(np.eye(4), cov, near, cov, gate="max")  # type: ignore[arg-type]
     with pytest.raises(geoloc.InvalidInputError, match=r"pose_m: expected shape \(4, 4\)"):
         geoloc.fuse(np.stack([np.eye(4)] * 2), cov, near, cov)
+
+
+# --- issue #11 regressions ---------------------------------------------------------------
+
+
+def test_motion_predict_refuses_an_overflowing_query_time() -> None:
+    with pytest.raises(geoloc.InvalidInputError, match="t_query: is 1e300 s from the latest"):
+        geoloc.motion_predict(_track(4), [0.0, 0.1, 0.2, 0.3], 1e300)
+
+
+def test_negative_pose_covariances_are_refused() -> None:
+    covs = np.tile(np.eye(6) * 1e-4, (4, 1, 1))
+    covs[1] = -covs[1]
+    with pytest.raises(geoloc.InvalidInputError, match=r"covariances\[1\]: is not positive semi-definite"):
+        geoloc.motion_predict(_track(4), [0.0, 0.1, 0.2, 0.3], 0.4, covs)
+    T = _track(2)
+    with pytest.raises(geoloc.InvalidInputError, match="cov_g: is not positive semi-definite"):
+        geoloc.fuse(T[0], np.eye(6) * 1e-4, T[1], -np.eye(6) * 1e-4)
+
+
+def test_results_report_their_solve() -> None:
+    T = _track(4)
+    pred = geoloc.motion_predict(T, [0.0, 0.1, 0.2, 0.3], 0.4, np.tile(np.eye(6) * 1e-4, (4, 1, 1)))
+    assert pred.termination == "step_converged" and pred.iterations >= 1
+    fused = geoloc.fuse(pred.pose, pred.covariance, pred.pose, pred.covariance)
+    assert fused.source == "fused" and fused.termination == "step_converged"
+    gated = geoloc.fuse(T[0], np.eye(6) * 1e-6, T[3], np.eye(6) * 1e-6)
+    assert gated.source == "motion" and gated.iterations == 0 and gated.termination is None
+
+
+def test_select_keyframes_counts_are_checked() -> None:
+    with pytest.raises(geoloc.InvalidInputError, match="n: "):
+        geometry.select_keyframes(_track(5), 2, n=2**70)
+    expected = geometry.select_keyframes(_track(5), 2, n=3).tolist()
+    assert geometry.select_keyframes(_track(5), np.int64(2), n=np.int64(3)).tolist() == expected

@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from . import _core
-from ._validation import as_batch, as_float64
+from ._validation import as_float64
 from .exceptions import InvalidInputError
 
 __all__ = ["FusionResult", "fuse"]
@@ -17,29 +16,17 @@ __all__ = ["FusionResult", "fuse"]
 Array = NDArray[np.float64]
 
 
-@dataclass(frozen=True)
-class FusionResult:
-    """The fused pose (4, 4), its covariance (6, 6) and where it came from: ``"fused"`` or
-    ``"motion"`` (the geometric pose failed the gate)."""
-
-    pose: Array
-    covariance: Array
-    source: str
-    iterations: int
+#: The fused pose (a compiled class): ``pose`` (4, 4), ``covariance`` (6, 6), ``source`` —
+#: ``"fused"`` or ``"motion"`` (the geometric pose failed the gate) — and the Gauss–Newton
+#: ``iterations`` and ``termination`` (0 and None when gated).
+FusionResult = _core.FusionResult
 
 
-def _one_pose(x: ArrayLike, name: str) -> Array:
-    flat, lead = as_batch(x, name, (4, 4))
-    if lead != ():
-        raise InvalidInputError(f"{name}: expected shape (4, 4), got {np.shape(x)}")
-    return flat
-
-
-def _one_cov(x: ArrayLike, name: str) -> Array:
+def _one(x: ArrayLike, name: str, shape: tuple[int, int]) -> Array:
     c = as_float64(x, name)
-    if c.shape != (6, 6):
-        raise InvalidInputError(f"{name}: expected shape (6, 6), got {c.shape}")
-    return np.ascontiguousarray(c.reshape(1, 36))
+    if c.shape != shape:
+        raise InvalidInputError(f"{name}: expected shape {shape}, got {c.shape}")
+    return np.ascontiguousarray(c)
 
 
 def fuse(
@@ -59,15 +46,7 @@ def fuse(
     Gauss–Newton minimizes ‖log(T_M⁻¹T)‖²_{C_M⁻¹} + ‖log(T_G⁻¹T)‖²_{C_G⁻¹} and C_F = H⁻¹.
     Covariances: right perturbation, translation first.
     """
-    if gate not in ("isometric", "chi2"):
-        raise InvalidInputError(f"gate: expected 'isometric' or 'chi2', got {gate!r}")
-    raw: dict[str, Any] = _core.fuse(
-        _one_pose(pose_m, "pose_m"), _one_cov(cov_m, "cov_m"), _one_pose(pose_g, "pose_g"), _one_cov(cov_g, "cov_g"),
-        float(gate_sigma), gate,
-    )
-    return FusionResult(
-        pose=raw["pose"].reshape(4, 4),
-        covariance=raw["covariance"].reshape(6, 6),
-        source=str(raw["source"]),
-        iterations=int(raw["iterations"]),
+    return _core.fuse(
+        _one(pose_m, "pose_m", (4, 4)), _one(cov_m, "cov_m", (6, 6)), _one(pose_g, "pose_g", (4, 4)),
+        _one(cov_g, "cov_g", (6, 6)), gate_sigma=float(gate_sigma), gate=gate,
     )

@@ -9,7 +9,7 @@ translation first; point covariances are 3×3 in world coordinates (m²).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -32,18 +32,15 @@ __all__ = [
 
 Array = NDArray[np.float64]
 
-#: Meaning of :attr:`TriangulationResult.status` codes.
-TRACK_STATUS = {
-    0: "ok",
-    1: "fewer than two inlier views",
-    2: "rays do not intersect (zero baseline or parallel rays)",
-    3: "point behind an observing camera",
-    4: "mean residual above max_residual",
-    5: "triangulation angle below min_angle",
-    6: "only two of three or more views agree",
-}
+#: Meaning of :attr:`TriangulationResult.status` codes (the texts come from geoloc-core).
+TRACK_STATUS: dict[int, str] = {code: reason for code, _name, reason in _core.track_statuses()}
 
-_LOSSES = ("huber", "cauchy", "none")
+#: The result of :func:`solve_pnp` (a compiled class): ``success``, ``reason``, ``pose`` (4, 4)
+#: world_from_cam (identity when nothing was found), ``covariance`` (6, 6) right-perturbation
+#: covariance, translation first (zeros on failure), ``inliers`` (N,) bool, ``rms`` (px),
+#: ``sigma_p`` (m) and ``sigma_r`` (rad) — the paper's isometric σ — ``ransac_iterations``,
+#: ``lm_iterations``, ``lm_converged`` and ``lm_termination``.
+PnPResult = _core.PnPResult
 
 
 @dataclass(frozen=True)
@@ -63,8 +60,14 @@ class PointUncertainty:
 
 @dataclass(frozen=True)
 class TriangulationResult:
-    """Per track: the point, whether it is valid and why, and its uncertainty."""
+    """Per track: the point, whether it is valid and why, and its uncertainty.
 
+    One row per distinct track id, in increasing order of id (``track_ids``): for tracks
+    numbered 0..P−1 (all present) row i is track i. Ids are labels — ``10**9`` costs no
+    memory."""
+
+    track_ids: NDArray[np.int64]
+    """(P,) the distinct track ids, increasing; row i is track ``track_ids[i]``."""
     points: Array
     """(P, 3) world coordinates (meaningful where ``valid``)."""
     status: NDArray[np.uint8]
@@ -91,8 +94,16 @@ class TriangulationResult:
         return np.asarray(self.status == 0)
 
     def reasons(self) -> list[str]:
-        """A human-readable status per track."""
+        """A human-readable status per track (geoloc-core's texts)."""
         return [TRACK_STATUS[int(s)] for s in self.status]
+
+    def rows(self, track_ids: ArrayLike) -> NDArray[np.int64]:
+        """The rows of the tracks ``track_ids`` (each must be one of :attr:`track_ids`)."""
+        ids = np.asarray(track_ids, dtype=np.int64)
+        rows = np.searchsorted(self.track_ids, ids)
+        if np.any(rows >= len(self.track_ids)) or np.any(self.track_ids[np.minimum(rows, len(self.track_ids) - 1)] != ids):
+            raise InvalidInputError("track_ids: not all of them are tracks of this triangulation")
+        return rows.astype(np.int64)
 
     def uncertainty(self, indices: ArrayLike | None = None) -> PointUncertainty:
         """The :class:`PointUncertainty` of the points ``indices`` (default: all), for
@@ -103,28 +114,6 @@ class TriangulationResult:
         return PointUncertainty(
             self.pixel_covariances[idx], self.pose_jacobians[idx], self.pose_covariances
         )
-
-
-@dataclass(frozen=True)
-class PnPResult:
-    """The pose of a camera from 2D–3D correspondences, or why there is none."""
-
-    success: bool
-    reason: str
-    pose: Array
-    """(4, 4) world_from_cam (identity when ``success`` is False)."""
-    covariance: Array
-    """(6, 6) right-perturbation covariance, translation first (zeros on failure)."""
-    inliers: NDArray[np.bool_]
-    rms: float
-    """RMS reprojection error of the inliers (px)."""
-    sigma_p: float
-    """The paper's isometric position σ: mean of √diag(C_ρ) (m)."""
-    sigma_r: float
-    """The paper's isometric rotation σ: Θ(exp(√diag(C_φ))) (rad)."""
-    ransac_iterations: int
-    lm_iterations: int
-    lm_converged: bool
 
 
 def _real_array(x: ArrayLike, name: str) -> Array:
@@ -141,16 +130,12 @@ def _check_positive(value: float, name: str) -> float:
     return float(value)
 
 
-def _check_loss(loss: str) -> str:
-    if loss not in _LOSSES:
-        raise InvalidInputError(f"loss: expected one of {_LOSSES}, got {loss!r}")
-    return loss
-
-
 def _index_array(x: ArrayLike, name: str, n: int) -> NDArray[np.int64]:
     arr = np.asarray(x)
     if arr.dtype.kind not in "iu" and not (arr.dtype.kind == "f" and arr.size == 0):
         raise InvalidInputError(f"{name}: expected integer indices, got dtype {arr.dtype}")
+    if arr.dtype.kind == "u" and arr.size and arr.max() > np.iinfo(np.int64).max:
+        raise InvalidInputError(f"{name}: ids above {np.iinfo(np.int64).max} are not supported")
     arr = arr.astype(np.int64, copy=False)
     if arr.shape != (n,):
         raise InvalidInputError(f"{name}: expected shape ({n},) like pixels, got {arr.shape}")
@@ -164,13 +149,12 @@ def _pose_stack(poses: ArrayLike, name: str) -> Array:
     return flat
 
 
-def _covariance_stack(cov: ArrayLike, name: str, n: int, d: int) -> Array:
-    arr = as_float64(cov, name)
-    if arr.shape != (n, d, d):
-        raise InvalidInputError(f"{name}: expected shape ({n}, {d}, {d}), got {arr.shape}")
-    if not np.allclose(arr, np.swapaxes(arr, 1, 2), rtol=1e-9, atol=1e-15):
-        raise InvalidInputError(f"{name}: covariances must be symmetric")
-    return np.ascontiguousarray(arr.reshape(n, d * d))
+def _matrix_stack(m: ArrayLike, name: str, shape: tuple[int, ...]) -> Array:
+    """``m`` of shape ``shape`` as C-contiguous rows (value checks are geoloc-core's)."""
+    arr = _real_array(m, name)
+    if arr.shape != shape:
+        raise InvalidInputError(f"{name}: expected shape {shape}, got {arr.shape}")
+    return np.ascontiguousarray(arr.reshape(shape[0], -1))
 
 
 def triangulate(
@@ -206,34 +190,25 @@ def triangulate(
     px = as_float64(pixels, "pixels")
     if px.ndim != 2 or px.shape[1] != 2:
         raise InvalidInputError(f"pixels: expected shape (O, 2), got {px.shape}")
-    n_obs = px.shape[0]
-    cams = _index_array(cam_ids, "cam_ids", n_obs)
-    tracks = _index_array(track_ids, "track_ids", n_obs)
-    n_cams = poses_flat.shape[0]
-    covs = None if pose_covariances is None else _covariance_stack(pose_covariances, "pose_covariances", n_cams, 6)
-    raw: dict[str, Any] = _core.triangulate(
-        poses_flat,
-        cam.intrinsics,
-        cams,
-        tracks,
-        np.ascontiguousarray(px),
-        covs,
-        _check_loss(loss),
-        _check_positive(huber, "huber"),
-        _check_positive(pixel_sigma, "pixel_sigma"),
-        _check_positive(max_residual, "max_residual"),
-        float(min_angle),
+    n_obs, n_cams = px.shape[0], poses_flat.shape[0]
+    covs = None if pose_covariances is None else _matrix_stack(pose_covariances, "pose_covariances", (n_cams, 6, 6))
+    raw = _core.triangulate(
+        poses_flat, cam.intrinsics, _index_array(cam_ids, "cam_ids", n_obs), _index_array(track_ids, "track_ids", n_obs),
+        np.ascontiguousarray(px), pose_covariances=covs, loss=loss, huber=huber, pixel_sigma=pixel_sigma,
+        max_residual=max_residual, min_angle=min_angle,
     )
-    p = raw["points"].shape[0]
+    jacobians = raw.pose_jacobians
+    p = len(raw.track_ids)
     return TriangulationResult(
-        points=raw["points"],
-        status=raw["status"],
-        mean_residual=raw["mean_residual"],
-        max_angle=raw["max_angle"],
-        covariances=raw["covariances"].reshape(p, 3, 3),
-        pixel_covariances=raw["pixel_covariances"].reshape(p, 3, 3),
-        pose_jacobians=raw["pose_jacobians"].reshape(p, n_cams, 3, 6) if "pose_jacobians" in raw else None,
-        observation_inliers=raw["observation_inliers"],
+        track_ids=raw.track_ids.astype(np.int64),
+        points=raw.points,
+        status=raw.status,
+        mean_residual=raw.mean_residual,
+        max_angle=raw.max_angle,
+        covariances=raw.covariances,
+        pixel_covariances=raw.pixel_covariances,
+        pose_jacobians=None if jacobians is None else jacobians.reshape(p, n_cams, 3, 6),
+        observation_inliers=raw.observation_inliers,
         pose_covariances=None if covs is None else covs.reshape(n_cams, 6, 6),
     )
 
@@ -243,7 +218,7 @@ def solve_pnp(
     pixels: ArrayLike,
     cam: Camera,
     init_pose: ArrayLike | None = None,
-    ransac: bool = True,
+    ransac: bool | None = None,
     huber: float = 1.0,
     max_residual: float = 5.0,
     *,
@@ -260,101 +235,54 @@ def solve_pnp(
     """Backward intersection: the world_from_cam pose of a camera seeing ``points3d`` (N, 3)
     at undistorted ``pixels`` (N, 2), with a 6×6 covariance.
 
-    Without ``init_pose``, P3P RANSAC (MSAC scoring, adaptive iterations to ``confidence``,
-    local optimization) finds the start; then LM on SE(3) with a robust kernel (Huber of
-    width ``huber`` σ by default), dropping correspondences beyond ``max_residual`` px (the
-    paper's η_r) and re-solving. ``covariance="propagated"`` (default) propagates the query's
-    ``pixel_sigma`` and the points' uncertainty (``uncertainty`` from
-    :meth:`TriangulationResult.uncertainty`, or independent ``point_covariances`` (N, 3, 3));
+    The start: ``init_pose`` (4, 4) if given, else P3P RANSAC (MSAC scoring, adaptive
+    iterations to ``confidence``, between ``min_iterations`` and ``max_iterations`` ≤ 10⁶,
+    local optimization, seeded by ``seed``). ``ransac``: None (default) runs RANSAC exactly
+    when there is no ``init_pose``; True with an ``init_pose`` runs RANSAC too and starts from
+    whichever of the two has the lower MSAC score; False requires ``init_pose``. Then LM on
+    SE(3) with a robust kernel (Huber of width ``huber`` σ by default), dropping
+    correspondences beyond ``max_residual`` px (the paper's η_r) and re-solving.
+    ``covariance="propagated"`` (default) propagates the query's ``pixel_sigma`` and the
+    points' uncertainty (``uncertainty`` from :meth:`TriangulationResult.uncertainty`, or
+    independent ``point_covariances`` (N, 3, 3), symmetric positive semi-definite);
     ``"paper"`` is the paper's σ̂²(ΣJᵀJ)⁻¹ with σ̂² = ‖r‖²/(2p − 1), for comparison.
 
-    Geometry that cannot give a pose (too few points, no consensus, collinear points)
-    returns ``success=False`` with a ``reason``; invalid arguments raise
-    :class:`geoloc.InvalidInputError`.
+    Geometry that cannot give a pose returns ``success=False`` with a ``reason``: too few
+    points, no consensus, collinear points, or an inlier set that chance explains (fewer than
+    9 inliers, or as many as random pixels would give — see geoloc-core ``pnp``). Invalid
+    arguments raise :class:`geoloc.InvalidInputError` naming the argument.
     """
     if not isinstance(cam, Camera):
         raise InvalidInputError(f"cam: expected a geoloc.Camera, got {type(cam).__name__}")
-    # finiteness is checked (with the offending row) by the core, once
     pts = _real_array(points3d, "points3d")
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise InvalidInputError(f"points3d: expected shape (N, 3), got {pts.shape}")
-    px = _real_array(pixels, "pixels")
-    if px.shape != (pts.shape[0], 2):
-        raise InvalidInputError(f"pixels: expected shape ({pts.shape[0]}, 2) like points3d, got {px.shape}")
     n = pts.shape[0]
-    if covariance not in ("propagated", "paper"):
-        raise InvalidInputError(f"covariance: expected 'propagated' or 'paper', got {covariance!r}")
-    if not ransac and init_pose is None:
-        raise InvalidInputError("init_pose: required when ransac=False")
-    init = None
-    if init_pose is not None:  # finiteness and rigidity are checked by the core
-        init = _real_array(init_pose, "init_pose")
-        if init.shape != (4, 4):
-            raise InvalidInputError(f"init_pose: expected shape (4, 4), got {init.shape}")
-        init = init.reshape(1, 16)
+    px = _real_array(pixels, "pixels")
+    if px.shape != (n, 2):
+        raise InvalidInputError(f"pixels: expected shape ({n}, 2) like points3d, got {px.shape}")
+    init = None if init_pose is None else _real_array(init_pose, "init_pose")
+    if init is not None and init.ndim != 2:
+        raise InvalidInputError(f"init_pose: expected shape (4, 4), got {init.shape}")
     if uncertainty is not None and point_covariances is not None:
         raise InvalidInputError("point_covariances: give either uncertainty or point_covariances, not both")
     if point_covariances is not None:
         uncertainty = PointUncertainty(np.asarray(point_covariances))
     covs = jacs = pose_covs = None
     if uncertainty is not None:
-        covs = _covariance_stack(uncertainty.covariances, "point_covariances", n, 3)
-        if (uncertainty.pose_jacobians is None) != (uncertainty.pose_covariances is None):
-            raise InvalidInputError("uncertainty: pose_jacobians and pose_covariances go together")
+        covs = _matrix_stack(uncertainty.covariances, "point_covariances", (n, 3, 3))
         if uncertainty.pose_jacobians is not None and uncertainty.pose_covariances is not None:
             k = np.shape(uncertainty.pose_covariances)[0]
-            pose_covs = _covariance_stack(uncertainty.pose_covariances, "pose_covariances", k, 6)
-            j = as_float64(uncertainty.pose_jacobians, "pose_jacobians")
-            if j.shape != (n, k, 3, 6):
-                raise InvalidInputError(f"pose_jacobians: expected shape ({n}, {k}, 3, 6), got {j.shape}")
-            jacs = np.ascontiguousarray(j.reshape(n * k, 18))
-    for name, value in (("min_iterations", min_iterations), ("max_iterations", max_iterations), ("seed", seed)):
-        if not isinstance(value, (int, np.integer)) or value < 0:
-            raise InvalidInputError(f"{name}: expected a non-negative integer, got {value!r}")
-    try:
-        raw = _solve_pnp_core(pts, px, cam, init, covs, jacs, pose_covs, loss, huber, pixel_sigma,
-                              max_residual, covariance, min_iterations, max_iterations, confidence, seed)
-    except InvalidInputError as exc:  # one init pose: "init_pose[0] is not…" → "init_pose is not…"
-        raise type(exc)(str(exc).replace("init_pose[0]", "init_pose")) from None
-    return PnPResult(
-        success=bool(raw["success"]),
-        reason=str(raw["reason"]),
-        pose=raw["pose"].reshape(4, 4),
-        covariance=raw["covariance"].reshape(6, 6),
-        inliers=raw["inliers"],
-        rms=float(raw["rms"]),
-        sigma_p=float(raw["sigma_p"]),
-        sigma_r=float(raw["sigma_r"]),
-        ransac_iterations=int(raw["ransac_iterations"]),
-        lm_iterations=int(raw["lm_iterations"]),
-        lm_converged=bool(raw["lm_converged"]),
+            pose_covs = _matrix_stack(uncertainty.pose_covariances, "pose_covariances", (k, 6, 6))
+            jacs = _matrix_stack(uncertainty.pose_jacobians, "pose_jacobians", (n, k, 3, 6)).reshape(n * k, 18)
+        elif (uncertainty.pose_jacobians is None) != (uncertainty.pose_covariances is None):
+            raise InvalidInputError("uncertainty: pose_jacobians and pose_covariances go together")
+    return _core.solve_pnp(
+        pts, px, cam.intrinsics, init_pose=init, point_covariances=covs, point_pose_jacobians=jacs,
+        pose_covariances=pose_covs, loss=loss, huber=huber, pixel_sigma=pixel_sigma, max_residual=max_residual,
+        covariance=covariance, ransac=ransac, min_iterations=min_iterations, max_iterations=max_iterations,
+        confidence=confidence, seed=seed,
     )
-
-
-def _solve_pnp_core(
-    pts: Array, px: Array, cam: Camera, init: Array | None, covs: Array | None, jacs: Array | None,
-    pose_covs: Array | None, loss: str, huber: float, pixel_sigma: float, max_residual: float,
-    covariance: str, min_iterations: int, max_iterations: int, confidence: float, seed: int,
-) -> dict[str, Any]:
-    result: dict[str, Any] = _core.solve_pnp(
-        np.ascontiguousarray(pts),
-        np.ascontiguousarray(px),
-        cam.intrinsics,
-        init,
-        covs,
-        jacs,
-        pose_covs,
-        _check_loss(loss),
-        _check_positive(huber, "huber"),
-        _check_positive(pixel_sigma, "pixel_sigma"),
-        _check_positive(max_residual, "max_residual"),
-        covariance,
-        int(min_iterations),
-        int(max_iterations),
-        float(confidence),
-        int(seed),
-    )
-    return result
 
 
 def keyframe_score(

@@ -75,15 +75,8 @@ def _call(
         flats, lead = [batches[0][0]], batches[0][1]
     else:
         flats, lead = broadcast_batches(batches)
-    try:
-        out = core_fn(*flats)
-    except InvalidInputError as exc:
-        if lead == ():  # a single item: "R[0] is not a rotation" -> "R is not a rotation"
-            message = str(exc)
-            for _, name, _ in args:
-                message = message.replace(f"{name}[0]", name)
-            raise type(exc)(message) from None
-        raise
+    # a single item (no batch axis): the core names the argument without an index
+    out = core_fn(*flats, single=lead == ())
     return out.reshape(lead + out_shape)
 
 

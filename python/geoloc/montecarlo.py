@@ -30,8 +30,9 @@ from numpy.typing import NDArray
 
 from . import geometry, lie
 from .camera import Camera
+from .exceptions import InvalidInputError
 
-__all__ = ["CHI2_6DOF_95", "PAPER_TABLE", "MonteCarloColumn", "montecarlo", "format_report"]
+__all__ = ["CHI2_6DOF_95", "MAX_TRIALS", "PAPER_TABLE", "MonteCarloColumn", "montecarlo", "format_report"]
 
 Array = NDArray[np.float64]
 
@@ -141,15 +142,16 @@ def _trial(
     uv, inside = _project(cam, target, points)
     uv = uv + rng.normal(0, sigma, uv.shape)
     valid = np.zeros(len(points), dtype=bool)
-    valid[: len(tri.valid)] = tri.valid  # tracks beyond the last observed one gave no point
+    valid[tri.track_ids] = tri.valid  # one row per observed track; unobserved tracks gave no point
     use = np.flatnonzero(inside & valid)
+    rows = tri.rows(use)
     out: dict[str, tuple[Array, Array, geometry.PnPResult] | None] = {}
     for model in models:
         if model == "paper":
-            res = geometry.solve_pnp(tri.points[use], uv[use], cam, covariance="paper", pixel_sigma=sigma)
+            res = geometry.solve_pnp(tri.points[rows], uv[use], cam, covariance="paper", pixel_sigma=sigma)
         else:
             res = geometry.solve_pnp(
-                tri.points[use], uv[use], cam, pixel_sigma=sigma, uncertainty=tri.uncertainty(use)
+                tri.points[rows], uv[use], cam, pixel_sigma=sigma, uncertainty=tri.uncertainty(rows)
             )
         out[model] = (target, res.pose, res) if res.success else None
     return out
@@ -179,6 +181,10 @@ def _score(column: MonteCarloColumn, outcomes: list[tuple[Array, Array, geometry
     column.median_error_deg = float(np.degrees(np.median(rot_err)))
 
 
+#: Largest ``trials`` :func:`montecarlo` runs (each trial is a few milliseconds per column).
+MAX_TRIALS = 100_000
+
+
 def montecarlo(
     trials: int = 1000,
     sigmas: Sequence[float] = (1.0, 2.0),
@@ -192,14 +198,18 @@ def montecarlo(
 
     ``label_noise`` entries are (metres, degrees) standard deviations per axis; ``scene`` is
     ``"paper"`` (one fixed scene) or ``"random"`` (a new random scene every trial).
+    ``trials`` is at most :data:`MAX_TRIALS`; ``seed`` a non-negative integer below 2⁶⁴.
+    Invalid arguments raise :class:`geoloc.InvalidInputError` (a ``ValueError``).
     """
-    if trials < 1:
-        raise ValueError(f"trials: expected ≥ 1, got {trials}")
+    if not isinstance(trials, (int, np.integer)) or not 1 <= trials <= MAX_TRIALS:
+        raise InvalidInputError(f"trials: expected an integer in [1, {MAX_TRIALS}], got {trials!r}")
+    if not isinstance(seed, (int, np.integer)) or not 0 <= seed < 2**64:
+        raise InvalidInputError(f"seed: expected a non-negative integer below 2**64, got {seed!r}")
     if scene not in ("paper", "random"):
-        raise ValueError(f"scene: expected 'paper' or 'random', got {scene!r}")
+        raise InvalidInputError(f"scene: expected 'paper' or 'random', got {scene!r}")
     for m in models:
         if m not in ("paper", "propagated"):
-            raise ValueError(f"models: expected 'paper' or 'propagated', got {m!r}")
+            raise InvalidInputError(f"models: expected 'paper' or 'propagated', got {m!r}")
     cam = Camera(525.0, 525.0, 320.0, 240.0)
     rng = np.random.default_rng(seed)
     fixed = paper_scene()

@@ -2,9 +2,6 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Any
-
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -17,16 +14,11 @@ __all__ = ["MotionPrediction", "motion_predict"]
 Array = NDArray[np.float64]
 
 
-@dataclass(frozen=True)
-class MotionPrediction:
-    """A one-step prediction: pose (4, 4) world_from_cam, covariance (6, 6, right
-    perturbation, translation first), the fitted body velocity (v, ω) per second and the RMS
-    of the fit residuals."""
-
-    pose: Array
-    covariance: Array
-    velocity: Array
-    rms_residual: float
+#: A one-step prediction (a compiled class): ``pose`` (4, 4) world_from_cam, ``covariance``
+#: (6, 6, right perturbation, translation first), ``velocity`` (6,) the fitted body velocity
+#: (v, ω) per second, ``rms_residual`` of the fit, and the Gauss–Newton ``iterations`` and
+#: ``termination`` of the fit.
+MotionPrediction = _core.MotionPrediction
 
 
 def motion_predict(
@@ -38,7 +30,9 @@ def motion_predict(
 
     With ``covariances`` (m, 6, 6) of the poses the fit is weighted and the predicted
     covariance is calibrated when the motion is constant; without them (the paper's way) the
-    per-axis noise is estimated from the fit residuals, which needs m ≥ 3.
+    per-axis noise is estimated from the fit residuals, which needs m ≥ 3. ``t_query`` and
+    the timestamps must lie within 1e9 s of the latest timestamp; covariances must be
+    symmetric positive definite (invalid input raises :class:`geoloc.InvalidInputError`).
     """
     flat, lead = as_batch(poses, "poses", (4, 4))
     if len(lead) != 1:
@@ -55,10 +49,4 @@ def motion_predict(
         if c.shape != (flat.shape[0], 6, 6):
             raise InvalidInputError(f"covariances: expected shape ({flat.shape[0]}, 6, 6), got {c.shape}")
         covs = np.ascontiguousarray(c.reshape(-1, 36))
-    raw: dict[str, Any] = _core.motion_predict(flat, np.ascontiguousarray(t), float(tq), covs)
-    return MotionPrediction(
-        pose=raw["pose"].reshape(4, 4),
-        covariance=raw["covariance"].reshape(6, 6),
-        velocity=np.asarray(raw["velocity"]),
-        rms_residual=float(raw["rms_residual"]),
-    )
+    return _core.motion_predict(flat, np.ascontiguousarray(t), float(tq), covariances=covs)

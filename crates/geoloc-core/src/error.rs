@@ -29,14 +29,15 @@ pub enum GeolocError {
     },
     /// A matrix that must be a rotation (or a rigid transform) is not one within tolerance.
     #[error(
-        "{name}[{index}] is not a {what}: {reason}; project near-rotations first \
-         (SO3::from_matrix_projected / geoloc.lie.so3_project)"
+        "{name}{} is not a {what}: {reason}; project near-rotations first \
+         (SO3::from_matrix_projected / geoloc.lie.so3_project)",
+        .index.map_or(String::new(), |i| format!("[{i}]"))
     )]
     NotARotation {
         /// The argument's name.
         name: String,
-        /// Index of the offending item in a batch (0 for a single matrix).
-        index: usize,
+        /// Index of the offending item in a batch (None for a single matrix).
+        index: Option<usize>,
         /// "rotation" or "rigid transform".
         what: &'static str,
         /// The measured violation.
@@ -70,10 +71,26 @@ impl GeolocError {
     pub fn at(self, name: &str, index: usize) -> Self {
         match self {
             Self::NotARotation { what, reason, .. } => {
-                Self::NotARotation { name: name.to_owned(), index, what, reason }
+                Self::NotARotation { name: name.to_owned(), index: Some(index), what, reason }
             }
             Self::NonFinite { .. } => Self::NonFinite { name: name.to_owned(), index },
             Self::InvalidInput { reason, .. } => Self::InvalidInput { name: format!("{name}[{index}]"), reason },
+            other @ (Self::Io { .. } | Self::Format { .. }) => other,
+        }
+    }
+}
+
+impl GeolocError {
+    /// The same error reported for a single (not batched) argument `name`: the name is
+    /// replaced, and an index the error carries stays (a value's position, for NonFinite).
+    #[must_use]
+    pub fn named(self, name: &str) -> Self {
+        match self {
+            Self::NotARotation { what, reason, .. } => {
+                Self::NotARotation { name: name.to_owned(), index: None, what, reason }
+            }
+            Self::NonFinite { index, .. } => Self::NonFinite { name: name.to_owned(), index },
+            Self::InvalidInput { reason, .. } => Self::InvalidInput { name: name.to_owned(), reason },
             other @ (Self::Io { .. } | Self::Format { .. }) => other,
         }
     }

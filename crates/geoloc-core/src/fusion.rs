@@ -12,11 +12,12 @@
 //! χ² rule when e = log(T_M⁻¹T_G) has eᵀ(C_M + C_G)⁻¹e above the χ²₆ quantile of the same
 //! two-sided probability. A failed T_G leaves T_F = T_M, C_F = C_M.
 
-use nalgebra::Matrix6;
+use nalgebra::{Matrix6, Vector6};
 
 use crate::error::{GeolocError, Result};
 use crate::lie::{SE3, se3};
-use crate::pnp::isometric_sigmas;
+use crate::optim::covariance::{check_covariance, isometric_sigmas, spd_inverse};
+use crate::optim::{LeastSquares, LmOptions, PoseEstimate, solve};
 
 /// Which gate decides that the geometric pose is a failure.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -25,6 +26,29 @@ pub enum Gate {
     Isometric,
     /// A 6-DoF Mahalanobis test on log(T_M⁻¹T_G) with C_M + C_G.
     ChiSquared,
+}
+
+impl Gate {
+    /// The option string: "isometric" or "chi2".
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Isometric => "isometric",
+            Self::ChiSquared => "chi2",
+        }
+    }
+}
+
+impl std::str::FromStr for Gate {
+    type Err = GeolocError;
+
+    /// Parses [`Gate::as_str`]; the error names the argument "gate".
+    fn from_str(s: &str) -> Result<Self> {
+        match s {
+            "isometric" => Ok(Self::Isometric),
+            "chi2" => Ok(Self::ChiSquared),
+            other => Err(GeolocError::invalid("gate", format!("expected \"isometric\" or \"chi2\", got {other:?}"))),
+        }
+    }
 }
 
 /// Where the fused pose came from.
@@ -36,18 +60,19 @@ pub enum FusionSource {
     Motion,
 }
 
-/// The fused pose.
-#[derive(Clone, Debug, PartialEq)]
-pub struct Fusion {
-    /// T_F (world_from_cam).
-    pub world_from_cam: SE3,
-    /// C_F (right perturbation, translation first).
-    pub covariance: Matrix6<f64>,
-    /// Fused or gated.
-    pub source: FusionSource,
-    /// Gauss–Newton iterations run.
-    pub iterations: usize,
+impl FusionSource {
+    /// "fused" or "motion".
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Fused => "fused",
+            Self::Motion => "motion",
+        }
+    }
 }
+
+/// The fused pose T_F, C_F (right perturbation, translation first), the Gauss–Newton report
+/// (None when the gate rejected T_G) and the source.
+pub type Fusion = PoseEstimate<FusionSource>;
 
 const MAX_ITERATIONS: usize = 20;
 const STEP_TOLERANCE: f64 = 1e-13;
@@ -95,12 +120,39 @@ pub fn fuse(
     if !(gate_sigma.is_finite() && gate_sigma > 0.0) {
         return Err(GeolocError::invalid("gate_sigma", format!("must be finite and > 0, got {gate_sigma}")));
     }
+    check_covariance("cov_m", cov_m)?;
+    check_covariance("cov_g", cov_g)?;
     let info_m = spd_inverse(cov_m, "cov_m")?;
     let info_g = spd_inverse(cov_g, "cov_g")?;
-    let motion_only =
-        Fusion { world_from_cam: *pose_m, covariance: *cov_m, source: FusionSource::Motion, iterations: 0 };
+    if gate_rejects(pose_m, cov_m, pose_g, cov_g, gate_sigma, gate)? {
+        return Ok(Fusion { world_from_cam: *pose_m, covariance: *cov_m, report: None, details: FusionSource::Motion });
+    }
+    // start at the information-weighted average in the tangent space of T_M
     let e = (pose_m.inverse() * *pose_g).log();
-    let rejected = match gate {
+    let start = (info_m + info_g).try_inverse().map_or(*pose_m, |c| *pose_m * SE3::exp(&(c * info_g * e)));
+    let problem = FusionProblem { pose_m, info_m: &info_m, pose_g, info_g: &info_g };
+    let (pose, report, at_optimum) = solve(&problem, start, &LmOptions::gauss_newton(MAX_ITERATIONS, STEP_TOLERANCE));
+    // C_F = H⁻¹ at the optimum (H of the start when the loop could not move)
+    let h = at_optimum.linearization.map_or(info_m + info_g, |l| l.h);
+    let covariance = spd_inverse(&h, "information")?;
+    Ok(Fusion {
+        world_from_cam: pose,
+        covariance: 0.5 * (covariance + covariance.transpose()),
+        report: Some(report),
+        details: FusionSource::Fused,
+    })
+}
+
+/// Whether the gate rejects T_G (see the module doc).
+fn gate_rejects(
+    pose_m: &SE3,
+    cov_m: &Matrix6<f64>,
+    pose_g: &SE3,
+    cov_g: &Matrix6<f64>,
+    gate_sigma: f64,
+    gate: Gate,
+) -> Result<bool> {
+    Ok(match gate {
         Gate::Isometric => {
             // the spread of T_G − T_M is C_M + C_G: a geometric pose far more certain than
             // the prediction is not rejected for the prediction's own uncertainty alone
@@ -110,68 +162,41 @@ pub fn fuse(
             position > gate_sigma * sigma_p || rotation > gate_sigma * sigma_r
         }
         Gate::ChiSquared => {
+            let e = (pose_m.inverse() * *pose_g).log();
             let s = spd_inverse(&(cov_m + cov_g), "cov_m + cov_g")?;
             e.dot(&(s * e)) > chi2_6_quantile_for_sigma(gate_sigma)
         }
-    };
-    if rejected {
-        return Ok(motion_only);
-    }
-    // start at the information-weighted average in the tangent space of T_M
-    let start = (info_m + info_g).try_inverse().map_or(*pose_m, |c| *pose_m * SE3::exp(&(c * info_g * e)));
-    let mut pose = start;
-    let mut iterations = 0;
-    let mut h = info_m + info_g;
-    for _ in 0..MAX_ITERATIONS {
-        iterations += 1;
-        let (hh, g) = normal_equations(&pose, pose_m, &info_m, pose_g, &info_g);
-        h = hh;
-        let Some(chol) = h.cholesky() else { break };
-        let step = chol.solve(&(-g));
-        pose = pose * SE3::exp(&step);
-        if step.norm() < STEP_TOLERANCE {
-            break;
-        }
-    }
-    let (hh, _) = normal_equations(&pose, pose_m, &info_m, pose_g, &info_g);
-    if hh.iter().all(|v| v.is_finite()) {
-        h = hh;
-    }
-    let covariance = spd_inverse(&h, "information")?;
-    Ok(Fusion {
-        world_from_cam: pose,
-        covariance: 0.5 * (covariance + covariance.transpose()),
-        source: FusionSource::Fused,
-        iterations,
     })
 }
 
-fn normal_equations(
-    pose: &SE3,
-    pose_m: &SE3,
-    info_m: &Matrix6<f64>,
-    pose_g: &SE3,
-    info_g: &Matrix6<f64>,
-) -> (Matrix6<f64>, nalgebra::Vector6<f64>) {
-    let mut h = Matrix6::zeros();
-    let mut g = nalgebra::Vector6::zeros();
-    for (anchor, info) in [(pose_m, info_m), (pose_g, info_g)] {
-        let e = (anchor.inverse() * *pose).log();
-        let j = se3::right_jacobian_inverse(&e);
-        h += j.transpose() * info * j;
-        g += j.transpose() * (info * e);
-    }
-    (h, g)
+/// f(T) = e_Mᵀ C_M⁻¹ e_M + e_Gᵀ C_G⁻¹ e_G with e_X = log(T_X⁻¹ T)^∨ and ∂e_X/∂δ = J_r⁻¹(e_X).
+struct FusionProblem<'a> {
+    pose_m: &'a SE3,
+    info_m: &'a Matrix6<f64>,
+    pose_g: &'a SE3,
+    info_g: &'a Matrix6<f64>,
 }
 
-fn spd_inverse(m: &Matrix6<f64>, name: &str) -> Result<Matrix6<f64>> {
-    if !m.iter().all(|v| v.is_finite()) {
-        return Err(GeolocError::invalid(name, "holds non-finite values"));
+impl LeastSquares<6> for FusionProblem<'_> {
+    type State = SE3;
+
+    fn normal_equations(&self, pose: &SE3) -> (Matrix6<f64>, Vector6<f64>, f64) {
+        let mut h = Matrix6::zeros();
+        let mut g = Vector6::zeros();
+        let mut cost = 0.0;
+        for (anchor, info) in [(self.pose_m, self.info_m), (self.pose_g, self.info_g)] {
+            let e = (anchor.inverse() * *pose).log();
+            let j = se3::right_jacobian_inverse(&e);
+            h += j.transpose() * info * j;
+            g += j.transpose() * (info * e);
+            cost += e.dot(&(info * e));
+        }
+        (h, g, cost)
     }
-    if (m - m.transpose()).abs().max() > 1e-9 * m.abs().max().max(f64::MIN_POSITIVE) {
-        return Err(GeolocError::invalid(name, "is not symmetric"));
+
+    fn retract(&self, pose: &SE3, delta: &Vector6<f64>) -> SE3 {
+        *pose * SE3::exp(delta)
     }
-    m.cholesky().map(|c| c.inverse()).ok_or_else(|| GeolocError::invalid(name, "is not positive definite"))
 }
 
 #[cfg(test)]
@@ -179,7 +204,6 @@ mod tests {
     use super::*;
     use crate::lie::Twist;
     use crate::testing::SplitMix64;
-    use nalgebra::Vector6;
 
     fn cost(pose: &SE3, pm: &SE3, im: &Matrix6<f64>, pg: &SE3, ig: &Matrix6<f64>) -> f64 {
         let em = (pm.inverse() * *pose).log();
@@ -203,7 +227,7 @@ mod tests {
             let (cm, cg) = (random_spd(&mut rng, 1e-3), random_spd(&mut rng, 1e-3));
             let (im, ig) = (cm.try_inverse().expect("spd"), cg.try_inverse().expect("spd"));
             let fused = fuse(&pm, &cm, &pg, &cg, 1e9, Gate::Isometric).expect("valid");
-            assert_eq!(fused.source, FusionSource::Fused);
+            assert_eq!(fused.details, FusionSource::Fused);
             // Newton with a numerical gradient and Hessian of f (no Jacobian formulas)
             let h = 1e-5;
             let f = |x: &SE3, d: &Vector6<f64>| cost(&(*x * SE3::exp(d)), &pm, &im, &pg, &ig);
@@ -256,16 +280,26 @@ mod tests {
         let pg = SE3::exp(&Twist::new(0.1, 0.0, 0.0, 0.0, 0.0, 0.0)); // 10σ in position
         for gate in [Gate::Isometric, Gate::ChiSquared] {
             let f = fuse(&pm, &cm, &pg, &cm, 3.0, gate).expect("valid");
-            assert_eq!(f.source, FusionSource::Motion);
+            assert_eq!(f.details, FusionSource::Motion);
+            assert!(f.report.is_none());
             assert_eq!(f.world_from_cam, pm);
             assert_eq!(f.covariance, cm);
         }
         let near = SE3::exp(&Twist::new(0.01, 0.0, 0.0, 0.0, 0.0, 0.0)); // 1σ
         let f = fuse(&pm, &cm, &near, &cm, 3.0, Gate::Isometric).expect("valid");
-        assert_eq!(f.source, FusionSource::Fused);
+        assert_eq!(f.details, FusionSource::Fused);
+        assert!(f.report.is_some_and(|r| r.converged()));
         // equal covariances: the midpoint, with half the covariance
         assert!((f.world_from_cam.translation.x - 0.005).abs() < 1e-9);
         assert!((f.covariance - cm * 0.5).abs().max() < 1e-9);
+    }
+
+    #[test]
+    fn option_strings_round_trip() {
+        for gate in [Gate::Isometric, Gate::ChiSquared] {
+            assert_eq!(gate.as_str().parse::<Gate>(), Ok(gate));
+        }
+        assert!(matches!("χ²".parse::<Gate>(), Err(GeolocError::InvalidInput { name, .. }) if name == "gate"));
     }
 
     #[test]
@@ -289,5 +323,10 @@ mod tests {
             matches!(fuse(&p, &good, &p, &asym, 3.0, Gate::Isometric), Err(GeolocError::InvalidInput { name, .. }) if name == "cov_g")
         );
         assert!(fuse(&p, &good, &p, &good, 0.0, Gate::Isometric).is_err());
+        // issue #11: a negative covariance is refused, not fused
+        let negative = -Matrix6::identity();
+        assert!(
+            matches!(fuse(&p, &good, &p, &negative, 3.0, Gate::Isometric), Err(GeolocError::InvalidInput { name, .. }) if name == "cov_g")
+        );
     }
 }

@@ -9,6 +9,10 @@ pub mod se3;
 mod series;
 pub mod so3;
 
+pub use se3::check_twist;
 pub use se3::{SE3, Twist};
 pub use series::TAYLOR_THRESHOLD_RAD;
-pub use so3::{ROTATION_TOLERANCE, SO3, rotation_angle};
+pub use so3::{
+    MAX_ROTATION_VECTOR_NORM, NEAR_ROTATION_TOLERANCE, ROTATION_TOLERANCE, SO3, check_rotation_vector, rotation_angle,
+    try_rotation_angle,
+};

@@ -357,7 +357,7 @@ impl Localizer {
                 match fuse(&m.world_from_cam, &m.covariance, &g.world_from_cam, &g.covariance, gate_sigma, gate) {
                     Ok(f) => {
                         let e = Estimate { world_from_cam: f.world_from_cam, covariance: f.covariance };
-                        if f.source == FusionSource::Fused {
+                        if f.details == FusionSource::Fused {
                             (Some(e), Source::Fused, "ok".to_string())
                         } else {
                             (Some(e), Source::Motion, "geometric pose outside the motion gate".to_string())
@@ -402,22 +402,22 @@ impl Localizer {
             &observations.pixels,
             &self.options.triangulation,
         )?;
-        let valid: Vec<usize> =
-            tracked.iter().copied().filter(|&i| tri.points[i].status == TrackStatus::Valid).collect();
+        let by_id = |i: usize| tri.point(i).expect("invariant: tracked holds exactly the triangulated track ids");
+        let valid: Vec<usize> = tracked.iter().copied().filter(|&i| by_id(i).status == TrackStatus::Valid).collect();
         let k = group.len();
         let shared = covs.map(|c| {
             let mut jac = vec![Matrix3x6::zeros(); valid.len() * k];
             for (row, &i) in valid.iter().enumerate() {
-                for (cam, d) in &tri.points[i].pose_jacobians {
+                for (cam, d) in &by_id(i).pose_jacobians {
                     jac[row * k + cam] = *d;
                 }
             }
             (jac, c)
         });
         let points = Arc::new(MapPoints {
-            points: valid.iter().map(|&i| tri.points[i].point).collect(),
+            points: valid.iter().map(|&i| by_id(i).point).collect(),
             descriptors: kf[seed].descriptors.select(&valid),
-            pixel_covariances: valid.iter().map(|&i| tri.points[i].pixel_covariance).collect(),
+            pixel_covariances: valid.iter().map(|&i| by_id(i).pixel_covariance).collect(),
             shared,
         });
         self.cache.insert(key, Arc::clone(&points));

@@ -21,19 +21,22 @@ use nalgebra::{Matrix6, SMatrix, SVector, Vector6};
 
 use crate::error::{GeolocError, Result};
 use crate::lie::{SE3, Twist, se3};
+use crate::optim::covariance::check_covariances;
+use crate::optim::{LeastSquares, LmOptions, PoseEstimate, solve};
 
-/// A one-step prediction of the motion model.
+/// What the motion model adds to its prediction.
 #[derive(Clone, Debug, PartialEq)]
-pub struct MotionPrediction {
-    /// T_M (world_from_cam) at the query time.
-    pub world_from_cam: SE3,
-    /// C_M: 6×6, right perturbation, translation first.
-    pub covariance: Matrix6<f64>,
+pub struct MotionDetails {
     /// The fitted body velocity ξ = (v, ω) per second.
     pub velocity: Twist,
     /// RMS of the fit residuals ‖eᵢ‖.
     pub rms_residual: f64,
 }
+
+/// A one-step prediction of the motion model: T_M (world_from_cam) at the query time, C_M
+/// (right perturbation, translation first), the Gauss–Newton report of the (last) fit and
+/// the fitted velocity.
+pub type MotionPrediction = PoseEstimate<MotionDetails>;
 
 /// Gauss–Newton iterations of the fit (it converges in 2–4).
 const MAX_ITERATIONS: usize = 20;
@@ -42,30 +45,74 @@ const STEP_TOLERANCE: f64 = 1e-12;
 /// Variance floor of the residual-based noise estimate (a perfectly fitted axis would
 /// otherwise claim zero uncertainty): (0.1 mm)², (0.0001 rad)².
 const MIN_RESIDUAL_VARIANCE: f64 = 1e-8;
+/// Largest |t − t_r| (s) between a timestamp or the query and the latest timestamp: beyond
+/// it, τξ overflows the exponential map's accuracy (and 1e300 overflows it outright).
+pub const MAX_TIME_SPAN_S: f64 = 1e9;
 
 /// Fits the model to `poses` at `timestamps` and predicts at `t_query`; see the module doc.
 ///
 /// # Errors
 /// Mismatched lengths, fewer than 2 poses (3 without covariances), non-finite or repeated
-/// timestamps, non-positive-definite covariances.
+/// timestamps, a query or timestamps more than [`MAX_TIME_SPAN_S`] from the latest one,
+/// covariances that are not symmetric positive definite, an unobservable velocity.
 pub fn motion_predict(
     poses: &[SE3],
     timestamps: &[f64],
     t_query: f64,
     covariances: Option<&[Matrix6<f64>]>,
 ) -> Result<MotionPrediction> {
+    let weights = validate(poses, timestamps, t_query, covariances)?;
+    let m = poses.len();
+    let latest = (0..m).max_by(|&a, &b| timestamps[a].total_cmp(&timestamps[b])).expect("invariant: m ≥ 2");
+    let mut fit = Fit { poses, timestamps, t_ref: timestamps[latest], weights };
+    let mut state = (poses[latest], initial_velocity(poses, timestamps, latest));
+    let options = LmOptions::gauss_newton(MAX_ITERATIONS, STEP_TOLERANCE);
+    let (mut next, mut report, mut at_fit) = solve(&fit, state, &options);
+    if covariances.is_none() {
+        // the paper's way: per-axis noise from the unit-weight fit's residuals, then refit
+        fit.weights = residual_weights(&fit, &next);
+        state = next;
+        (next, report, at_fit) = solve(&fit, state, &options);
+    }
+    let (reference, velocity) = next;
+    let h = at_fit.linearization.map(|l| l.h).ok_or_else(|| GeolocError::invalid("poses", "the fit is not finite"))?;
+    let mut sigma = h.try_inverse().ok_or_else(|| GeolocError::invalid("poses", "the velocity is not observable"))?;
+    // With given covariances, a fit much worse than they allow means the motion is not
+    // constant-velocity: scale Σ by the variance factor χ²/dof when χ² exceeds its 99 %
+    // quantile (rarely triggered by noise alone, so a consistent model stays calibrated).
+    let dof = 6 * m - 12;
+    if covariances.is_some() && dof > 0 && at_fit.cost > chi2_quantile_99(dof) {
+        sigma *= at_fit.cost / dof as f64;
+    }
+    let (world_from_cam, covariance) = predict(&reference, &velocity, &sigma, t_query - fit.t_ref);
+    let rms_residual =
+        fit.residuals(&reference, &velocity).iter().map(|e| e.norm_squared()).sum::<f64>().sqrt() / (m as f64).sqrt();
+    Ok(MotionPrediction {
+        world_from_cam,
+        covariance,
+        report: Some(report),
+        details: MotionDetails { velocity, rms_residual },
+    })
+}
+
+/// The input checks of [`motion_predict`]; returns the fit's weights Wᵢ = Cᵢ⁻¹ (identity
+/// without covariances).
+fn validate(
+    poses: &[SE3],
+    timestamps: &[f64],
+    t_query: f64,
+    covariances: Option<&[Matrix6<f64>]>,
+) -> Result<Vec<Matrix6<f64>>> {
     let m = poses.len();
     if timestamps.len() != m {
         return Err(GeolocError::invalid("timestamps", format!("has {} entries but poses has {m}", timestamps.len())));
     }
     let needed = if covariances.is_some() { 2 } else { 3 };
     if m < needed {
+        let what = if needed == 3 { " and estimate its noise" } else { "" };
         return Err(GeolocError::invalid(
             "poses",
-            format!(
-                "need at least {needed} poses to fit a velocity{}, got {m}",
-                if needed == 3 { " and estimate its noise" } else { "" }
-            ),
+            format!("need at least {needed} poses to fit a velocity{what}, got {m}"),
         ));
     }
     if let Some(i) = timestamps.iter().position(|t| !t.is_finite()) {
@@ -79,73 +126,50 @@ pub fn motion_predict(
     if sorted.windows(2).any(|w| w[1] - w[0] <= 0.0) {
         return Err(GeolocError::invalid("timestamps", "must be distinct"));
     }
-    let weights: Vec<Matrix6<f64>> = match covariances {
-        Some(c) => {
-            if c.len() != m {
-                return Err(GeolocError::invalid("covariances", format!("has {} entries but poses has {m}", c.len())));
-            }
-            c.iter()
-                .enumerate()
-                .map(|(i, ci)| {
-                    ci.cholesky().map(|ch| ch.inverse()).ok_or_else(|| {
-                        GeolocError::invalid(format!("covariances[{i}]"), "is not symmetric positive definite")
-                    })
-                })
-                .collect::<Result<_>>()?
-        }
-        None => vec![Matrix6::identity(); m],
-    };
-    let latest = (0..m).max_by(|&a, &b| timestamps[a].total_cmp(&timestamps[b])).expect("invariant: m ≥ 2");
-    let t_ref = timestamps[latest];
-    let mut reference = poses[latest];
-    let mut velocity = initial_velocity(poses, timestamps, latest);
-    let mut weights = weights;
-    for pass in 0..2 {
-        for _ in 0..MAX_ITERATIONS {
-            let (h, g, _) = normal_equations(poses, timestamps, t_ref, &reference, &velocity, &weights);
-            let Some(chol) = h.cholesky() else { break };
-            let step = chol.solve(&(-g));
-            reference = reference * SE3::exp(&step.fixed_rows::<6>(0).into_owned());
-            velocity += step.fixed_rows::<6>(6);
-            if step.norm() < STEP_TOLERANCE {
-                break;
-            }
-        }
-        if covariances.is_some() || pass == 1 {
-            break;
-        }
-        // the paper's way: per-axis noise from the unit-weight fit's residuals, then refit
-        let residuals = residuals(poses, timestamps, t_ref, &reference, &velocity);
-        let dof = (m - 2) as f64;
-        let variance = Vector6::from_fn(|a, _| {
-            (residuals.iter().map(|e| e[a] * e[a]).sum::<f64>() / dof).max(MIN_RESIDUAL_VARIANCE)
-        });
-        weights = vec![Matrix6::from_diagonal(&variance.map(|v| 1.0 / v)); m];
+    let t_ref = sorted[m - 1];
+    if (t_query - t_ref).abs() > MAX_TIME_SPAN_S {
+        return Err(GeolocError::invalid(
+            "t_query",
+            format!("is {:e} s from the latest timestamp; at most {MAX_TIME_SPAN_S:e} s", t_query - t_ref),
+        ));
     }
-    let (h, _, cost) = normal_equations(poses, timestamps, t_ref, &reference, &velocity, &weights);
-    let mut sigma = h.try_inverse().ok_or_else(|| GeolocError::invalid("poses", "the velocity is not observable"))?;
-    // With given covariances, a fit much worse than they allow means the motion is not
-    // constant-velocity: scale Σ by the variance factor χ²/dof when χ² exceeds its 99 %
-    // quantile (rarely triggered by noise alone, so a consistent model stays calibrated).
-    let dof = 6 * m - 12;
-    if covariances.is_some() && dof > 0 && cost > chi2_quantile_99(dof) {
-        sigma *= cost / dof as f64;
+    if t_ref - sorted[0] > MAX_TIME_SPAN_S {
+        return Err(GeolocError::invalid("timestamps", format!("span more than {MAX_TIME_SPAN_S:e} s")));
     }
-    let tau = t_query - t_ref;
+    let Some(c) = covariances else { return Ok(vec![Matrix6::identity(); m]) };
+    if c.len() != m {
+        return Err(GeolocError::invalid("covariances", format!("has {} entries but poses has {m}", c.len())));
+    }
+    check_covariances("covariances", c)?;
+    c.iter()
+        .enumerate()
+        .map(|(i, ci)| {
+            ci.cholesky()
+                .map(|ch| ch.inverse())
+                .ok_or_else(|| GeolocError::invalid(format!("covariances[{i}]"), "is not symmetric positive definite"))
+        })
+        .collect()
+}
+
+/// Per-axis weights 1/σ_a² from the residuals of a unit-weight fit, σ_a² = Σᵢ eᵢ,ₐ²/(m − 2)
+/// (floored at [`MIN_RESIDUAL_VARIANCE`]).
+fn residual_weights(fit: &Fit<'_>, state: &(SE3, Twist)) -> Vec<Matrix6<f64>> {
+    let residuals = fit.residuals(&state.0, &state.1);
+    let m = fit.poses.len();
+    let dof = (m - 2) as f64;
+    let variance =
+        Vector6::from_fn(|a, _| (residuals.iter().map(|e| e[a] * e[a]).sum::<f64>() / dof).max(MIN_RESIDUAL_VARIANCE));
+    vec![Matrix6::from_diagonal(&variance.map(|v| 1.0 / v)); m]
+}
+
+/// T_M = T_r exp(τ ξ^) and C_M = G Σ Gᵀ with G = [Ad(exp(−τ ξ)), τ J_r(τ ξ)].
+fn predict(reference: &SE3, velocity: &Twist, sigma: &SMatrix<f64, 12, 12>, tau: f64) -> (SE3, Matrix6<f64>) {
     let step = velocity * tau;
     let mut g = SMatrix::<f64, 6, 12>::zeros();
     g.fixed_view_mut::<6, 6>(0, 0).copy_from(&SE3::exp(&-step).adjoint());
     g.fixed_view_mut::<6, 6>(0, 6).copy_from(&(se3::right_jacobian(&step) * tau));
     let covariance = g * sigma * g.transpose();
-    let rms_residual =
-        residuals(poses, timestamps, t_ref, &reference, &velocity).iter().map(|e| e.norm_squared()).sum::<f64>().sqrt()
-            / (m as f64).sqrt();
-    Ok(MotionPrediction {
-        world_from_cam: reference * SE3::exp(&step),
-        covariance: 0.5 * (covariance + covariance.transpose()),
-        velocity,
-        rms_residual,
-    })
+    (*reference * SE3::exp(&step), 0.5 * (covariance + covariance.transpose()))
 }
 
 /// The 99 % quantile of χ² with `dof` degrees of freedom (Wilson–Hilferty; within 1 % for
@@ -166,41 +190,54 @@ fn initial_velocity(poses: &[SE3], timestamps: &[f64], latest: usize) -> Twist {
     (poses[previous].inverse() * poses[latest]).log() / (timestamps[latest] - timestamps[previous])
 }
 
-fn residuals(poses: &[SE3], timestamps: &[f64], t_ref: f64, reference: &SE3, velocity: &Twist) -> Vec<Vector6<f64>> {
-    poses
-        .iter()
-        .zip(timestamps)
-        .map(|(pose, &t)| (SE3::exp(&(-(t - t_ref) * velocity)) * reference.inverse() * *pose).log())
-        .collect()
+/// The constant-velocity fit as a least-squares problem over (T_r ⊞ δ, ξ + ε).
+struct Fit<'a> {
+    poses: &'a [SE3],
+    timestamps: &'a [f64],
+    t_ref: f64,
+    weights: Vec<Matrix6<f64>>,
 }
 
-/// H = Σ Jᵢᵀ Wᵢ Jᵢ, g = Σ Jᵢᵀ Wᵢ eᵢ and the cost for eᵢ = log(exp(−τᵢξ) T_r⁻¹ Tᵢ):
-/// ∂eᵢ/∂δ = −J_r⁻¹(eᵢ) Ad(Bᵢ⁻¹), ∂eᵢ/∂ε = −τᵢ J_r⁻¹(eᵢ) Ad(Bᵢ⁻¹) J_r(−τᵢξ), Bᵢ = T_r⁻¹Tᵢ.
-fn normal_equations(
-    poses: &[SE3],
-    timestamps: &[f64],
-    t_ref: f64,
-    reference: &SE3,
-    velocity: &Twist,
-    weights: &[Matrix6<f64>],
-) -> (SMatrix<f64, 12, 12>, SVector<f64, 12>, f64) {
-    let mut h = SMatrix::<f64, 12, 12>::zeros();
-    let mut g = SVector::<f64, 12>::zeros();
-    let mut cost = 0.0;
-    let reference_inv = reference.inverse();
-    for ((pose, &t), w) in poses.iter().zip(timestamps).zip(weights) {
-        let tau = t - t_ref;
-        let b = reference_inv * *pose;
-        let e = (SE3::exp(&(-tau * velocity)) * b).log();
-        let common = -se3::right_jacobian_inverse(&e) * b.inverse().adjoint();
-        let mut j = SMatrix::<f64, 6, 12>::zeros();
-        j.fixed_view_mut::<6, 6>(0, 0).copy_from(&common);
-        j.fixed_view_mut::<6, 6>(0, 6).copy_from(&(common * se3::right_jacobian(&(-tau * velocity)) * tau));
-        h += j.transpose() * w * j;
-        g += j.transpose() * (w * e);
-        cost += e.dot(&(w * e));
+impl Fit<'_> {
+    /// eᵢ = log(exp(−τᵢξ) T_r⁻¹ Tᵢ), τᵢ = tᵢ − t_r.
+    fn residuals(&self, reference: &SE3, velocity: &Twist) -> Vec<Vector6<f64>> {
+        self.poses
+            .iter()
+            .zip(self.timestamps)
+            .map(|(pose, &t)| (SE3::exp(&(-(t - self.t_ref) * velocity)) * reference.inverse() * *pose).log())
+            .collect()
     }
-    (h, g, cost)
+}
+
+impl LeastSquares<12> for Fit<'_> {
+    type State = (SE3, Twist);
+
+    /// H = Σ Jᵢᵀ Wᵢ Jᵢ, g = Σ Jᵢᵀ Wᵢ eᵢ and the cost for eᵢ = log(exp(−τᵢξ) T_r⁻¹ Tᵢ):
+    /// ∂eᵢ/∂δ = −J_r⁻¹(eᵢ) Ad(Bᵢ⁻¹), ∂eᵢ/∂ε = −τᵢ J_r⁻¹(eᵢ) Ad(Bᵢ⁻¹) J_r(−τᵢξ), Bᵢ = T_r⁻¹Tᵢ.
+    fn normal_equations(&self, state: &(SE3, Twist)) -> (SMatrix<f64, 12, 12>, SVector<f64, 12>, f64) {
+        let (reference, velocity) = state;
+        let mut h = SMatrix::<f64, 12, 12>::zeros();
+        let mut g = SVector::<f64, 12>::zeros();
+        let mut cost = 0.0;
+        let reference_inv = reference.inverse();
+        for ((pose, &t), w) in self.poses.iter().zip(self.timestamps).zip(&self.weights) {
+            let tau = t - self.t_ref;
+            let b = reference_inv * *pose;
+            let e = (SE3::exp(&(-tau * velocity)) * b).log();
+            let common = -se3::right_jacobian_inverse(&e) * b.inverse().adjoint();
+            let mut j = SMatrix::<f64, 6, 12>::zeros();
+            j.fixed_view_mut::<6, 6>(0, 0).copy_from(&common);
+            j.fixed_view_mut::<6, 6>(0, 6).copy_from(&(common * se3::right_jacobian(&(-tau * velocity)) * tau));
+            h += j.transpose() * w * j;
+            g += j.transpose() * (w * e);
+            cost += e.dot(&(w * e));
+        }
+        (h, g, cost)
+    }
+
+    fn retract(&self, state: &(SE3, Twist), step: &SVector<f64, 12>) -> (SE3, Twist) {
+        (state.0 * SE3::exp(&step.fixed_rows::<6>(0).into_owned()), state.1 + step.fixed_rows::<6>(6))
+    }
 }
 
 #[cfg(test)]
@@ -225,7 +262,7 @@ mod tests {
             let p = motion_predict(&poses, &times, 0.2, Some(&covs)).expect("valid");
             let truth = start * SE3::exp(&(v * 0.2));
             assert!((p.world_from_cam.inverse() * truth).log().norm() < 1e-9);
-            assert!((p.velocity - v).norm() < 1e-8);
+            assert!((p.details.velocity - v).norm() < 1e-8);
         }
     }
 
@@ -244,7 +281,7 @@ mod tests {
         let stopped = vec![SE3::exp(&Twist::new(1.0, 2.0, 3.0, 0.1, 0.2, 0.3)); 4];
         let p = motion_predict(&stopped, &times, 0.2, None).expect("valid");
         assert!((p.world_from_cam.inverse() * stopped[0]).log().norm() < 1e-12);
-        assert!(p.velocity.norm() < 1e-12);
+        assert!(p.details.velocity.norm() < 1e-12);
     }
 
     /// With the input covariances given, NEES of the prediction is χ²₆ (95 % inside).
@@ -284,8 +321,8 @@ mod tests {
         let times = [0.0, 0.1, 0.25, 0.3];
         let reference = rng.pose(2.0);
         let v = rng.twist(0.7, 0.5);
-        let w = vec![Matrix6::identity(); 4];
-        let (h, _, _) = normal_equations(&poses, &times, 0.3, &reference, &v, &w);
+        let fit = Fit { poses: &poses, timestamps: &times, t_ref: 0.3, weights: vec![Matrix6::identity(); 4] };
+        let (h, _, _) = fit.normal_equations(&(reference, v));
         // numeric J stacked over the 4 residuals
         let h_step = 1e-6;
         let mut numeric = SMatrix::<f64, 24, 12>::zeros();
@@ -295,7 +332,7 @@ mod tests {
             let eval = |d: &SVector<f64, 12>| {
                 let r = reference * SE3::exp(&d.fixed_rows::<6>(0).into_owned());
                 let vv = v + d.fixed_rows::<6>(6);
-                residuals(&poses, &times, 0.3, &r, &vv)
+                fit.residuals(&r, &vv)
             };
             let (plus, minus) = (eval(&d), eval(&-d));
             for i in 0..4 {
@@ -345,6 +382,25 @@ mod tests {
             .collect();
         let p = motion_predict(&noisy, &times, 0.4, None).expect("valid");
         assert!(p.covariance[(0, 0)] > 1e-6 && p.covariance[(3, 3)] < p.covariance[(0, 0)]);
+    }
+
+    /// Issue #11: a query time that would overflow the extrapolation, and covariances that
+    /// are not positive semi-definite, are refused by name.
+    #[test]
+    fn overflowing_query_and_negative_covariances_are_named() {
+        let poses = vec![SE3::identity(); 3];
+        let times = [0.0, 0.1, 0.2];
+        let name = |r: Result<MotionPrediction>| match r {
+            Err(GeolocError::InvalidInput { name, .. }) => name,
+            other => panic!("expected InvalidInput, got {other:?}"),
+        };
+        assert_eq!(name(motion_predict(&poses, &times, 1e300, None)), "t_query");
+        assert_eq!(name(motion_predict(&poses, &[0.0, 0.1, 1e300], 1e300, None)), "timestamps");
+        let mut covs = vec![Matrix6::identity() * 1e-4; 3];
+        covs[2] = -covs[2];
+        assert_eq!(name(motion_predict(&poses, &times, 0.3, Some(&covs))), "covariances[2]");
+        let ok = motion_predict(&poses, &times, 0.2 + MAX_TIME_SPAN_S, None).expect("at the bound");
+        assert!(ok.world_from_cam.matrix().iter().all(|v| v.is_finite()));
     }
 
     #[test]

@@ -39,7 +39,9 @@ use nalgebra::{Matrix2, Matrix2x3, Matrix3, Matrix3x6, Matrix6, Vector2, Vector3
 
 use crate::camera::{Camera, j_uv_point, j_uv_pose, project};
 use crate::error::{GeolocError, Result};
-use crate::lie::{SE3, SO3};
+use crate::lie::SE3;
+pub use crate::optim::covariance::isometric_sigmas;
+use crate::optim::covariance::{check_covariances, inverse_information};
 use crate::optim::{
     LeastSquares, LmOptions, LmReport, RobustLoss, levenberg_marquardt, levenberg_marquardt_with_information,
 };
@@ -51,6 +53,31 @@ pub enum CovarianceModel {
     Propagated,
     /// The paper's σ̂²(ΣJᵀJ)⁻¹ with σ̂² = ‖r‖²/(2p − 1); for comparison.
     Paper,
+}
+
+impl CovarianceModel {
+    /// The option string: "propagated" or "paper".
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Propagated => "propagated",
+            Self::Paper => "paper",
+        }
+    }
+}
+
+impl std::str::FromStr for CovarianceModel {
+    type Err = GeolocError;
+
+    /// Parses [`CovarianceModel::as_str`]; the error names the argument "covariance".
+    fn from_str(s: &str) -> Result<Self> {
+        match s {
+            "propagated" => Ok(Self::Propagated),
+            "paper" => Ok(Self::Paper),
+            other => {
+                Err(GeolocError::invalid("covariance", format!("expected \"propagated\" or \"paper\", got {other:?}")))
+            }
+        }
+    }
 }
 
 /// RANSAC settings.
@@ -90,6 +117,9 @@ pub struct PnpOptions {
     pub lm: LmOptions,
     /// Rounds of drop-outliers-and-re-solve (default 5).
     pub max_refits: usize,
+    /// With an initial pose, also run RANSAC and start from whichever of the two has the
+    /// lower MSAC score over all correspondences (default false: the initial pose alone).
+    pub ransac_with_init: bool,
 }
 
 impl Default for PnpOptions {
@@ -102,6 +132,7 @@ impl Default for PnpOptions {
             covariance: CovarianceModel::Propagated,
             lm: LmOptions::default(),
             max_refits: 5,
+            ransac_with_init: false,
         }
     }
 }
@@ -171,18 +202,30 @@ const ROBUST_ROUND_COST_TOLERANCE: f64 = 1e-4;
 
 /// Fewest correspondences RANSAC needs (a 3-point sample plus one to check it).
 pub const MIN_POINTS_RANSAC: usize = 4;
-/// Fewest inliers a pose (6 DoF) is accepted from.
+/// Fewest inliers the solver iterates on (6 DoF: three points fix a pose, one checks it).
 pub const MIN_INLIERS: usize = 4;
-/// Reciprocal condition number of the information matrix below which the pose is
-/// unobservable (collinear points, a single point cluster seen head-on, …).
-const MIN_RECIPROCAL_CONDITION: f64 = 1e-12;
+/// Fewest inliers a pose is *accepted* from: six beyond the three any 6-DoF pose fits exactly.
+pub const MIN_ACCEPTED_INLIERS: usize = 9;
+/// A pose is accepted only if random pixels would give its inlier count with probability
+/// below this, corrected for the number of hypotheses RANSAC tried ([`chance_probability`]).
+pub const MAX_CHANCE_PROBABILITY: f64 = 1e-3;
+/// Cap of `RansacOptions::{min,max}_iterations` (a larger request is refused, not run).
+pub const MAX_RANSAC_ITERATIONS: usize = 1_000_000;
+/// Cap of `LmOptions::max_iterations` in PnP options.
+pub const MAX_LM_ITERATIONS: usize = 10_000;
+/// Cap of `PnpOptions::max_refits`.
+pub const MAX_REFITS: usize = 1_000;
 
 /// Estimates world_from_cam from `points` (world) and their undistorted `pixels`; see the
-/// module doc.
+/// module doc. The steps, in the paper's order: the start (given pose and/or P3P RANSAC),
+/// the robust LM rounds that settle the inlier set (η_r), the last solve on the inliers with
+/// its covariance (C_G), and the acceptance test (enough inliers, more than chance gives).
 ///
 /// # Errors
-/// Only for invalid input: mismatched lengths, non-finite values, bad options or
-/// uncertainty arrays of the wrong size.
+/// Only for invalid input: mismatched lengths, non-finite values, bad options (iteration
+/// counts above [`MAX_RANSAC_ITERATIONS`] / [`MAX_LM_ITERATIONS`] / [`MAX_REFITS`]), point
+/// or pose covariances that are not symmetric positive semi-definite, or uncertainty arrays
+/// of the wrong size.
 pub fn solve_pnp(
     camera: &Camera,
     points: &[Vector3<f64>],
@@ -192,157 +235,325 @@ pub fn solve_pnp(
     options: &PnpOptions,
 ) -> Result<PnpResult> {
     validate(points, pixels, uncertainty, options)?;
-    let n = points.len();
-    let (start, ransac_iterations) = match init {
-        Some(pose) => (*pose, 0),
-        None => {
-            if n < MIN_POINTS_RANSAC {
-                return Ok(PnpResult::failure(n, format!("too few correspondences: {n} < {MIN_POINTS_RANSAC}"), 0));
-            }
-            match ransac::ransac(camera, points, pixels, options) {
-                (Some(pose), iterations) => (pose, iterations),
-                (None, iterations) => {
-                    return Ok(PnpResult::failure(n, "RANSAC found no pose with enough inliers", iterations));
-                }
-            }
-        }
+    let data = Correspondences { camera, points, pixels, uncertainty, options };
+    let start = match data.start(init) {
+        Ok(start) => start,
+        Err(failed) => return Ok(*failed),
     };
-    if n < MIN_INLIERS {
-        return Ok(PnpResult::failure(n, format!("too few correspondences: {n} < {MIN_INLIERS}"), ransac_iterations));
+    let (pose, subset, report) = data.refit(start.pose, start.subset);
+    if subset.len() < MIN_INLIERS {
+        let reason = format!("too few inliers: {} < {MIN_INLIERS}", subset.len());
+        return Ok(PnpResult::failure(points.len(), reason, start.ransac_iterations));
     }
-    // With an initial pose the first solve is robust over everything; after RANSAC it
-    // starts from the consensus set.
-    let mut subset: Vec<usize> = if init.is_some() {
-        (0..n).filter(|&j| project(camera, &start, &points[j]).p_cam.z > 0.0).collect()
-    } else {
-        inlier_indices(camera, points, pixels, &start, options.max_residual_px)
-    };
-    let mut pose = start;
-    let mut report = None;
-    for _ in 0..options.max_refits.max(1) {
-        if subset.len() < MIN_INLIERS {
-            break;
+    let last = data.final_solve(pose, &subset);
+    Ok(data.finish(last, report, &subset, start.ransac_iterations))
+}
+
+/// The inputs of one PnP, shared by its steps.
+struct Correspondences<'a> {
+    camera: &'a Camera,
+    points: &'a [Vector3<f64>],
+    pixels: &'a [Vector2<f64>],
+    uncertainty: Option<&'a PointUncertainty<'a>>,
+    options: &'a PnpOptions,
+}
+
+/// Where the refits start: a pose, the correspondences of the first round, RANSAC's count.
+struct Start {
+    pose: SE3,
+    subset: Vec<usize>,
+    ransac_iterations: usize,
+}
+
+/// The last solve: the pose, its report and what the covariance is computed from.
+struct FinalSolve {
+    pose: SE3,
+    report: Option<LmReport>,
+    information: Information,
+}
+
+/// What the covariance of the last solve comes from.
+enum Information {
+    /// The joint solve's marginal covariance (independent point errors only).
+    Joint(Option<Matrix6<f64>>),
+    /// H = Σ JⱼᵀJⱼ/σ² of a plain least-squares solve on exact points, and its cost Σ‖rⱼ‖²/σ².
+    LeastSquares(Matrix6<f64>, f64),
+    /// Nothing reusable: propagate at the pose ([`propagated_covariance`]).
+    Propagate,
+}
+
+impl Correspondences<'_> {
+    /// Step 1, the start: the given pose (the first round is robust over every point in front
+    /// of it), P3P RANSAC (the first round starts from its consensus), or — with
+    /// `ransac_with_init` — whichever of the two has the lower MSAC score.
+    fn start(&self, init: Option<&SE3>) -> std::result::Result<Start, Box<PnpResult>> {
+        let n = self.points.len();
+        let fail = |reason: String, iterations| Box::new(PnpResult::failure(n, reason, iterations));
+        let from_init = init.map(|pose| Start {
+            pose: *pose,
+            subset: (0..n).filter(|&j| project(self.camera, pose, &self.points[j]).p_cam.z > 0.0).collect(),
+            ransac_iterations: 0,
+        });
+        let mut ransac_iterations = 0;
+        let from_ransac = if init.is_some() && !self.options.ransac_with_init {
+            None
+        } else if n < MIN_POINTS_RANSAC {
+            if from_init.is_none() {
+                return Err(fail(format!("too few correspondences: {n} < {MIN_POINTS_RANSAC}"), 0));
+            }
+            None
+        } else {
+            let (pose, iterations) = ransac::ransac(self.camera, self.points, self.pixels, self.options);
+            ransac_iterations = iterations;
+            if pose.is_none() && from_init.is_none() {
+                return Err(fail("RANSAC found no pose with enough inliers".into(), iterations));
+            }
+            pose.map(|pose| {
+                let subset = inlier_indices(self.camera, self.points, self.pixels, &pose, self.options.max_residual_px);
+                Start { pose, subset, ransac_iterations }
+            })
+        };
+        let mut start = match (from_init, from_ransac) {
+            (Some(a), Some(b)) => self.better_start(a, b),
+            (Some(a), None) => a,
+            (None, Some(b)) => b,
+            (None, None) => return Err(fail("no start pose".into(), 0)),
+        };
+        start.ransac_iterations = ransac_iterations;
+        if n < MIN_INLIERS {
+            return Err(fail(format!("too few correspondences: {n} < {MIN_INLIERS}"), start.ransac_iterations));
         }
-        let w = weighting(camera, points, &pose, &subset, uncertainty, options.pixel_sigma);
-        let problem = w.problem(camera, points, pixels, &subset, options.loss);
+        Ok(start)
+    }
+
+    /// The given start or RANSAC's, by MSAC score over all correspondences (ties: the given).
+    fn better_start(&self, given: Start, ransac: Start) -> Start {
+        let t2 = self.options.max_residual_px * self.options.max_residual_px;
+        let score = |pose: &SE3| {
+            ransac::msac_score(self.camera, self.points, self.pixels, pose, t2, f64::INFINITY)
+                .map_or(f64::INFINITY, |s| s.0)
+        };
+        if score(&ransac.pose) < score(&given.pose) { ransac } else { given }
+    }
+
+    /// Step 2, the robust rounds: LM on SE(3) with the robust kernel over `subset`, then
+    /// re-gate every correspondence (η_r, or its Mahalanobis form with uncertain points) and
+    /// repeat until the inlier set is stable (at most `max_refits` rounds).
+    fn refit(&self, start: SE3, subset: Vec<usize>) -> (SE3, Vec<usize>, Option<LmReport>) {
+        let o = self.options;
         // with the propagated model a final least-squares solve follows: the robust rounds
         // only have to settle the inlier set
-        let final_solve_follows = options.covariance == CovarianceModel::Propagated && options.loss != RobustLoss::None;
-        let lm = if final_solve_follows {
-            LmOptions { cost_tolerance: ROBUST_ROUND_COST_TOLERANCE, ..options.lm }
-        } else {
-            options.lm
+        let final_solve_follows = o.covariance == CovarianceModel::Propagated && o.loss != RobustLoss::None;
+        let lm =
+            if final_solve_follows { LmOptions { cost_tolerance: ROBUST_ROUND_COST_TOLERANCE, ..o.lm } } else { o.lm };
+        let (mut pose, mut subset, mut report) = (start, subset, None);
+        for _ in 0..o.max_refits.max(1) {
+            if subset.len() < MIN_INLIERS {
+                break;
+            }
+            let w = weighting(self.camera, self.points, &pose, &subset, self.uncertainty, o.pixel_sigma);
+            let problem = w.problem(self.camera, self.points, self.pixels, &subset, o.loss);
+            let (next, r) = levenberg_marquardt(&problem, pose, &lm);
+            pose = next;
+            report = Some(r);
+            let next_subset = gated_indices(self.camera, self.points, self.pixels, &pose, self.uncertainty, o);
+            if next_subset == subset {
+                break;
+            }
+            subset = next_subset;
+        }
+        (pose, subset, report)
+    }
+
+    /// Step 3, the last solve on the stable inliers (propagated model only): with point
+    /// uncertainty the joint maximum-likelihood solve over the pose and the point
+    /// corrections; without it plain least squares (the outliers are gone: it is the
+    /// efficient estimator, and the one the covariance is exact for).
+    fn final_solve(&self, pose: SE3, subset: &[usize]) -> FinalSolve {
+        let o = self.options;
+        let propagate = FinalSolve { pose, report: None, information: Information::Propagate };
+        if o.covariance != CovarianceModel::Propagated {
+            return propagate;
+        }
+        if let Some(u) = self.uncertainty {
+            // Shared keyframe-pose errors stay in the residual weights
+            // (Wⱼ = (σ²I + J_X Σⱼ^shared J_Xᵀ)⁻¹) and in the sandwich covariance.
+            let shared_weights = u.shared.is_some().then(|| self.shared_weights(&pose, subset, u));
+            let problem = joint::JointProblem::new(
+                self.camera,
+                self.points,
+                self.pixels,
+                subset,
+                u,
+                o.pixel_sigma,
+                shared_weights.as_deref(),
+            );
+            let (pose, cov, r) = problem.solve(pose, &o.lm);
+            let information = if u.shared.is_none() { Information::Joint(cov) } else { Information::Propagate };
+            return FinalSolve { pose, report: Some(r), information };
+        }
+        if o.loss == RobustLoss::None {
+            return propagate;
+        }
+        let w = weighting(self.camera, self.points, &pose, subset, None, o.pixel_sigma);
+        let problem = w.problem(self.camera, self.points, self.pixels, subset, RobustLoss::None);
+        let (pose, r, h) = final_least_squares(&problem, pose, &o.lm);
+        // exact points: C = (Σ JⱼᵀJⱼ/σ²)⁻¹ is the information of this very solve, and its cost
+        // is Σ‖rⱼ‖²/σ²
+        FinalSolve { pose, report: Some(r), information: Information::LeastSquares(h, r.final_cost) }
+    }
+
+    /// Wⱼ = (σ²I + J_X,j Σⱼ^shared J_X,jᵀ)⁻¹ over `subset` at `pose`.
+    fn shared_weights(&self, pose: &SE3, subset: &[usize], u: &PointUncertainty<'_>) -> Vec<Matrix2<f64>> {
+        let var = self.options.pixel_sigma * self.options.pixel_sigma;
+        subset
+            .iter()
+            .map(|&j| {
+                let p = project(self.camera, pose, &self.points[j]);
+                let j_x = j_uv_point(self.camera, pose, &p);
+                let shared = point_covariance(j, Some(u), true).unwrap_or_else(Matrix3::zeros) - u.covariances[j];
+                let s = Matrix2::identity() * var + j_x * shared * j_x.transpose();
+                s.try_inverse().unwrap_or_else(|| Matrix2::identity() / var)
+            })
+            .collect()
+    }
+
+    /// Step 4: the covariance (C_G) and the isometric σ, the RMS, and the acceptance test —
+    /// an observable pose ([`inverse_information`]) from at least [`MIN_ACCEPTED_INLIERS`]
+    /// inliers that random pixels would not give ([`chance_probability`]).
+    fn finish(
+        &self,
+        last: FinalSolve,
+        report: Option<LmReport>,
+        subset: &[usize],
+        ransac_iterations: usize,
+    ) -> PnpResult {
+        let (n, o, pose) = (self.points.len(), self.options, last.pose);
+        let report = last.report.or(report);
+        let mut inliers = vec![false; n];
+        for &j in subset {
+            inliers[j] = true;
+        }
+        let sum_sq: f64 = match last.information {
+            Information::LeastSquares(_, cost) => cost * o.pixel_sigma * o.pixel_sigma,
+            _ => subset
+                .iter()
+                .map(|&j| (project(self.camera, &pose, &self.points[j]).uv - self.pixels[j]).norm_squared())
+                .sum(),
         };
-        let (next, r) = levenberg_marquardt(&problem, pose, &lm);
-        pose = next;
-        report = Some(r);
-        let next_subset = gated_indices(camera, points, pixels, &pose, uncertainty, options);
-        if next_subset == subset {
+        let covariance = match (o.covariance, last.information) {
+            (CovarianceModel::Paper, _) => {
+                paper_covariance(self.camera, self.points, self.pixels, &pose, subset, o.loss)
+            }
+            (CovarianceModel::Propagated, Information::Joint(cov)) => cov.filter(|c| inverse_information(c).is_some()),
+            (CovarianceModel::Propagated, Information::LeastSquares(h, _)) => inverse_information(&h),
+            (CovarianceModel::Propagated, Information::Propagate) => {
+                propagated_covariance(self.camera, self.points, &pose, subset, self.uncertainty, o.pixel_sigma)
+            }
+        };
+        let rejection = match covariance {
+            None => Some("degenerate geometry: the pose is not observable from these points".to_string()),
+            Some(_) => self.chance_rejection(subset, ransac_iterations),
+        };
+        let (Some(covariance), None) = (covariance, &rejection) else {
+            let mut failed = PnpResult::failure(n, rejection.unwrap_or_default(), ransac_iterations);
+            failed.world_from_cam = pose;
+            failed.inliers = inliers;
+            failed.lm = report;
+            return failed;
+        };
+        let (sigma_p, sigma_r) = isometric_sigmas(&covariance);
+        let converged = report.is_some_and(|r| r.converged());
+        PnpResult {
+            success: true,
+            reason: if converged { "ok".into() } else { "ok (LM stopped at its iteration cap)".into() },
+            world_from_cam: pose,
+            covariance,
+            inliers,
+            rms_px: (sum_sq / subset.len() as f64).sqrt(),
+            sigma_p,
+            sigma_r,
+            ransac_iterations,
+            lm: report,
+        }
+    }
+
+    /// Why the inlier set cannot be told from chance, if it cannot: fewer than
+    /// [`MIN_ACCEPTED_INLIERS`], or a [`chance_probability`] above [`MAX_CHANCE_PROBABILITY`].
+    fn chance_rejection(&self, subset: &[usize], ransac_iterations: usize) -> Option<String> {
+        let k = subset.len();
+        if k < MIN_ACCEPTED_INLIERS {
+            return Some(format!("too few inliers to tell the pose from chance: {k} < {MIN_ACCEPTED_INLIERS}"));
+        }
+        let o = self.options;
+        let gate = gate_px(o.max_residual_px, o.pixel_sigma);
+        // The area within the gate of a projection, π·gate², gate = η_r (widened to 4.29σ):
+        // exactly the inlier region for exact points. Uncertain points are gated in the
+        // Mahalanobis metric of S = σ²I + J_X Σ J_Xᵀ, a wider region; measured against it,
+        // well-determined poses from poorly triangulated points (label noise of 3 cm / 1°, σ
+        // of the projected points ≈ 12 px) read as chance, so the test uses the pixel-noise
+        // gate for them too: it is lenient for uncertain points, exact for exact ones.
+        let mean_radius_sq = gate * gate;
+        let hypotheses = 1 + 4 * ransac_iterations;
+        let p = chance_probability(self.pixels, mean_radius_sq, k, hypotheses);
+        (p > MAX_CHANCE_PROBABILITY).then(|| {
+            format!("the inliers cannot be told from chance: {k} of {} (chance probability {p:.2e})", self.points.len())
+        })
+    }
+}
+
+/// The probability that uniformly random pixels give `inliers` inliers, corrected for the
+/// search: N pixels spread over their bounding box of area A, each falls within the gate
+/// (mean squared radius r̄²) of its projection with probability p̄ = min(1, π r̄²/A); any
+/// 6-DoF pose fits 3 correspondences exactly, so the count beyond those is binomial,
+///
+///   P = min(1, H · P(Bin(N − 3, p̄) ≥ k − 3)),
+///
+/// with H the number of pose hypotheses scored (Bonferroni: RANSAC keeps the best of H).
+pub fn chance_probability(pixels: &[Vector2<f64>], mean_radius_sq: f64, inliers: usize, hypotheses: usize) -> f64 {
+    let n = pixels.len();
+    if n <= 3 || inliers <= 3 {
+        return 1.0;
+    }
+    let (lo, hi) =
+        pixels.iter().fold((Vector2::repeat(f64::INFINITY), Vector2::repeat(f64::NEG_INFINITY)), |(lo, hi), p| {
+            (lo.inf(p), hi.sup(p))
+        });
+    let area = (hi.x - lo.x) * (hi.y - lo.y);
+    let p = (std::f64::consts::PI * mean_radius_sq / area).min(1.0);
+    let tail = binomial_tail_ln(n - 3, p, inliers - 3);
+    (tail + (hypotheses.max(1) as f64).ln()).exp().min(1.0)
+}
+
+/// Terms of the binomial tail more than e⁴⁰ below its largest one are not summed.
+const TAIL_CUTOFF_LN: f64 = 40.0;
+
+/// ln P(X ≥ m) for X ~ Bin(n, p), summed in log space (exact to rounding).
+fn binomial_tail_ln(n: usize, p: f64, m: usize) -> f64 {
+    if m == 0 || p >= 1.0 || p.is_nan() {
+        return 0.0;
+    }
+    if m > n || p <= 0.0 {
+        return f64::NEG_INFINITY;
+    }
+    let (nf, mf) = (n as f64, m as f64);
+    // ln C(n, m) = Σⱼ ln((n − m + j)/j)
+    let ln_choose: f64 = (1..=m).map(|j| ((nf - mf + j as f64) / j as f64).ln()).sum();
+    let mut term = ln_choose + mf * p.ln() + (nf - mf) * (-p).ln_1p();
+    let ratio = p.ln() - (-p).ln_1p();
+    let (mut max, mut terms) = (term, vec![term]);
+    for i in m..n {
+        let step = ((nf - i as f64) / (i as f64 + 1.0)).ln() + ratio;
+        term += step;
+        max = max.max(term);
+        terms.push(term);
+        // past the mode the terms fall geometrically: stop once they are below e⁻⁴⁰ of the
+        // largest (the rest adds less than 1e-17 relative)
+        if step < 0.0 && term < max - TAIL_CUTOFF_LN {
             break;
         }
-        subset = next_subset;
     }
-    if subset.len() < MIN_INLIERS {
-        return Ok(PnpResult::failure(
-            n,
-            format!("too few inliers: {} < {MIN_INLIERS}", subset.len()),
-            ransac_iterations,
-        ));
-    }
-    let mut joint_covariance = None;
-    let mut least_squares = None;
-    if options.covariance == CovarianceModel::Propagated
-        && let Some(u) = uncertainty
-    {
-        // Outliers are gone: maximum likelihood over the pose and the independent point
-        // corrections. Shared keyframe-pose errors stay in the residual weights
-        // (Wⱼ = (σ²I + J_X Σⱼ^shared J_Xᵀ)⁻¹) and in the sandwich covariance below.
-        let shared_weights = u.shared.is_some().then(|| {
-            subset
-                .iter()
-                .map(|&j| {
-                    let p = project(camera, &pose, &points[j]);
-                    let j_x = j_uv_point(camera, &pose, &p);
-                    let shared =
-                        point_covariance(j, uncertainty, true).unwrap_or_else(Matrix3::zeros) - u.covariances[j];
-                    let s = Matrix2::identity() * (options.pixel_sigma * options.pixel_sigma)
-                        + j_x * shared * j_x.transpose();
-                    s.try_inverse().unwrap_or_else(|| Matrix2::identity() / (options.pixel_sigma * options.pixel_sigma))
-                })
-                .collect::<Vec<_>>()
-        });
-        let problem = joint::JointProblem::new(
-            camera,
-            points,
-            pixels,
-            &subset,
-            u,
-            options.pixel_sigma,
-            shared_weights.as_deref(),
-        );
-        let (next, cov, r) = problem.solve(pose, &options.lm);
-        pose = next;
-        report = Some(r);
-        if u.shared.is_none() {
-            joint_covariance = Some(cov);
-        }
-    } else if options.covariance == CovarianceModel::Propagated && options.loss != RobustLoss::None {
-        // Outliers are gone: the efficient estimator for the remaining Gaussian errors is
-        // plain weighted least squares, whose covariance the propagation below is exact for.
-        let w = weighting(camera, points, &pose, &subset, uncertainty, options.pixel_sigma);
-        let problem = w.problem(camera, points, pixels, &subset, RobustLoss::None);
-        let (next, r, h) = final_least_squares(&problem, pose, &options.lm);
-        pose = next;
-        report = Some(r);
-        if uncertainty.is_none() {
-            // exact points: C = (Σ JⱼᵀJⱼ/σ²)⁻¹ is the information of this very solve, and its
-            // cost is Σ‖rⱼ‖²/σ²
-            least_squares = Some((h, r.final_cost));
-        }
-    }
-    let mut inliers = vec![false; n];
-    for &j in &subset {
-        inliers[j] = true;
-    }
-    let sum_sq: f64 = match least_squares {
-        Some((_, cost)) => cost * options.pixel_sigma * options.pixel_sigma,
-        None => subset.iter().map(|&j| (project(camera, &pose, &points[j]).uv - pixels[j]).norm_squared()).sum(),
-    };
-    let rms_px = (sum_sq / subset.len() as f64).sqrt();
-    let covariance = match options.covariance {
-        CovarianceModel::Paper => paper_covariance(camera, points, pixels, &pose, &subset, options.loss),
-        CovarianceModel::Propagated => match joint_covariance {
-            Some(cov) => cov.filter(|c| inverse_information(c).is_some()),
-            None => match least_squares {
-                Some((h, _)) => inverse_information(&h),
-                None => propagated_covariance(camera, points, &pose, &subset, uncertainty, options.pixel_sigma),
-            },
-        },
-    };
-    let Some(covariance) = covariance else {
-        let mut failed = PnpResult::failure(
-            n,
-            "degenerate geometry: the pose is not observable from these points",
-            ransac_iterations,
-        );
-        failed.world_from_cam = pose;
-        failed.inliers = inliers;
-        return Ok(failed);
-    };
-    let (sigma_p, sigma_r) = isometric_sigmas(&covariance);
-    let converged = report.is_some_and(|r| r.converged());
-    Ok(PnpResult {
-        success: true,
-        reason: if converged { "ok".into() } else { "ok (LM stopped at its iteration cap)".into() },
-        world_from_cam: pose,
-        covariance,
-        inliers,
-        rms_px,
-        sigma_p,
-        sigma_r,
-        ransac_iterations,
-        lm: report,
-    })
+    max + terms.iter().map(|t| (t - max).exp()).sum::<f64>().ln()
 }
 
 /// The last least-squares solve, which starts at the robust optimum: when the Gauss–Newton
@@ -373,14 +584,6 @@ fn final_least_squares(problem: &PoseProblem<'_>, pose: SE3, lm: &LmOptions) -> 
 /// δᵀHδ below which the final least-squares solve is a single Gauss–Newton step.
 const ONE_STEP_MAX_METRIC: f64 = 1.0;
 
-/// σ_p = mean √diag(C_ρ), σ_r = Θ(exp(√diag(C_φ))) (the paper's isometric σ).
-pub fn isometric_sigmas(c: &Matrix6<f64>) -> (f64, f64) {
-    let sd = Vector6::from_fn(|i, _| c[(i, i)].max(0.0).sqrt());
-    let sigma_p = (sd[0] + sd[1] + sd[2]) / 3.0;
-    let sigma_r = SO3::exp(&Vector3::new(sd[3], sd[4], sd[5])).angle();
-    (sigma_p, sigma_r)
-}
-
 fn validate(
     points: &[Vector3<f64>],
     pixels: &[Vector2<f64>],
@@ -406,6 +609,16 @@ fn validate(
     if !(r.confidence > 0.0 && r.confidence < 1.0) {
         return Err(GeolocError::invalid("confidence", format!("must be in (0, 1), got {}", r.confidence)));
     }
+    for (name, value, cap) in [
+        ("min_iterations", r.min_iterations, MAX_RANSAC_ITERATIONS),
+        ("max_iterations", r.max_iterations, MAX_RANSAC_ITERATIONS),
+        ("lm_max_iterations", options.lm.max_iterations, MAX_LM_ITERATIONS),
+        ("max_refits", options.max_refits, MAX_REFITS),
+    ] {
+        if value > cap {
+            return Err(GeolocError::invalid(name, format!("must be at most {cap}, got {value}")));
+        }
+    }
     if r.max_iterations == 0 || r.min_iterations > r.max_iterations {
         return Err(GeolocError::invalid("max_iterations", "need 0 < min_iterations ≤ max_iterations"));
     }
@@ -415,6 +628,10 @@ fn validate(
                 "point_covariances",
                 format!("has {} entries for {n} points", u.covariances.len()),
             ));
+        }
+        check_covariances("point_covariances", u.covariances)?;
+        if let Some(s) = &u.shared {
+            check_covariances("pose_covariances", s.pose_covariances)?;
         }
         if let Some(s) = &u.shared
             && s.jacobians.len() != n * s.pose_covariances.len()
@@ -572,6 +789,22 @@ fn residual_moments(
     (s, bias)
 }
 
+/// The two rows ∂u/∂δ, ∂v/∂δ of the projection's Jacobian for the right perturbation
+/// T ⊞ δ = T exp(δ^) of world_from_cam, translation first, at p = (x, y, z) in camera
+/// coordinates — [`j_uv_pose`] in closed form for PnP's hot loop (checked against it and
+/// against central differences in the tests):
+///   ∂u/∂δ = (f_x/z) (−1, 0, x/z, xy/z, −(z + x²/z), y),
+///   ∂v/∂δ = (f_y/z) (0, −1, y/z, z + y²/z, −xy/z, −x).
+#[inline(always)]
+fn pose_jacobian_rows(fx: f64, fy: f64, p: &Vector3<f64>) -> ([f64; 6], [f64; 6]) {
+    let inv_z = 1.0 / p.z;
+    let (xz, yz) = (p.x * inv_z, p.y * inv_z);
+    let (a, c) = (fx * inv_z, fy * inv_z);
+    let ju = [-a, 0.0, a * xz, a * xz * p.y, -a * (p.z + p.x * xz), a * p.y];
+    let jv = [0.0, -c, c * yz, c * (p.z + p.y * yz), -c * p.x * yz, -c * p.x];
+    (ju, jv)
+}
+
 struct PoseProblem<'a> {
     camera: &'a Camera,
     points: &'a [Vector3<f64>],
@@ -605,10 +838,7 @@ impl LeastSquares<6> for PoseProblem<'_> {
             let s = r.dot(&wr);
             let robust = self.loss.weight(s);
             cost += self.loss.cost(s);
-            let (a, c) = (fx * inv_z, fy * inv_z);
-            // ∂u/∂δ and ∂v/∂δ for the right perturbation of world_from_cam (camera::j_uv_pose)
-            let ju = [-a, 0.0, a * xz, a * xz * p.y, -a * (p.z + p.x * xz), a * p.y];
-            let jv = [0.0, -c, c * yz, c * (p.z + p.y * yz), -c * p.x * yz, -c * p.x];
+            let (ju, jv) = pose_jacobian_rows(fx, fy, &p);
             let (w00, w01, w11) = (robust * w[(0, 0)], robust * w[(0, 1)], robust * w[(1, 1)]);
             let mut k = 0;
             for i in 0..6 {
@@ -635,16 +865,6 @@ impl LeastSquares<6> for PoseProblem<'_> {
     fn retract(&self, pose: &SE3, delta: &Vector6<f64>) -> SE3 {
         *pose * SE3::exp(delta)
     }
-}
-
-/// H = Σ w JᵀWJ with its inverse, if the pose is observable.
-fn inverse_information(h: &Matrix6<f64>) -> Option<Matrix6<f64>> {
-    let eig = h.symmetric_eigen();
-    let (lo, hi) = eig.eigenvalues.iter().fold((f64::INFINITY, 0.0_f64), |(lo, hi), &v| (lo.min(v), hi.max(v)));
-    if lo.is_nan() || lo <= MIN_RECIPROCAL_CONDITION * hi {
-        return None;
-    }
-    h.try_inverse()
 }
 
 fn paper_covariance(
@@ -714,6 +934,62 @@ fn propagated_covariance(
 mod tests {
     use super::*;
     use crate::testing::SplitMix64;
+
+    /// The hand-written rows of PoseProblem's hot loop equal camera::j_uv_pose and central
+    /// differences of π(T exp(δ^), X) on the manifold.
+    #[test]
+    fn hand_written_pose_jacobian_matches_j_uv_pose_and_central_differences() {
+        let camera = Camera::new(525.0, 520.0, 320.0, 240.0).expect("valid");
+        let mut rng = SplitMix64::new(7);
+        for _ in 0..100 {
+            let pose = rng.pose(3.0);
+            let x = pose * Vector3::new(rng.uniform_in(-2.0, 2.0), rng.uniform_in(-1.5, 1.5), rng.uniform_in(1.0, 8.0));
+            let p = project(&camera, &pose, &x);
+            let (ju, jv) = pose_jacobian_rows(camera.fx, camera.fy, &p.p_cam);
+            let analytic = j_uv_pose(&camera, &p);
+            let h = 1e-6;
+            for i in 0..6 {
+                let mut d = Vector6::zeros();
+                d[i] = h;
+                let plus = project(&camera, &(pose * SE3::exp(&d)), &x).uv;
+                let minus = project(&camera, &(pose * SE3::exp(&-d)), &x).uv;
+                let numeric = (plus - minus) / (2.0 * h);
+                let scale = analytic.abs().max();
+                assert!((ju[i] - analytic[(0, i)]).abs() <= 1e-12 * scale, "u, column {i}");
+                assert!((jv[i] - analytic[(1, i)]).abs() <= 1e-12 * scale, "v, column {i}");
+                assert!((ju[i] - numeric.x).abs() <= 1e-6 * scale, "u vs differences, column {i}");
+                assert!((jv[i] - numeric.y).abs() <= 1e-6 * scale, "v vs differences, column {i}");
+            }
+        }
+    }
+
+    /// Binomial tail against a brute-force sum of the pmf, and the chance probability of a
+    /// few inliers among random pixels against the hand computation of the doc.
+    #[test]
+    fn binomial_tail_and_chance_probability() {
+        let (n, p) = (30_usize, 0.07_f64);
+        for m in [0, 1, 3, 10, 30] {
+            let brute: f64 = (m..=n)
+                .map(|i| {
+                    let ln_choose: f64 = (1..=i).map(|j| ((n - i + j) as f64 / j as f64).ln()).sum();
+                    (ln_choose + i as f64 * p.ln() + (n - i) as f64 * (1.0 - p).ln()).exp()
+                })
+                .sum();
+            let tail = binomial_tail_ln(n, p, m).exp();
+            assert!((tail - brute).abs() <= 1e-12 * brute.max(1e-300), "m = {m}: {tail} vs {brute}");
+        }
+        assert!(binomial_tail_ln(10, 0.5, 11).is_infinite() && binomial_tail_ln(10, 0.5, 11) < 0.0);
+        // 200 pixels over 640 × 480, gate 5 px: p = 25π/307200; 6 inliers after one hypothesis
+        let pixels: Vec<Vector2<f64>> = (0..200)
+            .map(|i| Vector2::new(if i == 0 { 0.0 } else { 640.0 }, if i == 1 { 0.0 } else { 480.0 }))
+            .collect();
+        let radii = 25.0;
+        let p1 = 25.0 * std::f64::consts::PI / 307_200.0;
+        let expected = (binomial_tail_ln(197, p1, 3)).exp();
+        assert!((chance_probability(&pixels, radii, 6, 1) - expected).abs() < 1e-12 * expected);
+        assert!((chance_probability(&pixels, radii, 6, 10) - 10.0 * expected).abs() < 1e-11 * expected);
+        assert!((chance_probability(&pixels, radii, 3, 1) - 1.0).abs() < f64::EPSILON);
+    }
 
     /// The one-step shortcut lands where the full LM does (to far below the noise).
     #[test]

@@ -30,6 +30,7 @@ use nalgebra::{Matrix2, Matrix3, Matrix3x6, Matrix6, Vector2, Vector3, Vector4};
 use crate::camera::{Camera, j_uv_point, j_uv_pose, project};
 use crate::error::{GeolocError, Result};
 use crate::lie::SE3;
+use crate::optim::covariance::check_covariances;
 use crate::optim::{LeastSquares, LmOptions, RobustLoss, levenberg_marquardt};
 
 /// Options of [`triangulate`]; defaults follow the paper.
@@ -82,6 +83,35 @@ pub enum TrackStatus {
 }
 
 impl TrackStatus {
+    /// Every status, in code order.
+    pub const ALL: [Self; 7] = [
+        Self::Valid,
+        Self::TooFewViews,
+        Self::Degenerate,
+        Self::BehindCamera,
+        Self::LargeResidual,
+        Self::SmallAngle,
+        Self::Ambiguous,
+    ];
+
+    /// The numeric code (the `#[repr(u8)]` discriminant).
+    pub fn code(self) -> u8 {
+        self as u8
+    }
+
+    /// A short snake_case name ("valid", "too_few_views", …).
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Valid => "valid",
+            Self::TooFewViews => "too_few_views",
+            Self::Degenerate => "degenerate",
+            Self::BehindCamera => "behind_camera",
+            Self::LargeResidual => "large_residual",
+            Self::SmallAngle => "small_angle",
+            Self::Ambiguous => "ambiguous",
+        }
+    }
+
     /// A short human-readable reason.
     pub fn reason(self) -> &'static str {
         match self {
@@ -121,20 +151,33 @@ pub struct TriangulatedPoint {
 /// The whole triangulation of many tracks.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Triangulation {
-    /// One entry per track id 0..P.
+    /// The distinct track ids of the input, increasing: `points[i]` is track `track_ids[i]`
+    /// (for ids 0..P−1 all present, row i is track i).
+    pub track_ids: Vec<usize>,
+    /// One entry per distinct track id, aligned with `track_ids`.
     pub points: Vec<TriangulatedPoint>,
     /// Per input observation: kept as inlier of its track.
     pub observation_inliers: Vec<bool>,
 }
 
+impl Triangulation {
+    /// The point of track `track_id`, if the input had that track.
+    pub fn point(&self, track_id: usize) -> Option<&TriangulatedPoint> {
+        self.track_ids.binary_search(&track_id).ok().map(|row| &self.points[row])
+    }
+}
+
 /// Triangulates every track; observation o says "track `track_ids[o]` is seen by camera
-/// `camera_ids[o]` at undistorted pixel `pixels[o]`". Tracks are 0..=max(track_ids).
+/// `camera_ids[o]` at undistorted pixel `pixels[o]`". The result has one row per distinct
+/// track id, in increasing order of id ([`Triangulation::track_ids`]); ids are only labels
+/// (any values; memory is proportional to the number of observations, not to the ids).
 ///
 /// `pose_covariances`, when given, has one 6×6 covariance per pose (right perturbation of
-/// world_from_cam, translation first).
+/// world_from_cam, translation first), symmetric positive semi-definite.
 ///
 /// # Errors
-/// Mismatched lengths, out-of-range camera ids, non-finite input, bad options.
+/// Mismatched lengths, out-of-range camera ids, non-finite input, covariances that are not
+/// symmetric PSD, bad options.
 pub fn triangulate(
     camera: &Camera,
     world_from_cams: &[SE3],
@@ -168,11 +211,10 @@ pub fn triangulate(
     if let Some(o) = pixels.iter().position(|p| !p.iter().all(|v| v.is_finite())) {
         return Err(GeolocError::NonFinite { name: "pixels".into(), index: o });
     }
-    let n_tracks = track_ids.iter().max().map_or(0, |m| m + 1);
-    let mut by_track: Vec<Vec<usize>> = vec![Vec::new(); n_tracks];
-    for (o, &t) in track_ids.iter().enumerate() {
-        by_track[t].push(o);
+    if let Some(covs) = pose_covariances {
+        check_covariances("pose_covariances", covs)?;
     }
+    let (ids, by_track) = group_by_track(track_ids);
     let points: Vec<TriangulatedPoint> = crate::parallel::map_slice(&by_track, 2, |obs| {
         let views: Vec<View> = obs.iter().map(|&o| View { camera: camera_ids[o], uv: pixels[o] }).collect();
         triangulate_track(camera, world_from_cams, pose_covariances, &views, options)
@@ -183,7 +225,25 @@ pub fn triangulate(
             observation_inliers[o] = inlier && track.status == TrackStatus::Valid;
         }
     }
-    Ok(Triangulation { points, observation_inliers })
+    Ok(Triangulation { track_ids: ids, points, observation_inliers })
+}
+
+/// The distinct ids (increasing) and, per id, its observation indices in input order —
+/// by sorting (id, observation) pairs, so memory is proportional to the input.
+fn group_by_track(track_ids: &[usize]) -> (Vec<usize>, Vec<Vec<usize>>) {
+    let mut order: Vec<(usize, usize)> = track_ids.iter().copied().zip(0..).collect();
+    order.sort_unstable();
+    let (mut ids, mut groups): (Vec<usize>, Vec<Vec<usize>>) = (Vec::new(), Vec::new());
+    for (t, o) in order {
+        match groups.last_mut() {
+            Some(group) if ids.last() == Some(&t) => group.push(o),
+            _ => {
+                ids.push(t);
+                groups.push(vec![o]);
+            }
+        }
+    }
+    (ids, groups)
 }
 
 fn check_options(options: &TriangulationOptions) -> Result<()> {
@@ -211,7 +271,9 @@ pub struct View {
     pub uv: Vector2<f64>,
 }
 
-/// Triangulates one track (see the module doc).
+/// Triangulates one track (see the module doc): (1) a robust start from all views or the
+/// best two-view DLT, (2) re-solves on the consensus until it is stable and a last plain
+/// least-squares solve, (3) the checks that make a point valid, (4) its covariance.
 pub fn triangulate_track(
     camera: &Camera,
     poses: &[SE3],
@@ -237,77 +299,23 @@ pub fn triangulate_track(
         return result;
     }
     let track = Track { camera, poses, pose_covariances, views, options };
-    let all: Vec<usize> = (0..views.len()).collect();
-    // 1. all views: DLT (+ robust LM unless every observation already fits).
-    let mut start = dlt(camera, poses, views, &all);
-    let mut inliers = start.map(|x| track.inlier_set(&x)).unwrap_or_default();
-    if let Some(x) = start
-        && inliers.len() < views.len()
-    {
-        let refined = track.refine(&all, x, options.loss);
-        start = Some(refined);
-        inliers = track.inlier_set(&refined);
-    }
-    // 2. if that left more than one view out, the best two-view DLT seeds the consensus
-    //    (a single bad view is what the robust start handles by itself).
-    if inliers.len() + 1 < views.len()
-        && views.len() >= 3
-        && let Some((x, set)) = best_pair(camera, poses, views, options.max_residual_px)
-        && set.len() > inliers.len()
-    {
-        start = Some(x);
-        inliers = set;
-    }
-    let Some(mut x) = start else {
+    let Some((x, inliers)) = track.robust_start() else {
         result.status = TrackStatus::Degenerate;
         return result;
     };
-    // 3. re-solve on the consensus until it is stable (at most a few rounds), then a last
-    //    plain (weighted) least-squares solve: the outliers are gone, and it is the
-    //    estimator the covariance below is exact for.
-    for _ in 0..3 {
-        if distinct_cameras(inliers.iter().map(|&i| &views[i])) < 2 {
-            break;
-        }
-        x = track.refine(&inliers, x, options.loss);
-        let next = track.inlier_set(&x);
-        if next == inliers {
-            break;
-        }
-        inliers = next;
-    }
+    let (x, inliers) = track.settle(x, inliers);
+    result.point = x;
     if distinct_cameras(inliers.iter().map(|&i| &views[i])) < 2 {
-        result.point = x;
         result.status = TrackStatus::TooFewViews;
         return result;
     }
-    x = track.refine(&inliers, x, RobustLoss::None);
+    let x = track.refine(&inliers, x, RobustLoss::None);
     result.point = x;
     for &i in &inliers {
         result.inliers[i] = true;
     }
     let weights = track.weights(&x);
-    let sigma = options.pixel_sigma;
-    let normalized: f64 = inliers
-        .iter()
-        .map(|&i| {
-            let r = project(camera, &poses[views[i].camera], &x).uv - views[i].uv;
-            sigma * r.dot(&(weights[i] * r)).sqrt()
-        })
-        .sum();
-    result.mean_residual_px = normalized / inliers.len() as f64;
-    result.max_angle_rad = max_ray_angle(poses, views, &inliers, &x);
-    result.status = if inliers.iter().any(|&i| depth(poses, &views[i], &x) <= 0.0) {
-        TrackStatus::BehindCamera
-    } else if distinct_cameras(inliers.iter().map(|&i| &views[i])) == 2 && distinct_cameras(views.iter()) >= 3 {
-        TrackStatus::Ambiguous
-    } else if result.mean_residual_px > options.max_residual_px {
-        TrackStatus::LargeResidual
-    } else if result.max_angle_rad < options.min_angle_rad {
-        TrackStatus::SmallAngle
-    } else {
-        TrackStatus::Valid
-    };
+    track.classify(&inliers, &weights, &mut result);
     if result.status == TrackStatus::Valid {
         track.propagate_covariance(&inliers, &weights, &mut result);
     }
@@ -324,6 +332,75 @@ struct Track<'a> {
 }
 
 impl Track<'_> {
+    /// Step 1: the all-view DLT (+ robust LM unless every observation already fits); if
+    /// that left more than one view out, the best two-view DLT seeds the consensus instead
+    /// (a single bad view is what the robust start handles by itself). None: no finite start.
+    fn robust_start(&self) -> Option<(Vector3<f64>, Vec<usize>)> {
+        let views = self.views;
+        let all: Vec<usize> = (0..views.len()).collect();
+        let mut start = dlt(self.camera, self.poses, views, &all);
+        let mut inliers = start.map(|x| self.inlier_set(&x)).unwrap_or_default();
+        if let Some(x) = start
+            && inliers.len() < views.len()
+        {
+            let refined = self.refine(&all, x, self.options.loss);
+            start = Some(refined);
+            inliers = self.inlier_set(&refined);
+        }
+        if inliers.len() + 1 < views.len()
+            && views.len() >= 3
+            && let Some((x, set)) = best_pair(self.camera, self.poses, views, self.options.max_residual_px)
+            && set.len() > inliers.len()
+        {
+            start = Some(x);
+            inliers = set;
+        }
+        start.map(|x| (x, inliers))
+    }
+
+    /// Step 2: re-solves on the consensus until it is stable (at most a few rounds).
+    fn settle(&self, mut x: Vector3<f64>, mut inliers: Vec<usize>) -> (Vector3<f64>, Vec<usize>) {
+        for _ in 0..3 {
+            if distinct_cameras(inliers.iter().map(|&i| &self.views[i])) < 2 {
+                break;
+            }
+            x = self.refine(&inliers, x, self.options.loss);
+            let next = self.inlier_set(&x);
+            if next == inliers {
+                break;
+            }
+            inliers = next;
+        }
+        (x, inliers)
+    }
+
+    /// Step 3: the mean normalized residual σ·√(rᵀWr) (ε_r), the widest ray angle and the
+    /// status: behind a camera, an outvoted pair, a large residual or a small angle.
+    fn classify(&self, inliers: &[usize], weights: &[Matrix2<f64>], result: &mut TriangulatedPoint) {
+        let (views, poses, x) = (self.views, self.poses, result.point);
+        let sigma = self.options.pixel_sigma;
+        let normalized: f64 = inliers
+            .iter()
+            .map(|&i| {
+                let r = project(self.camera, &poses[views[i].camera], &x).uv - views[i].uv;
+                sigma * r.dot(&(weights[i] * r)).sqrt()
+            })
+            .sum();
+        result.mean_residual_px = normalized / inliers.len() as f64;
+        result.max_angle_rad = max_ray_angle(poses, views, inliers, &x);
+        result.status = if inliers.iter().any(|&i| depth(poses, &views[i], &x) <= 0.0) {
+            TrackStatus::BehindCamera
+        } else if distinct_cameras(inliers.iter().map(|&i| &views[i])) == 2 && distinct_cameras(views.iter()) >= 3 {
+            TrackStatus::Ambiguous
+        } else if result.mean_residual_px > self.options.max_residual_px {
+            TrackStatus::LargeResidual
+        } else if result.max_angle_rad < self.options.min_angle_rad {
+            TrackStatus::SmallAngle
+        } else {
+            TrackStatus::Valid
+        };
+    }
+
     /// Wₖ = Sₖ⁻¹, Sₖ = σ²I + J_T,k C_k J_T,kᵀ: the covariance of view k's residual at X when
     /// its keyframe pose has covariance C_k (σ²I alone without pose covariances).
     fn weights(&self, x: &Vector3<f64>) -> Vec<Matrix2<f64>> {

@@ -332,3 +332,31 @@ proptest! {
         prop_assert!(relative_error(&(t * t.inverse()).matrix(), &nalgebra::Matrix4::identity()) < 1e-13);
     }
 }
+
+/// Issue #11: magnitudes the exponential map cannot take are refused by name; matrices that
+/// are no rotation have no angle; projection is immune to the scale of its input.
+#[test]
+fn overflowing_and_non_rotation_inputs_are_refused() {
+    use geoloc_core::GeolocError;
+    use geoloc_core::lie::{MAX_ROTATION_VECTOR_NORM, check_twist, try_rotation_angle};
+    let huge = Vector3::new(1e300, 0.0, 0.0);
+    assert!(matches!(SO3::try_exp(&huge), Err(GeolocError::InvalidInput { name, .. }) if name == "phi"));
+    let just_inside = Vector3::new(MAX_ROTATION_VECTOR_NORM, 0.0, 0.0);
+    assert!(SO3::try_exp(&just_inside).is_ok_and(|r| r.matrix().iter().all(|v| v.is_finite())));
+    let xi = Twist::new(1e200, 0.0, 0.0, 0.0, 0.0, 0.1);
+    assert!(matches!(check_twist(&xi), Err(GeolocError::InvalidInput { name, .. }) if name == "xi"));
+    let xi = Twist::new(0.0, 0.0, 0.0, 0.0, 1e300, 0.0);
+    assert!(matches!(check_twist(&xi), Err(GeolocError::InvalidInput { name, .. }) if name == "xi"));
+    assert!(
+        matches!(try_rotation_angle(&Matrix3::from_element(1.0)), Err(GeolocError::NotARotation { name, .. }) if name == "R")
+    );
+    // near-rotations (a real dataset's det ≈ 0.9995) keep their angle
+    let r = SO3::exp(&Vector3::new(0.0, 0.0, 0.5)).matrix() * 0.9998;
+    assert!((try_rotation_angle(&r).expect("near-rotation") - 0.5).abs() < 1e-3);
+    // SVD projection of scaled rotations: 1e200·R and 1e-200·R project to R
+    let r = SO3::exp(&Vector3::new(0.3, -0.2, 0.1));
+    for scale in [1e200, 1e-200, 3.0] {
+        let p = SO3::from_matrix_projected(&(r.matrix() * scale)).expect("scaled rotation");
+        assert!((p.matrix() - r.matrix()).abs().max() < 1e-14, "scale {scale}");
+    }
+}

@@ -174,9 +174,12 @@ fn monte_carlo(seed: u64, trials: usize, sigma_px: f64, label: Option<(f64, f64)
         let tri_opts = TriangulationOptions { pixel_sigma: sigma_px, ..Default::default() };
         let tri = triangulate(&cam, &labels, label_cov.as_deref(), &cams, &tracks, &pix, &tri_opts).expect("valid");
         let (mut pts, mut px, mut covs, mut jacs) = (vec![], vec![], vec![], vec![]);
-        for (t, p) in tri.points.iter().enumerate() {
+        // every id up to the largest observed one draws its query observation (as when the
+        // result had a row per id), so the random sequence does not depend on the layout
+        for t in 0..tri.track_ids.last().map_or(0, |m| m + 1) {
             let uv = observe(&mut rng, &cam, &query, &points[t], sigma_px);
-            if p.status != TrackStatus::Valid || !(0.0..640.0).contains(&uv.x) || !(0.0..480.0).contains(&uv.y) {
+            let Some(p) = tri.point(t).filter(|p| p.status == TrackStatus::Valid) else { continue };
+            if !(0.0..640.0).contains(&uv.x) || !(0.0..480.0).contains(&uv.y) {
                 continue;
             }
             pts.push(p.point);
@@ -234,4 +237,112 @@ fn propagated_covariance_is_calibrated_with_label_noise() {
         let o = monte_carlo(seed, 1000, sigma, Some(label));
         assert_coverage(&o, 0.90, 0.98, &format!("σ = {sigma} px, label noise {label:?}"));
     }
+}
+
+/// Issue #11: 200 points with uniformly random pixels give no pose (the 4–5 "inliers" RANSAC
+/// finds are what chance gives), for every seed; real scenes still succeed.
+#[test]
+fn random_pixels_are_not_a_pose() {
+    let cam = camera();
+    for seed in 0..30 {
+        let mut rng = SplitMix64::new(100 + seed);
+        let (_, points) = random_view(&mut rng, 200);
+        let pixels: Vec<_> =
+            (0..200).map(|_| Vector2::new(rng.uniform_in(0.0, 640.0), rng.uniform_in(0.0, 480.0))).collect();
+        let options =
+            PnpOptions { ransac: geoloc_core::pnp::RansacOptions { seed, ..Default::default() }, ..Default::default() };
+        let res = solve_pnp(&cam, &points, &pixels, None, None, &options).expect("valid");
+        assert!(!res.success, "seed {seed}: success with {} inliers", res.inliers.iter().filter(|&&i| i).count());
+        assert!(res.reason.contains("chance") || res.reason.contains("RANSAC"), "{}", res.reason);
+    }
+    // a real scene with only 10 % inliers among 200 is still found
+    let mut rng = SplitMix64::new(7);
+    let (truth, points) = random_view(&mut rng, 200);
+    let pixels: Vec<_> = points
+        .iter()
+        .enumerate()
+        .map(|(j, x)| {
+            if j % 10 == 0 {
+                observe(&mut rng, &cam, &truth, x, 1.0)
+            } else {
+                Vector2::new(rng.uniform_in(0.0, 640.0), rng.uniform_in(0.0, 480.0))
+            }
+        })
+        .collect();
+    let res = solve_pnp(&cam, &points, &pixels, None, None, &PnpOptions::default()).expect("valid");
+    assert!(res.success, "{}", res.reason);
+}
+
+fn invalid_name(result: geoloc_core::Result<geoloc_core::pnp::PnpResult>) -> String {
+    match result {
+        Err(geoloc_core::GeolocError::InvalidInput { name, .. }) => name,
+        other => panic!("expected InvalidInput, got {other:?}"),
+    }
+}
+
+/// Issue #11: iteration counts above the documented caps are refused, naming the argument.
+#[test]
+fn iteration_counts_are_capped() {
+    use geoloc_core::pnp::{MAX_RANSAC_ITERATIONS, RansacOptions};
+    let cam = camera();
+    let mut rng = SplitMix64::new(3);
+    let (truth, points) = random_view(&mut rng, 20);
+    let pixels: Vec<_> = points.iter().map(|x| project(&cam, &truth, x).uv).collect();
+    let huge = MAX_RANSAC_ITERATIONS + 1;
+    let opts = |min_iterations, max_iterations| PnpOptions {
+        ransac: RansacOptions { min_iterations, max_iterations, ..Default::default() },
+        ..Default::default()
+    };
+    assert_eq!(invalid_name(solve_pnp(&cam, &points, &pixels, None, None, &opts(huge, huge))), "min_iterations");
+    assert_eq!(invalid_name(solve_pnp(&cam, &points, &pixels, None, None, &opts(100, huge))), "max_iterations");
+    let res = solve_pnp(&cam, &points, &pixels, None, None, &opts(100, MAX_RANSAC_ITERATIONS));
+    assert!(res.is_ok());
+}
+
+/// Issue #11: negative (not positive semi-definite) point or pose covariances are refused.
+#[test]
+fn non_psd_covariances_are_refused() {
+    let cam = camera();
+    let mut rng = SplitMix64::new(4);
+    let (truth, points) = random_view(&mut rng, 12);
+    let pixels: Vec<_> = points.iter().map(|x| project(&cam, &truth, x).uv).collect();
+    let mut covs = vec![Matrix3::identity() * 1e-4; 12];
+    covs[5] = -Matrix3::identity() * 1e-4;
+    let u = PointUncertainty { covariances: &covs, shared: None };
+    let opts = PnpOptions::default();
+    assert_eq!(invalid_name(solve_pnp(&cam, &points, &pixels, None, Some(&u), &opts)), "point_covariances[5]");
+    let covs = vec![Matrix3::identity() * 1e-4; 12];
+    let jacobians = vec![Matrix3x6::zeros(); 12];
+    let pose_covs = [-isotropic_pose_covariance(0.01, 0.01)];
+    let shared = SharedPoseUncertainty { jacobians: &jacobians, pose_covariances: &pose_covs };
+    let u = PointUncertainty { covariances: &covs, shared: Some(shared) };
+    assert_eq!(invalid_name(solve_pnp(&cam, &points, &pixels, None, Some(&u), &opts)), "pose_covariances[0]");
+}
+
+/// `ransac_with_init`: a wrong initial pose (180° off) is replaced by RANSAC's; a good one
+/// is kept; without the option the wrong one is all there is.
+#[test]
+fn ransac_with_init_keeps_the_better_start() {
+    let cam = camera();
+    let mut rng = SplitMix64::new(5);
+    let (truth, points) = random_view(&mut rng, 60);
+    let pixels: Vec<_> = points.iter().map(|x| observe(&mut rng, &cam, &truth, x, 1.0)).collect();
+    let wrong = truth * SE3::exp(&Twist::new(0.0, 0.0, 0.0, 0.0, std::f64::consts::PI, 0.0));
+    let with = PnpOptions { ransac_with_init: true, ..PnpOptions::default() };
+    let res = solve_pnp(&cam, &points, &pixels, Some(&wrong), None, &with).expect("valid");
+    assert!(res.success && res.ransac_iterations > 0, "{}", res.reason);
+    assert!(error_cm_deg(&res.world_from_cam, &truth).0 < 5.0);
+    let res = solve_pnp(&cam, &points, &pixels, Some(&wrong), None, &PnpOptions::default()).expect("valid");
+    assert!(!res.success || error_cm_deg(&res.world_from_cam, &truth).0 > 5.0);
+    assert_eq!(res.ransac_iterations, 0);
+}
+
+#[test]
+fn covariance_option_strings_round_trip() {
+    for model in [CovarianceModel::Propagated, CovarianceModel::Paper] {
+        assert_eq!(model.as_str().parse::<CovarianceModel>(), Ok(model));
+    }
+    assert!(
+        matches!("exact".parse::<CovarianceModel>(), Err(geoloc_core::GeolocError::InvalidInput { name, .. }) if name == "covariance")
+    );
 }

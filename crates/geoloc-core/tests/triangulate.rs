@@ -225,3 +225,48 @@ fn bad_input_is_an_error_naming_the_argument() {
     let empty = triangulate(&camera, &poses, None, &[], &[], &[], &options).expect("empty is valid");
     assert!(empty.points.is_empty());
 }
+
+/// Issue #11: track ids are labels — huge ids cost no memory (one row per distinct id, in
+/// increasing order), and the points equal those of the same tracks numbered 0..P.
+#[test]
+fn huge_track_ids_are_renumbered_not_allocated() {
+    let mut rng = SplitMix64::new(11);
+    let (camera, poses, all_points) = arc_scene(&mut rng, 3, 2);
+    let points = [all_points[0], all_points[1]];
+    let (mut cams, mut dense, mut pix) = (vec![], vec![], vec![]);
+    for (t, x) in points.iter().enumerate() {
+        for (c, pose) in poses.iter().enumerate() {
+            cams.push(c);
+            dense.push(t);
+            pix.push(project(&camera, pose, x).uv);
+        }
+    }
+    let options = TriangulationOptions::default();
+    let reference = triangulate(&camera, &poses, None, &cams, &dense, &pix, &options).expect("valid");
+    assert_eq!(reference.track_ids, vec![0, 1]);
+    for ids in [[usize::MAX, 7], [1_000_000_000, 0], [1 << 62, 3]] {
+        let sparse: Vec<usize> = dense.iter().map(|&t| ids[t]).collect();
+        let tri = triangulate(&camera, &poses, None, &cams, &sparse, &pix, &options).expect("valid");
+        assert_eq!(tri.points.len(), 2);
+        let mut sorted = ids.to_vec();
+        sorted.sort_unstable();
+        assert_eq!(tri.track_ids, sorted);
+        for (t, &id) in ids.iter().enumerate() {
+            assert_eq!(tri.point(id), Some(&reference.points[t]));
+        }
+        assert_eq!(tri.observation_inliers, reference.observation_inliers);
+    }
+}
+
+/// Issue #11: a pose covariance that is not positive semi-definite is refused by name.
+#[test]
+fn non_psd_pose_covariances_are_refused() {
+    let mut rng = SplitMix64::new(12);
+    let (camera, _, _) = arc_scene(&mut rng, 2, 1);
+    let poses = vec![SE3::identity(), SE3::exp(&Twist::new(0.5, 0.0, 0.0, 0.0, 0.0, 0.0))];
+    let px = [Vector2::new(320.0, 240.0), Vector2::new(300.0, 240.0)];
+    let covs = [Matrix6::identity() * 1e-6, -Matrix6::identity() * 1e-6];
+    let err = triangulate(&camera, &poses, Some(&covs), &[0, 1], &[0, 0], &px, &TriangulationOptions::default())
+        .expect_err("negative covariance");
+    assert!(matches!(&err, GeolocError::InvalidInput { name, .. } if name == "pose_covariances[1]"), "{err:?}");
+}

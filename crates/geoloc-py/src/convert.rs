@@ -164,26 +164,86 @@ impl<'py> BorrowedDescriptors<'py> {
     }
 }
 
-/// An integer argument — a Python `int` or an integer-like numpy scalar (`np.int64(5)`) —
-/// as u64; `None` gives `default`. Negative or too large values and non-integers raise
-/// `InvalidInputError` naming `name` (never `OverflowError`/`TypeError`).
+/// An optional integer argument ([`count`]); `None` gives `default`; a bool is refused.
 pub fn u64_arg(obj: Option<&Bound<'_, PyAny>>, name: &str, default: u64) -> PyResult<u64> {
     let Some(obj) = obj.filter(|o| !o.is_none()) else { return Ok(default) };
     if obj.is_instance_of::<pyo3::types::PyBool>() {
         return Err(invalid(name, "expected an integer, got a bool"));
     }
-    obj.extract::<u64>().map_err(|e| {
-        if e.is_instance_of::<pyo3::exceptions::PyOverflowError>(obj.py()) {
-            invalid(name, format!("must be an integer in 0..={}, got {obj}", u64::MAX))
-        } else {
-            let type_name = obj.get_type().name().map_or_else(|_| "?".to_owned(), |n| n.to_string());
-            invalid(name, format!("expected an integer, got {type_name}"))
-        }
-    })
+    count(name, obj)
 }
 
 /// [`u64_arg`] as a count (usize).
 pub fn count_arg(obj: Option<&Bound<'_, PyAny>>, name: &str, default: usize) -> PyResult<usize> {
     let v = u64_arg(obj, name, default as u64)?;
-    usize::try_from(v).map_err(|_| invalid(name, format!("must be at most {}, got {v}", usize::MAX)))
+    usize::try_from(v).map_err(|_| invalid(name, format!("{v} is too large")))
+}
+
+/// A Python integer (or anything with `__index__`, e.g. `np.int64`) as a non-negative
+/// count; floats, negative values and values beyond `u64` raise `InvalidInputError` naming
+/// `name` (never `OverflowError`).
+pub fn count(name: &str, value: &Bound<'_, PyAny>) -> PyResult<u64> {
+    let index = value
+        .call_method0("__index__")
+        .map_err(|_| invalid(name, format!("expected a non-negative integer, got {}", describe(value))))?;
+    if let Ok(v) = index.extract::<u64>() {
+        return Ok(v);
+    }
+    let negative = index.lt(0).unwrap_or(false);
+    Err(invalid(
+        name,
+        if negative {
+            format!("expected a non-negative integer, got {index}")
+        } else {
+            format!("{index} is too large (at most {})", u64::MAX)
+        },
+    ))
+}
+
+/// [`count`] as a `usize`.
+pub fn count_usize(name: &str, value: &Bound<'_, PyAny>) -> PyResult<usize> {
+    let v = count(name, value)?;
+    usize::try_from(v).map_err(|_| invalid(name, format!("{v} is too large")))
+}
+
+fn describe(value: &Bound<'_, PyAny>) -> String {
+    value.repr().map_or_else(|_| "a non-integer".to_owned(), |r| r.to_string())
+}
+
+/// A fixed-size matrix as a new (R, C) numpy array.
+pub fn matrix_to_array<'py, const R: usize, const C: usize>(
+    py: Python<'py>,
+    m: &SMatrix<f64, R, C>,
+) -> Bound<'py, PyArray2<f64>> {
+    numpy::IntoPyArray::into_pyarray(numpy::ndarray::Array2::from_shape_fn((R, C), |(r, c)| m[(r, c)]), py)
+}
+
+/// Matrices as a new (N, R, C) numpy array.
+pub fn matrices_to_array3<'py, const R: usize, const C: usize>(
+    py: Python<'py>,
+    items: &[SMatrix<f64, R, C>],
+) -> Bound<'py, numpy::PyArray3<f64>> {
+    let array = numpy::ndarray::Array3::from_shape_fn((items.len(), R, C), |(i, r, c)| items[i][(r, c)]);
+    numpy::IntoPyArray::into_pyarray(array, py)
+}
+
+/// One (4, 4) array as a rigid transform, strictly checked; errors name `name` (no index).
+pub fn one_pose(name: &str, array: &PyReadonlyArray2<'_, f64>) -> PyResult<geoloc_core::lie::SE3> {
+    if array.shape() != [4, 4] {
+        return Err(invalid(name, format!("expected shape (4, 4), got {:?}", array.shape())));
+    }
+    let m = nalgebra::Matrix4::from_fn(|r, c| *array.get([r, c]).unwrap_or(&f64::NAN));
+    geoloc_core::lie::SE3::from_matrix(&m).map_err(|e| to_py_err(e.named(name)))
+}
+
+/// One (D, D) array as a matrix; errors name `name` (finiteness is checked too).
+pub fn one_matrix<const D: usize>(name: &str, array: &PyReadonlyArray2<'_, f64>) -> PyResult<SMatrix<f64, D, D>> {
+    if array.shape() != [D, D] {
+        return Err(invalid(name, format!("expected shape ({D}, {D}), got {:?}", array.shape())));
+    }
+    let m = SMatrix::<f64, D, D>::from_fn(|r, c| *array.get([r, c]).unwrap_or(&f64::NAN));
+    if let Some(flat) = m.transpose().iter().position(|v| !v.is_finite()) {
+        return Err(to_py_err(GeolocError::NonFinite { name: name.into(), index: flat }));
+    }
+    Ok(m)
 }

@@ -1,18 +1,22 @@
-//! Bindings of `geoloc_core::{camera, triangulate, pnp}`: arrays in, dicts of arrays out.
-//! Shapes and defaults are handled by `python/geoloc/geometry.py`.
+//! Bindings of `geoloc_core::{triangulate, pnp}`: arrays and keyword options in, frozen
+//! result classes with numpy getters out. Documentation and the numpy-level conversions
+//! (dtype, leading axes) live in `python/geoloc/geometry.py`; every check of values, option
+//! strings and counts is geoloc-core's.
 
 use geoloc_core::camera::Camera;
 use geoloc_core::optim::RobustLoss;
 use geoloc_core::pnp::{
-    CovarianceModel, PnpOptions, PointUncertainty, RansacOptions, SharedPoseUncertainty, solve_pnp as core_solve_pnp,
+    CovarianceModel, PnpOptions, PnpResult, PointUncertainty, RansacOptions, SharedPoseUncertainty,
+    solve_pnp as core_solve_pnp,
 };
-use geoloc_core::triangulate::{TriangulationOptions, triangulate as core_triangulate};
-use nalgebra::{Matrix3x6, Vector2, Vector3};
-use numpy::{IntoPyArray, PyReadonlyArray1, PyReadonlyArray2};
+use geoloc_core::triangulate::{TrackStatus, Triangulation, TriangulationOptions, triangulate as core_triangulate};
+use nalgebra::{Matrix3, Matrix3x6, Matrix6, Vector2, Vector3};
+use numpy::{IntoPyArray, PyArray1, PyArray2, PyArray3, PyReadonlyArray1, PyReadonlyArray2};
 use pyo3::prelude::*;
-use pyo3::types::PyDict;
 
-use crate::convert::{indices, matrices, matrices_to_array, poses, rows};
+use crate::convert::{
+    count, count_usize, indices, matrices, matrices_to_array3, matrix_to_array, one_pose, poses, rows,
+};
 use crate::errors::{invalid, to_py_err};
 
 fn camera(intrinsics: (f64, f64, f64, f64)) -> PyResult<Camera> {
@@ -28,67 +32,262 @@ fn vectors3(name: &str, array: &PyReadonlyArray2<'_, f64>) -> PyResult<Vec<Vecto
     Ok(rows::<3>(name, array)?.chunks_exact(3).map(|c| Vector3::new(c[0], c[1], c[2])).collect())
 }
 
+/// (code, name, reason) of every triangulation status, from the core.
+#[pyfunction]
+pub fn track_statuses() -> Vec<(u8, &'static str, &'static str)> {
+    TrackStatus::ALL.iter().map(|s| (s.code(), s.as_str(), s.reason())).collect()
+}
+
+/// The triangulation of many tracks (see `geoloc.geometry.TriangulationResult`).
+#[pyclass(module = "geoloc._core", frozen)]
+pub struct Triangulated {
+    inner: Triangulation,
+    n_cams: usize,
+    with_pose_covariances: bool,
+}
+
+#[pymethods]
+impl Triangulated {
+    /// (P,) the distinct track ids, increasing; row i is track `track_ids[i]`.
+    #[getter]
+    fn track_ids<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<u64>> {
+        self.inner.track_ids.iter().map(|&t| t as u64).collect::<Vec<_>>().into_pyarray(py)
+    }
+    /// (P, 3) points.
+    #[getter]
+    fn points<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray2<f64>> {
+        let flat: Vec<f64> =
+            self.inner.points.iter().flat_map(|p| p.point.iter().copied().collect::<Vec<_>>()).collect();
+        numpy::ndarray::Array2::from_shape_vec((self.inner.points.len(), 3), flat)
+            .expect("invariant: three values per point")
+            .into_pyarray(py)
+    }
+    /// (P,) status codes.
+    #[getter]
+    fn status<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<u8>> {
+        self.inner.points.iter().map(|p| p.status.code()).collect::<Vec<_>>().into_pyarray(py)
+    }
+    /// Per track, the core's reason text.
+    fn reasons(&self) -> Vec<&'static str> {
+        self.inner.points.iter().map(|p| p.status.reason()).collect()
+    }
+    /// (P,) mean inlier residual (px).
+    #[getter]
+    fn mean_residual<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        self.inner.points.iter().map(|p| p.mean_residual_px).collect::<Vec<_>>().into_pyarray(py)
+    }
+    /// (P,) widest ray angle (rad).
+    #[getter]
+    fn max_angle<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        self.inner.points.iter().map(|p| p.max_angle_rad).collect::<Vec<_>>().into_pyarray(py)
+    }
+    /// (P, 3, 3) marginal covariances.
+    #[getter]
+    fn covariances<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray3<f64>> {
+        matrices_to_array3(py, &self.inner.points.iter().map(|p| p.covariance).collect::<Vec<Matrix3<f64>>>())
+    }
+    /// (P, 3, 3) pixel-noise part of the covariances.
+    #[getter]
+    fn pixel_covariances<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray3<f64>> {
+        matrices_to_array3(py, &self.inner.points.iter().map(|p| p.pixel_covariance).collect::<Vec<Matrix3<f64>>>())
+    }
+    /// (P·C, 3, 6) D_jk row-major over (track, camera), or None without pose covariances.
+    #[getter]
+    fn pose_jacobians<'py>(&self, py: Python<'py>) -> Option<Bound<'py, PyArray3<f64>>> {
+        let n_cams = self.n_cams;
+        self.with_pose_covariances.then(|| {
+            let mut jacobians = vec![Matrix3x6::<f64>::zeros(); self.inner.points.len() * n_cams];
+            for (j, p) in self.inner.points.iter().enumerate() {
+                for (k, d) in &p.pose_jacobians {
+                    jacobians[j * n_cams + k] = *d;
+                }
+            }
+            matrices_to_array3(py, &jacobians)
+        })
+    }
+    /// (O,) per observation: inlier of its valid track.
+    #[getter]
+    fn observation_inliers<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<bool>> {
+        self.inner.observation_inliers.clone().into_pyarray(py)
+    }
+}
+
 /// Forward intersection of tracks; see `geoloc.geometry.triangulate`.
 #[pyfunction]
-#[pyo3(signature = (poses_wc, intrinsics, cam_ids, track_ids, pixels, pose_covariances, loss, loss_width, pixel_sigma, max_residual, min_angle))]
+#[pyo3(signature = (poses_wc, intrinsics, cam_ids, track_ids, pixels, *, pose_covariances=None, loss="huber", huber=1.0, pixel_sigma=1.0, max_residual=5.0, min_angle=1f64.to_radians()))]
 #[allow(clippy::too_many_arguments)]
-pub fn triangulate<'py>(
-    py: Python<'py>,
-    poses_wc: PyReadonlyArray2<'py, f64>,
+pub fn triangulate(
+    py: Python<'_>,
+    poses_wc: PyReadonlyArray2<'_, f64>,
     intrinsics: (f64, f64, f64, f64),
-    cam_ids: PyReadonlyArray1<'py, i64>,
-    track_ids: PyReadonlyArray1<'py, i64>,
-    pixels: PyReadonlyArray2<'py, f64>,
-    pose_covariances: Option<PyReadonlyArray2<'py, f64>>,
+    cam_ids: PyReadonlyArray1<'_, i64>,
+    track_ids: PyReadonlyArray1<'_, i64>,
+    pixels: PyReadonlyArray2<'_, f64>,
+    pose_covariances: Option<PyReadonlyArray2<'_, f64>>,
     loss: &str,
-    loss_width: f64,
+    huber: f64,
     pixel_sigma: f64,
     max_residual: f64,
     min_angle: f64,
-) -> PyResult<Bound<'py, PyDict>> {
+) -> PyResult<Triangulated> {
     let cam = camera(intrinsics)?;
     let poses = poses("poses", &poses_wc)?;
     let covs = pose_covariances.as_ref().map(|c| matrices::<6, 6, 36>("pose_covariances", c)).transpose()?;
-    let cam_ids = indices("cam_ids", &cam_ids)?;
-    let track_ids = indices("track_ids", &track_ids)?;
+    let (cam_ids, track_ids) = (indices("cam_ids", &cam_ids)?, indices("track_ids", &track_ids)?);
     let pixels = vectors2("pixels", &pixels)?;
+    let loss = RobustLoss::from_name(loss, huber, "huber").map_err(to_py_err)?;
     let options = TriangulationOptions {
-        loss: RobustLoss::from_name(loss, loss_width, "huber").map_err(to_py_err)?,
+        loss,
         pixel_sigma,
         max_residual_px: max_residual,
         min_angle_rad: min_angle,
-        ..TriangulationOptions::default()
+        ..Default::default()
     };
-    let tri = py
+    let inner = py
         .detach(|| core_triangulate(&cam, &poses, covs.as_deref(), &cam_ids, &track_ids, &pixels, &options))
         .map_err(to_py_err)?;
-    let out = PyDict::new(py);
-    if covs.is_some() {
-        let (n_cams, n) = (poses.len(), tri.points.len());
-        let mut jacobians = vec![Matrix3x6::<f64>::zeros(); n * n_cams];
-        for (j, p) in tri.points.iter().enumerate() {
-            for (k, d) in &p.pose_jacobians {
-                jacobians[j * n_cams + k] = *d;
-            }
-        }
-        out.set_item("pose_jacobians", matrices_to_array(py, &jacobians))?;
+    Ok(Triangulated { inner, n_cams: poses.len(), with_pose_covariances: covs.is_some() })
+}
+
+/// The pose of a camera from 2D–3D correspondences (see `geoloc.geometry.solve_pnp`).
+#[pyclass(module = "geoloc._core", name = "PnPResult", frozen)]
+pub struct PnPResult {
+    inner: PnpResult,
+}
+
+#[pymethods]
+impl PnPResult {
+    /// Whether a pose was found.
+    #[getter]
+    fn success(&self) -> bool {
+        self.inner.success
     }
-    out.set_item("points", matrices_to_array(py, &tri.points.iter().map(|p| p.point).collect::<Vec<_>>()))?;
-    out.set_item("status", tri.points.iter().map(|p| p.status as u8).collect::<Vec<_>>().into_pyarray(py))?;
-    out.set_item("mean_residual", tri.points.iter().map(|p| p.mean_residual_px).collect::<Vec<_>>().into_pyarray(py))?;
-    out.set_item("max_angle", tri.points.iter().map(|p| p.max_angle_rad).collect::<Vec<_>>().into_pyarray(py))?;
-    out.set_item("covariances", matrices_to_array(py, &tri.points.iter().map(|p| p.covariance).collect::<Vec<_>>()))?;
-    out.set_item(
-        "pixel_covariances",
-        matrices_to_array(py, &tri.points.iter().map(|p| p.pixel_covariance).collect::<Vec<_>>()),
-    )?;
-    out.set_item("observation_inliers", tri.observation_inliers.into_pyarray(py))?;
-    Ok(out)
+    /// "ok" or why not.
+    #[getter]
+    fn reason(&self) -> &str {
+        &self.inner.reason
+    }
+    /// (4, 4) world_from_cam.
+    #[getter]
+    fn pose<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray2<f64>> {
+        matrix_to_array(py, &self.inner.world_from_cam.matrix())
+    }
+    /// (6, 6) right-perturbation covariance, translation first.
+    #[getter]
+    fn covariance<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray2<f64>> {
+        matrix_to_array::<6, 6>(py, &self.inner.covariance)
+    }
+    /// (N,) used in the final solve.
+    #[getter]
+    fn inliers<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<bool>> {
+        self.inner.inliers.clone().into_pyarray(py)
+    }
+    /// RMS reprojection error of the inliers (px).
+    #[getter]
+    fn rms(&self) -> f64 {
+        self.inner.rms_px
+    }
+    /// Isometric position σ (m).
+    #[getter]
+    fn sigma_p(&self) -> f64 {
+        self.inner.sigma_p
+    }
+    /// Isometric rotation σ (rad).
+    #[getter]
+    fn sigma_r(&self) -> f64 {
+        self.inner.sigma_r
+    }
+    /// RANSAC samples drawn.
+    #[getter]
+    fn ransac_iterations(&self) -> usize {
+        self.inner.ransac_iterations
+    }
+    /// Iterations of the last LM run.
+    #[getter]
+    fn lm_iterations(&self) -> usize {
+        self.inner.lm.map_or(0, |r| r.iterations)
+    }
+    /// Whether the last LM run converged.
+    #[getter]
+    fn lm_converged(&self) -> bool {
+        self.inner.lm.is_some_and(|r| r.converged())
+    }
+    /// Why the last LM run stopped (None if none ran).
+    #[getter]
+    fn lm_termination(&self) -> Option<&'static str> {
+        self.inner.lm.map(|r| r.termination.as_str())
+    }
+    fn __repr__(&self) -> String {
+        let r = &self.inner;
+        let n = r.inliers.iter().filter(|&&i| i).count();
+        format!(
+            "PnPResult(success={}, reason={:?}, inliers={n}/{}, rms={:.3})",
+            r.success,
+            r.reason,
+            r.inliers.len(),
+            r.rms_px
+        )
+    }
+}
+
+/// The keyword options of `solve_pnp`, turned into core options in one place.
+struct PnpKeywords<'a, 'py> {
+    loss: &'a str,
+    huber: f64,
+    pixel_sigma: f64,
+    max_residual: f64,
+    covariance: &'a str,
+    ransac_with_init: bool,
+    min_iterations: Option<&'a Bound<'py, PyAny>>,
+    max_iterations: Option<&'a Bound<'py, PyAny>>,
+    confidence: f64,
+    seed: Option<&'a Bound<'py, PyAny>>,
+}
+
+impl PnpKeywords<'_, '_> {
+    fn options(&self) -> PyResult<PnpOptions> {
+        let d = RansacOptions::default();
+        let or = |name, v: Option<&Bound<'_, PyAny>>, default| v.map_or(Ok(default), |v| count_usize(name, v));
+        Ok(PnpOptions {
+            loss: RobustLoss::from_name(self.loss, self.huber, "huber").map_err(to_py_err)?,
+            pixel_sigma: self.pixel_sigma,
+            max_residual_px: self.max_residual,
+            covariance: self.covariance.parse::<CovarianceModel>().map_err(to_py_err)?,
+            ransac_with_init: self.ransac_with_init,
+            ransac: RansacOptions {
+                min_iterations: or("min_iterations", self.min_iterations, d.min_iterations)?,
+                max_iterations: or("max_iterations", self.max_iterations, d.max_iterations)?,
+                confidence: self.confidence,
+                seed: self.seed.map_or(Ok(d.seed), |v| count("seed", v))?,
+            },
+            ..PnpOptions::default()
+        })
+    }
+}
+
+/// Point and pose uncertainty arrays, borrowed and checked for shape.
+type Uncertainty = (Vec<Matrix3<f64>>, Option<(Vec<Matrix3x6<f64>>, Vec<Matrix6<f64>>)>);
+
+fn uncertainty_arrays(
+    point_covariances: Option<&PyReadonlyArray2<'_, f64>>,
+    point_pose_jacobians: Option<&PyReadonlyArray2<'_, f64>>,
+    pose_covariances: Option<&PyReadonlyArray2<'_, f64>>,
+) -> PyResult<Option<Uncertainty>> {
+    let covs = point_covariances.map(|c| matrices::<3, 3, 9>("point_covariances", c)).transpose()?;
+    let jacs = point_pose_jacobians.map(|c| matrices::<3, 6, 18>("point_pose_jacobians", c)).transpose()?;
+    let pose_covs = pose_covariances.map(|c| matrices::<6, 6, 36>("pose_covariances", c)).transpose()?;
+    match (covs, jacs, pose_covs) {
+        (None, None, None) => Ok(None),
+        (Some(c), None, None) => Ok(Some((c, None))),
+        (Some(c), Some(j), Some(p)) => Ok(Some((c, Some((j, p))))),
+        (None, _, _) => Err(invalid("point_covariances", "required when pose_jacobians / pose_covariances are given")),
+        _ => Err(invalid("pose_covariances", "pose_jacobians and pose_covariances go together")),
+    }
 }
 
 /// Backward intersection; see `geoloc.geometry.solve_pnp`.
 #[pyfunction]
-#[pyo3(signature = (points3d, pixels, intrinsics, init_pose, point_covariances, point_pose_jacobians, pose_covariances, loss, loss_width, pixel_sigma, max_residual, covariance, min_iterations, max_iterations, confidence, seed))]
+#[pyo3(signature = (points3d, pixels, intrinsics, *, init_pose=None, point_covariances=None, point_pose_jacobians=None, pose_covariances=None, loss="huber", huber=1.0, pixel_sigma=1.0, max_residual=5.0, covariance="propagated", ransac=None, min_iterations=None, max_iterations=None, confidence=0.9999, seed=None))]
 #[allow(clippy::too_many_arguments)]
 pub fn solve_pnp<'py>(
     py: Python<'py>,
@@ -100,72 +299,56 @@ pub fn solve_pnp<'py>(
     point_pose_jacobians: Option<PyReadonlyArray2<'py, f64>>,
     pose_covariances: Option<PyReadonlyArray2<'py, f64>>,
     loss: &str,
-    loss_width: f64,
+    huber: f64,
     pixel_sigma: f64,
     max_residual: f64,
     covariance: &str,
-    min_iterations: usize,
-    max_iterations: usize,
+    ransac: Option<bool>,
+    min_iterations: Option<Bound<'py, PyAny>>,
+    max_iterations: Option<Bound<'py, PyAny>>,
     confidence: f64,
-    seed: u64,
-) -> PyResult<Bound<'py, PyDict>> {
-    let cam = camera(intrinsics)?;
-    let points = vectors3("points3d", &points3d)?;
-    let pixels = vectors2("pixels", &pixels)?;
-    let init = match &init_pose {
-        Some(p) => poses("init_pose", p)?.first().copied(),
-        None => None,
-    };
-    let covs = point_covariances.as_ref().map(|c| matrices::<3, 3, 9>("point_covariances", c)).transpose()?;
-    let jacs = point_pose_jacobians.as_ref().map(|c| matrices::<3, 6, 18>("point_pose_jacobians", c)).transpose()?;
-    let pose_covs = pose_covariances.as_ref().map(|c| matrices::<6, 6, 36>("pose_covariances", c)).transpose()?;
-    if covs.is_none() && (jacs.is_some() || pose_covs.is_some()) {
-        return Err(invalid("point_covariances", "required when point_pose_jacobians / pose_covariances are given"));
+    seed: Option<Bound<'py, PyAny>>,
+) -> PyResult<PnPResult> {
+    let (cam, points, pixels) = (camera(intrinsics)?, vectors3("points3d", &points3d)?, vectors2("pixels", &pixels)?);
+    let init = init_pose.as_ref().map(|p| one_pose("init_pose", p)).transpose()?;
+    if ransac == Some(false) && init.is_none() {
+        return Err(invalid("init_pose", "required when ransac=False"));
     }
-    if jacs.is_some() != pose_covs.is_some() {
-        return Err(invalid("pose_covariances", "point_pose_jacobians and pose_covariances go together"));
-    }
-    let covariance = match covariance {
-        "propagated" => CovarianceModel::Propagated,
-        "paper" => CovarianceModel::Paper,
-        other => return Err(invalid("covariance", format!("expected \"propagated\" or \"paper\", got {other:?}"))),
-    };
-    let options = PnpOptions {
-        loss: RobustLoss::from_name(loss, loss_width, "huber").map_err(to_py_err)?,
+    let ransac_with_init = ransac == Some(true) && init.is_some();
+    let unc = uncertainty_arrays(point_covariances.as_ref(), point_pose_jacobians.as_ref(), pose_covariances.as_ref())?;
+    let (min_iterations, max_iterations, seed) = (min_iterations.as_ref(), max_iterations.as_ref(), seed.as_ref());
+    let keywords = PnpKeywords {
+        loss,
+        huber,
         pixel_sigma,
-        max_residual_px: max_residual,
+        max_residual,
         covariance,
-        ransac: RansacOptions { min_iterations, max_iterations, confidence, seed },
-        ..PnpOptions::default()
+        ransac_with_init,
+        min_iterations,
+        max_iterations,
+        confidence,
+        seed,
     };
-    let result = py
+    let options = keywords.options()?;
+    let inner = py
         .detach(|| {
-            let shared = match (&jacs, &pose_covs) {
-                (Some(j), Some(c)) => Some(SharedPoseUncertainty { jacobians: j, pose_covariances: c }),
-                _ => None,
-            };
-            let uncertainty = covs.as_ref().map(|c| PointUncertainty { covariances: c, shared });
+            let shared = unc
+                .as_ref()
+                .and_then(|(_, s)| s.as_ref())
+                .map(|(j, c)| SharedPoseUncertainty { jacobians: j, pose_covariances: c });
+            let uncertainty = unc.as_ref().map(|(c, _)| PointUncertainty { covariances: c, shared });
             core_solve_pnp(&cam, &points, &pixels, init.as_ref(), uncertainty.as_ref(), &options)
         })
         .map_err(to_py_err)?;
-    let out = PyDict::new(py);
-    out.set_item("success", result.success)?;
-    out.set_item("reason", result.reason)?;
-    out.set_item("pose", matrices_to_array(py, &[result.world_from_cam.matrix()]))?;
-    out.set_item("covariance", matrices_to_array(py, &[result.covariance]))?;
-    out.set_item("inliers", result.inliers.into_pyarray(py))?;
-    out.set_item("rms", result.rms_px)?;
-    out.set_item("sigma_p", result.sigma_p)?;
-    out.set_item("sigma_r", result.sigma_r)?;
-    out.set_item("ransac_iterations", result.ransac_iterations)?;
-    out.set_item("lm_iterations", result.lm.map_or(0, |r| r.iterations))?;
-    out.set_item("lm_converged", result.lm.is_some_and(|r| r.converged()))?;
-    Ok(out)
+    Ok(PnPResult { inner })
 }
 
-/// Registers the functions of this file on the module.
+/// Registers the functions and classes of this file on the module.
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(triangulate, m)?)?;
     m.add_function(wrap_pyfunction!(solve_pnp, m)?)?;
+    m.add_function(wrap_pyfunction!(track_statuses, m)?)?;
+    m.add_class::<Triangulated>()?;
+    m.add_class::<PnPResult>()?;
     Ok(())
 }

@@ -1,13 +1,12 @@
 //! Bindings of `geoloc_core::{keyframes, motion, fusion}`.
 
-use geoloc_core::fusion::{FusionSource, Gate, fuse as core_fuse};
+use geoloc_core::fusion::{Gate, fuse as core_fuse};
 use geoloc_core::keyframes::{KeyframeOptions, keyframe_score as core_score, select_keyframes as core_select};
 use geoloc_core::motion::motion_predict as core_motion_predict;
-use numpy::{IntoPyArray, PyArray1, PyReadonlyArray1, PyReadonlyArray2};
+use numpy::{IntoPyArray, PyArray1, PyArray2, PyReadonlyArray1, PyReadonlyArray2};
 use pyo3::prelude::*;
-use pyo3::types::PyDict;
 
-use crate::convert::{matrices, matrices_to_array, poses};
+use crate::convert::{count_usize, matrices, matrix_to_array, one_matrix, one_pose, poses};
 use crate::errors::{invalid, to_py_err};
 
 fn options(n: usize, window: usize, d_m: f64, ell: f64, alpha_m: f64, min_score: f64) -> KeyframeOptions {
@@ -38,77 +37,115 @@ pub fn keyframe_score<'py>(
 pub fn select_keyframes<'py>(
     py: Python<'py>,
     poses_wc: PyReadonlyArray2<'py, f64>,
-    k: usize,
-    n: usize,
-    window: usize,
+    k: &Bound<'py, PyAny>,
+    n: &Bound<'py, PyAny>,
+    window: &Bound<'py, PyAny>,
     d_m: f64,
     ell: f64,
     alpha_m: f64,
     min_score: f64,
 ) -> PyResult<Bound<'py, PyArray1<u64>>> {
     let p = poses("poses", &poses_wc)?;
+    let (k, n, window) = (count_usize("k", k)?, count_usize("n", n)?, count_usize("window", window)?);
     let group = core_select(&p, k, &options(n, window, d_m, ell, alpha_m, min_score)).map_err(to_py_err)?;
     Ok(group.into_iter().map(|i| i as u64).collect::<Vec<_>>().into_pyarray(py))
 }
 
-/// Constant-velocity prediction: dict(pose (1, 16), covariance (1, 36), velocity (6,), rms_residual).
+/// Getters shared by the two pose estimates (pose, covariance and the solve's report).
+macro_rules! pose_estimate_methods {
+    ($class:ident { $($extra:tt)* }) => {
+        #[pymethods]
+        impl $class {
+            $($extra)*
+
+            /// (4, 4) world_from_cam.
+            #[getter]
+            fn pose<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray2<f64>> {
+                matrix_to_array(py, &self.inner.world_from_cam.matrix())
+            }
+            /// (6, 6) right-perturbation covariance, translation first.
+            #[getter]
+            fn covariance<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray2<f64>> {
+                matrix_to_array::<6, 6>(py, &self.inner.covariance)
+            }
+            /// Gauss–Newton iterations (0 when no solve ran).
+            #[getter]
+            fn iterations(&self) -> usize {
+                self.inner.report.map_or(0, |r| r.iterations)
+            }
+            /// Why the solve stopped (None when no solve ran).
+            #[getter]
+            fn termination(&self) -> Option<&'static str> {
+                self.inner.report.map(|r| r.termination.as_str())
+            }
+        }
+    };
+}
+
+/// A constant-velocity prediction (see `geoloc.motion.motion_predict`).
+#[pyclass(module = "geoloc._core", frozen)]
+pub struct MotionPrediction {
+    inner: geoloc_core::motion::MotionPrediction,
+}
+pose_estimate_methods!(MotionPrediction {
+    /// (6,) the fitted body velocity (v, ω) per second.
+    #[getter]
+    fn velocity<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        self.inner.details.velocity.as_slice().to_vec().into_pyarray(py)
+    }
+    /// RMS of the fit residuals.
+    #[getter]
+    fn rms_residual(&self) -> f64 {
+        self.inner.details.rms_residual
+    }
+});
+
+/// A gated fusion (see `geoloc.fusion.fuse`).
+#[pyclass(module = "geoloc._core", frozen)]
+pub struct FusionResult {
+    inner: geoloc_core::fusion::Fusion,
+}
+pose_estimate_methods!(FusionResult {
+    /// "fused" or "motion" (the geometric pose failed the gate).
+    #[getter]
+    fn source(&self) -> &'static str {
+        self.inner.details.as_str()
+    }
+});
+
+/// Constant-velocity prediction at `t_query`.
 #[pyfunction]
-pub fn motion_predict<'py>(
-    py: Python<'py>,
-    poses_wc: PyReadonlyArray2<'py, f64>,
-    timestamps: PyReadonlyArray1<'py, f64>,
+#[pyo3(signature = (poses_wc, timestamps, t_query, *, covariances=None))]
+pub fn motion_predict(
+    py: Python<'_>,
+    poses_wc: PyReadonlyArray2<'_, f64>,
+    timestamps: PyReadonlyArray1<'_, f64>,
     t_query: f64,
-    covariances: Option<PyReadonlyArray2<'py, f64>>,
-) -> PyResult<Bound<'py, PyDict>> {
+    covariances: Option<PyReadonlyArray2<'_, f64>>,
+) -> PyResult<MotionPrediction> {
     let p = poses("poses", &poses_wc)?;
     let t = timestamps.as_slice().map_err(|_| invalid("timestamps", "must be contiguous"))?;
     let c = covariances.as_ref().map(|c| matrices::<6, 6, 36>("covariances", c)).transpose()?;
-    let pred = core_motion_predict(&p, t, t_query, c.as_deref()).map_err(to_py_err)?;
-    let out = PyDict::new(py);
-    out.set_item("pose", matrices_to_array(py, &[pred.world_from_cam.matrix()]))?;
-    out.set_item("covariance", matrices_to_array(py, &[pred.covariance]))?;
-    out.set_item("velocity", pred.velocity.as_slice().to_vec().into_pyarray(py))?;
-    out.set_item("rms_residual", pred.rms_residual)?;
-    Ok(out)
+    let inner = py.detach(|| core_motion_predict(&p, t, t_query, c.as_deref())).map_err(to_py_err)?;
+    Ok(MotionPrediction { inner })
 }
 
-/// Gate and fuse: dict(pose (1, 16), covariance (1, 36), source, iterations).
+/// Gate and fuse one motion prediction with one geometric pose.
 #[pyfunction]
-#[allow(clippy::too_many_arguments)]
-pub fn fuse<'py>(
-    py: Python<'py>,
-    pose_m: PyReadonlyArray2<'py, f64>,
-    cov_m: PyReadonlyArray2<'py, f64>,
-    pose_g: PyReadonlyArray2<'py, f64>,
-    cov_g: PyReadonlyArray2<'py, f64>,
+#[pyo3(signature = (pose_m, cov_m, pose_g, cov_g, *, gate_sigma=3.0, gate="isometric"))]
+pub fn fuse(
+    pose_m: PyReadonlyArray2<'_, f64>,
+    cov_m: PyReadonlyArray2<'_, f64>,
+    pose_g: PyReadonlyArray2<'_, f64>,
+    cov_g: PyReadonlyArray2<'_, f64>,
     gate_sigma: f64,
     gate: &str,
-) -> PyResult<Bound<'py, PyDict>> {
-    let pm = poses("pose_m", &pose_m)?;
-    let pg = poses("pose_g", &pose_g)?;
-    let cm = matrices::<6, 6, 36>("cov_m", &cov_m)?;
-    let cg = matrices::<6, 6, 36>("cov_g", &cov_g)?;
-    let (Some(pm), Some(pg), Some(cm), Some(cg)) = (pm.first(), pg.first(), cm.first(), cg.first()) else {
-        return Err(invalid("pose_m", "expected one pose and one covariance each"));
-    };
-    let gate = match gate {
-        "isometric" => Gate::Isometric,
-        "chi2" => Gate::ChiSquared,
-        other => return Err(invalid("gate", format!("expected \"isometric\" or \"chi2\", got {other:?}"))),
-    };
-    let f = core_fuse(pm, cm, pg, cg, gate_sigma, gate).map_err(to_py_err)?;
-    let out = PyDict::new(py);
-    out.set_item("pose", matrices_to_array(py, &[f.world_from_cam.matrix()]))?;
-    out.set_item("covariance", matrices_to_array(py, &[f.covariance]))?;
-    out.set_item(
-        "source",
-        match f.source {
-            FusionSource::Fused => "fused",
-            FusionSource::Motion => "motion",
-        },
-    )?;
-    out.set_item("iterations", f.iterations)?;
-    Ok(out)
+) -> PyResult<FusionResult> {
+    let (pm, pg) = (one_pose("pose_m", &pose_m)?, one_pose("pose_g", &pose_g)?);
+    let (cm, cg) = (one_matrix::<6>("cov_m", &cov_m)?, one_matrix::<6>("cov_g", &cov_g)?);
+    let gate = gate.parse::<Gate>().map_err(to_py_err)?;
+    let inner = core_fuse(&pm, &cm, &pg, &cg, gate_sigma, gate).map_err(to_py_err)?;
+    Ok(FusionResult { inner })
 }
 
 /// Registers the functions of this file on the module.
@@ -117,5 +154,7 @@ pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(select_keyframes, m)?)?;
     m.add_function(wrap_pyfunction!(motion_predict, m)?)?;
     m.add_function(wrap_pyfunction!(fuse, m)?)?;
+    m.add_class::<MotionPrediction>()?;
+    m.add_class::<FusionResult>()?;
     Ok(())
 }

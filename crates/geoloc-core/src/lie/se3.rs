@@ -81,6 +81,31 @@ pub fn curly_hat(xi: &Twist) -> Matrix6<f64> {
     m
 }
 
+/// Largest ‖ρ‖ (m) of a twist the checked entry points accept: far below where J_l(φ) ρ
+/// (or ρ alone in a 4×4 product) would overflow.
+pub const MAX_TRANSLATION_NORM: f64 = 1e150;
+
+/// Checks a twist ξ = (ρ, φ): finite, ‖φ‖ ≤ [`so3::MAX_ROTATION_VECTOR_NORM`] and
+/// ‖ρ‖ ≤ [`MAX_TRANSLATION_NORM`].
+///
+/// # Errors
+/// [`GeolocError::NonFinite`] or [`GeolocError::InvalidInput`] named "xi".
+pub fn check_twist(xi: &Twist) -> Result<()> {
+    so3::check_finite(xi.as_slice()).map_err(|e| e.at("xi", 0))?;
+    so3::check_rotation_vector(&phi(xi)).map_err(|e| match e {
+        GeolocError::InvalidInput { reason, .. } => GeolocError::invalid("xi", reason),
+        other => other,
+    })?;
+    let rho_norm = rho(xi).norm();
+    if rho_norm > MAX_TRANSLATION_NORM {
+        return Err(GeolocError::invalid(
+            "xi",
+            format!("‖ρ‖ = {rho_norm:e} exceeds {MAX_TRANSLATION_NORM:e} (the exponential map would overflow)"),
+        ));
+    }
+    Ok(())
+}
+
 impl SE3 {
     /// The identity transform.
     #[inline]
@@ -252,7 +277,7 @@ fn check_last_row(m: &Matrix4<f64>) -> Result<()> {
     if deviation > LAST_ROW_TOLERANCE {
         return Err(GeolocError::NotARotation {
             name: "T".into(),
-            index: 0,
+            index: None,
             what: "rigid transform",
             reason: format!("last row {:?} is not (0, 0, 0, 1)", m.fixed_view::<1, 4>(3, 0).iter().collect::<Vec<_>>()),
         });

@@ -22,6 +22,16 @@ use crate::error::{GeolocError, Result};
 /// be projected with [`SO3::from_matrix_projected`].
 pub const ROTATION_TOLERANCE: f64 = 1e-6;
 
+/// Largest rotation-vector norm θ = ‖φ‖ (rad) the checked entry points
+/// ([`SO3::try_exp`], [`check_rotation_vector`]) accept. Rotations are 2π-periodic, so no
+/// meaningful input comes near it; far beyond it θ² overflows (θ > 1.3e154) and Rodrigues'
+/// coefficients turn into NaN.
+pub const MAX_ROTATION_VECTOR_NORM: f64 = 1e12;
+
+/// Largest |RᵀR − I| entry (and |det R − 1|) of a *near*-rotation, accepted by
+/// [`try_rotation_angle`] (and by the projection of real datasets' rotations, det ≈ 0.9995).
+pub const NEAR_ROTATION_TOLERANCE: f64 = 1e-2;
+
 /// Below this ‖v‖ (the quaternion's vector part) the log uses φ = (2/w)(1 − ‖v‖²/(3w²)) v.
 const QUATERNION_SMALL_VECTOR: f64 = 1e-10;
 
@@ -68,7 +78,71 @@ pub fn rotation_angle(r: &Matrix3<f64>) -> f64 {
     sin_theta.atan2(cos_theta)
 }
 
+/// Checks that φ is finite with ‖φ‖ ≤ [`MAX_ROTATION_VECTOR_NORM`].
+///
+/// # Errors
+/// [`GeolocError::NonFinite`] or [`GeolocError::InvalidInput`], named "phi" (batch callers
+/// re-index with [`GeolocError::at`]).
+pub fn check_rotation_vector(phi: &Vector3<f64>) -> Result<()> {
+    check_finite(phi.as_slice()).map_err(|e| e.at("phi", 0))?;
+    // the largest entry first: ‖φ‖ itself overflows to ∞ beyond 1e154
+    let theta = if phi.amax() > MAX_ROTATION_VECTOR_NORM { phi.amax() } else { phi.norm() };
+    if theta > MAX_ROTATION_VECTOR_NORM {
+        return Err(GeolocError::invalid(
+            "phi",
+            format!("‖φ‖ ≥ {theta:e} rad exceeds {MAX_ROTATION_VECTOR_NORM:e} (the exponential map would overflow)"),
+        ));
+    }
+    Ok(())
+}
+
+/// Θ(R) ([`rotation_angle`]) of a finite near-rotation (RᵀR = I and det R = 1 within
+/// [`NEAR_ROTATION_TOLERANCE`]); a matrix that is no rotation at all has no angle.
+///
+/// # Errors
+/// [`GeolocError::NonFinite`] or [`GeolocError::NotARotation`] named "R".
+pub fn try_rotation_angle(r: &Matrix3<f64>) -> Result<f64> {
+    check_finite(r.as_slice()).map_err(|e| e.at("R", 0))?;
+    let (gram_error, det) = gram_error_and_det(r);
+    if gram_error > NEAR_ROTATION_TOLERANCE || (det - 1.0).abs() > NEAR_ROTATION_TOLERANCE {
+        return Err(GeolocError::NotARotation {
+            name: "R".into(),
+            index: None,
+            what: "near-rotation",
+            reason: format!(
+                "max |RᵀR − I| = {gram_error:.3e}, det R = {det:.6} (tolerance {NEAR_ROTATION_TOLERANCE:e})"
+            ),
+        });
+    }
+    Ok(rotation_angle(r))
+}
+
+/// max |RᵀR − I| over the entries, and det R.
+fn gram_error_and_det(matrix: &Matrix3<f64>) -> (f64, f64) {
+    let (c0, c1, c2) = (matrix.column(0), matrix.column(1), matrix.column(2));
+    let gram_error = [
+        c0.norm_squared() - 1.0,
+        c1.norm_squared() - 1.0,
+        c2.norm_squared() - 1.0,
+        c0.dot(&c1),
+        c0.dot(&c2),
+        c1.dot(&c2),
+    ]
+    .iter()
+    .fold(0.0_f64, |m, e| m.max(e.abs()));
+    (gram_error, c0.dot(&c1.cross(&c2)))
+}
+
 impl SO3 {
+    /// exp(φ^) after [`check_rotation_vector`].
+    ///
+    /// # Errors
+    /// Non-finite φ or ‖φ‖ > [`MAX_ROTATION_VECTOR_NORM`].
+    pub fn try_exp(phi: &Vector3<f64>) -> Result<Self> {
+        check_rotation_vector(phi)?;
+        Ok(Self::exp(phi))
+    }
+
     /// The identity rotation.
     #[inline]
     pub fn identity() -> Self {
@@ -84,26 +158,15 @@ impl SO3 {
     /// Accepts `matrix` if it is finite and a rotation within [`ROTATION_TOLERANCE`].
     ///
     /// # Errors
-    /// [`GeolocError::NonFinite`] or [`GeolocError::NotARotation`] (index 0; batch callers
+    /// [`GeolocError::NonFinite`] or [`GeolocError::NotARotation`] (no index; batch callers
     /// re-index with [`GeolocError::at`]).
     pub fn from_matrix(matrix: &Matrix3<f64>) -> Result<Self> {
         check_finite(matrix.as_slice())?;
-        let (c0, c1, c2) = (matrix.column(0), matrix.column(1), matrix.column(2));
-        let gram_error = [
-            c0.norm_squared() - 1.0,
-            c1.norm_squared() - 1.0,
-            c2.norm_squared() - 1.0,
-            c0.dot(&c1),
-            c0.dot(&c2),
-            c1.dot(&c2),
-        ]
-        .iter()
-        .fold(0.0_f64, |m, e| m.max(e.abs()));
-        let det = c0.dot(&c1.cross(&c2));
+        let (gram_error, det) = gram_error_and_det(matrix);
         if gram_error > ROTATION_TOLERANCE || (det - 1.0).abs() > ROTATION_TOLERANCE {
             return Err(GeolocError::NotARotation {
                 name: "R".into(),
-                index: 0,
+                index: None,
                 what: "rotation",
                 reason: format!(
                     "max |RᵀR − I| = {gram_error:.3e}, det R = {det:.9} \
@@ -126,7 +189,15 @@ impl SO3 {
     pub fn from_matrix_projected(matrix: &Matrix3<f64>) -> Result<Self> {
         check_finite(matrix.as_slice())?;
         let not_near =
-            |reason: String| GeolocError::NotARotation { name: "R".into(), index: 0, what: "near-rotation", reason };
+            |reason: String| GeolocError::NotARotation { name: "R".into(), index: None, what: "near-rotation", reason };
+        // The polar factor of cM is that of M for c > 0: scale by a power of two (exact in
+        // floating point, so near-rotations give the same bits) to keep the SVD from
+        // overflowing (1e200·I) or underflowing (1e-200·I).
+        let largest = matrix.abs().max();
+        if largest == 0.0 {
+            return Err(not_near("the zero matrix".into()));
+        }
+        let matrix = &(matrix * 2f64.powi(-(largest.log2().round() as i32)));
         let det = matrix.determinant();
         if det <= 0.0 {
             return Err(not_near(format!("det = {det:.6e} ≤ 0")));

@@ -38,7 +38,7 @@ impl RobustLoss {
             if w.is_finite() && w > 0.0 {
                 Ok(w)
             } else {
-                Err(GeolocError::invalid(name_arg, format!("kernel width must be finite and > 0, got {w}")))
+                Err(GeolocError::invalid(name_arg, format!("expected a finite number > 0 (the kernel width), got {w}")))
             }
         };
         match kind {
@@ -47,7 +47,7 @@ impl RobustLoss {
             "cauchy" => Ok(Self::Cauchy { width: checked(width)? }),
             other => Err(GeolocError::invalid(
                 "loss",
-                format!("unknown robust loss {other:?}; expected \"huber\", \"cauchy\" or \"none\""),
+                format!("expected one of \"huber\", \"cauchy\", \"none\", got {other:?}"),
             )),
         }
     }

@@ -7,7 +7,10 @@
 //!   min_{T, ε}  Σⱼ ‖π(T, X̂ⱼ + εⱼ) − zⱼ‖²/σ² + Σⱼ εⱼᵀΣⱼ⁻¹εⱼ
 //!
 //! by Levenberg–Marquardt with the points' 3×3 blocks eliminated (Schur complement, as in
-//! bundle adjustment): S = H_TT − Σⱼ H_Tj H_jj⁻¹ H_jT. The pose covariance S⁻¹ is the
+//! bundle adjustment): S = H_TT − Σⱼ H_Tj H_jj⁻¹ H_jT. The loop is the one driver of
+//! [`crate::optim::lm`]; this problem supplies its damped solve (the Schur system, damped
+//! in the point blocks too, and the back-substitution of the corrections) through
+//! [`LeastSquares::damped_step`], and only the cost of each candidate. The pose covariance S⁻¹ is the
 //! first-order marginal — equal to the weighted-PnP propagation — but the Jacobians are
 //! evaluated at corrected points. A weighted PnP on the fixed X̂ⱼ takes Jacobians and
 //! weights at the noisy points; their correlation with the point errors biases the pose by
@@ -25,7 +28,7 @@ use nalgebra::{Matrix2, Matrix2x3, Matrix3, Matrix3x6, Matrix6, Vector2, Vector3
 
 use crate::camera::{Camera, j_uv_point, j_uv_pose, project};
 use crate::lie::SE3;
-use crate::optim::{LmOptions, LmReport, Termination};
+use crate::optim::{DampedStep, Evaluation, LeastSquares, Linearization, LmOptions, LmReport, solve};
 
 use super::PointUncertainty;
 
@@ -47,8 +50,13 @@ pub(super) struct JointProblem<'a> {
 /// Per point, for the back-substitution: H_jj⁻¹, H_jT and g_j.
 type BackSubstitution = Option<(Matrix3<f64>, Matrix3x6<f64>, Vector3<f64>)>;
 
-const MAX_LAMBDA: f64 = 1e12;
-const MIN_LAMBDA: f64 = 1e-12;
+/// The state of the joint solve: the pose and one correction εⱼ per correspondence (zero
+/// for exact points).
+#[derive(Clone, Debug)]
+pub(super) struct JointState {
+    pose: SE3,
+    eps: Vec<Vector3<f64>>,
+}
 
 impl<'a> JointProblem<'a> {
     /// `shared_weights`, aligned with `subset`: the residual weights when keyframe-pose errors
@@ -131,65 +139,56 @@ impl<'a> JointProblem<'a> {
     /// Minimizes the joint cost from `pose`; returns the pose, its marginal covariance
     /// (None if the reduced information is singular) and the report.
     pub(super) fn solve(&self, pose: SE3, options: &LmOptions) -> (SE3, Option<Matrix6<f64>>, LmReport) {
-        let mut pose = pose;
-        let mut eps = vec![Vector3::zeros(); self.items.len()];
-        let mut cost = self.cost(&pose, &eps);
-        let initial_cost = cost;
-        let mut lambda = options.initial_lambda;
-        let mut termination = Termination::MaxIterations;
-        let mut iterations = 0;
-        while iterations < options.max_iterations {
-            iterations += 1;
-            let Some((s, b, back)) = self.reduced(&pose, &eps, lambda) else {
-                termination = Termination::NonFinite;
-                break;
-            };
-            let Some(chol) = s.cholesky() else {
-                lambda *= 10.0;
-                if lambda > MAX_LAMBDA {
-                    termination = Termination::NoDescent;
-                    break;
-                }
-                continue;
-            };
-            let step = chol.solve(&b);
-            if step.norm() < options.step_tolerance {
-                termination = Termination::StepConverged;
-                break;
-            }
-            // predicted decrease of the reduced quadratic model (see optim::lm)
-            if b.dot(&step) <= options.cost_tolerance * cost {
-                termination = Termination::CostConverged;
-                break;
-            }
-            let candidate_pose = pose * SE3::exp(&step);
-            let candidate_eps: Vec<Vector3<f64>> = eps
-                .iter()
-                .zip(&back)
-                .map(|(e, bs)| match bs {
-                    Some((h_inv, h_jt, g_j)) => e - h_inv * (g_j + h_jt * step),
-                    None => *e,
-                })
-                .collect();
-            let new_cost = self.cost(&candidate_pose, &candidate_eps);
-            if new_cost.is_finite() && new_cost < cost {
-                let decrease = (cost - new_cost) / cost.max(f64::MIN_POSITIVE);
-                (pose, eps, cost) = (candidate_pose, candidate_eps, new_cost);
-                lambda = (lambda * 0.1).max(MIN_LAMBDA);
-                if decrease < options.cost_tolerance {
-                    termination = Termination::CostConverged;
-                    break;
-                }
-            } else {
-                lambda *= 10.0;
-                if lambda > MAX_LAMBDA {
-                    termination = Termination::NoDescent;
-                    break;
-                }
-            }
-        }
+        let start = JointState { pose, eps: vec![Vector3::zeros(); self.items.len()] };
+        let (x, report, _) = solve(self, start, options);
         let covariance =
-            self.reduced(&pose, &eps, 0.0).and_then(|(s, _, _)| s.try_inverse()).map(|c| 0.5 * (c + c.transpose()));
-        (pose, covariance, LmReport { iterations, initial_cost, final_cost: cost, termination })
+            self.reduced(&x.pose, &x.eps, 0.0).and_then(|(s, _, _)| s.try_inverse()).map(|c| 0.5 * (c + c.transpose()));
+        (x.pose, covariance, report)
+    }
+}
+
+impl LeastSquares<6> for JointProblem<'_> {
+    type State = JointState;
+
+    /// The reduced (Schur) normal equations in the pose, undamped: (S, −b, cost).
+    fn normal_equations(&self, x: &JointState) -> (Matrix6<f64>, Vector6<f64>, f64) {
+        let cost = self.cost(&x.pose, &x.eps);
+        match self.reduced(&x.pose, &x.eps, 0.0) {
+            Some((s, b, _)) => (s, -b, cost),
+            None => (Matrix6::from_element(f64::NAN), Vector6::from_element(f64::NAN), cost),
+        }
+    }
+
+    /// Pose only (corrections unchanged); the driver uses [`Self::damped_step`] instead.
+    fn retract(&self, x: &JointState, delta: &Vector6<f64>) -> JointState {
+        JointState { pose: x.pose * SE3::exp(delta), eps: x.eps.clone() }
+    }
+
+    /// Only the cost: the damped step forms its own (λ-dependent) Schur system.
+    fn evaluate(&self, x: &JointState) -> Evaluation<6> {
+        Evaluation { cost: self.cost(&x.pose, &x.eps), linearization: None }
+    }
+
+    /// Solves S(λ) δ = b of the Schur system damped by λ in the pose and the point blocks,
+    /// and back-substitutes εⱼ ← εⱼ − H_jj⁻¹(g_j + H_jT δ). The model's predicted decrease
+    /// is bᵀδ.
+    fn damped_step(&self, x: &JointState, _: Option<&Linearization<6>>, lambda: f64) -> DampedStep<JointState> {
+        let Some((s, b, back)) = self.reduced(&x.pose, &x.eps, lambda) else { return DampedStep::NonFinite };
+        let Some(chol) = s.cholesky() else { return DampedStep::NotPositiveDefinite };
+        let step = chol.solve(&b);
+        let eps = x
+            .eps
+            .iter()
+            .zip(&back)
+            .map(|(e, bs)| match bs {
+                Some((h_inv, h_jt, g_j)) => e - h_inv * (g_j + h_jt * step),
+                None => *e,
+            })
+            .collect();
+        DampedStep::Step {
+            norm: step.norm(),
+            predicted_decrease: b.dot(&step),
+            candidate: JointState { pose: x.pose * SE3::exp(&step), eps },
+        }
     }
 }

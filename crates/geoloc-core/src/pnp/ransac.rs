@@ -9,7 +9,7 @@ use super::{MIN_INLIERS, PnpOptions, PoseProblem, inlier_indices, p3p};
 use crate::camera::Camera;
 use crate::lie::SE3;
 use crate::optim::{LmOptions, RobustLoss, levenberg_marquardt};
-use crate::testing::SplitMix64;
+use crate::rng::SplitMix64;
 
 /// P3P RANSAC with MSAC scoring and local optimization; returns the best pose (if it has
 /// at least [`MIN_INLIERS`] inliers) and the number of samples drawn.
@@ -83,7 +83,7 @@ fn sample_three(rng: &mut SplitMix64, n: usize) -> [usize; 3] {
 
 /// MSAC score Σ min(‖r‖², t²) (behind-camera points count t²) and inlier count; None as
 /// soon as the partial score exceeds `bound` (cannot beat the best).
-fn msac_score(
+pub(super) fn msac_score(
     camera: &Camera,
     points: &[Vector3<f64>],
     pixels: &[Vector2<f64>],
