@@ -72,13 +72,31 @@ def render(pose: np.ndarray, textures: list[np.ndarray]) -> np.ndarray:
     return image
 
 
+def _lighting(image: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """A random linear illumination ramp (up to ±70 %) across the image: breaks global
+    correlation, keeps local structure."""
+    h, w = image.shape[:2]
+    angle = rng.uniform(0, 2 * np.pi)
+    yy, xx = np.mgrid[0:h, 0:w]
+    ramp = ((xx / w - 0.5) * np.cos(angle) + (yy / h - 0.5) * np.sin(angle)) * rng.uniform(0.6, 1.4)
+    return np.clip(image * (1.0 + ramp)[..., None], 0, 255).astype(np.uint8)
+
+
+def _yawed(pose: np.ndarray, yaw: float) -> np.ndarray:
+    c, s = np.cos(yaw), np.sin(yaw)
+    out = pose.copy()
+    out[:3, :3] = pose[:3, :3] @ np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+    return out
+
+
 def standin(n_train: int = 240, n_test: int = 60, seed: int = 0) -> tuple[list[PosedImage], list[PosedImage]]:
-    """Training frames: a loop at radius 1.2 m; test frames: a later loop at radius 1.35 m."""
+    """Training frames: a loop at radius 1.2 m; test frames: a later loop at radius 1.35 m,
+    turned ±10° off the training headings; every frame under a random illumination ramp."""
     rng = np.random.default_rng(seed)
     textures = _textures(rng)
     train = [_pose(2 * np.pi * i / n_train, 1.2) for i in range(n_train)]
-    test = [_pose(2 * np.pi * (i + 0.5) / n_test, 1.35) for i in range(n_test)]
-    make = lambda p: PosedImage(render(p, textures), p)  # noqa: E731
+    test = [_yawed(_pose(2 * np.pi * (i + 0.5) / n_test, 1.35), np.radians(10.0) * (-1) ** i) for i in range(n_test)]
+    make = lambda p: PosedImage(_lighting(render(p, textures), rng), p)  # noqa: E731
     return [make(p) for p in train], [make(p) for p in test]
 
 
