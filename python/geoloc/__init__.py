@@ -6,9 +6,10 @@ translation first; perturbations and covariances are on the right (``T @ exp(δ^
 
 from __future__ import annotations
 
-from . import geometry, lie, localizer, matching, retrieval
+from . import descriptor, geometry, lie, localizer, matching, retrieval
 from ._core import __version__
 from .camera import Camera
+from .descriptor import OnnxDescriptor
 from .exceptions import GeolocError, InvalidInputError, NotARotationError
 from .fusion import FusionResult, fuse
 from .motion import MotionPrediction, motion_predict
@@ -20,7 +21,9 @@ __all__ = [
     "InvalidInputError",
     "MotionPrediction",
     "NotARotationError",
+    "OnnxDescriptor",
     "__version__",
+    "descriptor",
     "fuse",
     "geometry",
     "lie",
