@@ -6,24 +6,32 @@ translation first; perturbations and covariances are on the right (``T @ exp(δ^
 
 from __future__ import annotations
 
-from . import datasets, evaluation, features, geometry, lie, localizer, matching, plots, retrieval
+from . import datasets, descriptor, evaluation, features, geometry, lie, localizer, mapping, matching, plots, retrieval
 from ._core import __version__
 from .camera import Camera
+from .descriptor import OnnxDescriptor
 from .evaluation import format_tum_line
-from .exceptions import DatasetError, GeolocError, InvalidInputError, NotARotationError
+from .exceptions import DatasetError, FileAccessError, FileFormatError, GeolocError, InvalidInputError, NotARotationError
 from .fusion import FusionResult, fuse
+from .mapping import Localizer, Map
 from .motion import MotionPrediction, motion_predict
 
 __all__ = [
     "Camera",
     "DatasetError",
+    "FileAccessError",
+    "FileFormatError",
     "FusionResult",
     "GeolocError",
     "InvalidInputError",
+    "Localizer",
+    "Map",
     "MotionPrediction",
     "NotARotationError",
+    "OnnxDescriptor",
     "__version__",
     "datasets",
+    "descriptor",
     "evaluation",
     "features",
     "format_tum_line",
@@ -31,6 +39,7 @@ __all__ = [
     "geometry",
     "lie",
     "localizer",
+    "mapping",
     "matching",
     "motion_predict",
     "plots",
