@@ -16,7 +16,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ..exceptions import InvalidInputError
+from ..exceptions import DatasetError, InvalidInputError
 
 __all__ = [
     "FORMATS",
@@ -114,7 +114,28 @@ def load_dataset(args: argparse.Namespace, camera: Any = None) -> Any:
     if not root.is_dir():
         what = "is a file, expected a folder" if root.exists() else "does not exist"
         raise InvalidInputError(f"--dataset: folder {str(root)!r} {what}")
-    given = intrinsics if intrinsics is not None else camera
+    try:
+        return _load_files(args, fmt, root, intrinsics if intrinsics is not None else camera)
+    except DatasetError as e:
+        raise InvalidInputError(option_message(str(e), "--dataset")) from None
+
+
+#: Loader argument names → the command-line options that set them.
+_OPTION_OF = {"path": None, "intrinsics": "--intrinsics", "trajectory": "--trajectory", "match": "--trajectory"}
+
+
+def option_message(message: str, option: str) -> str:
+    """A loader's message (``"path: …"``, ``"intrinsics: …"``) re-headed with the option
+    that set that argument (``option`` for the dataset path itself, and by default)."""
+    head, sep, rest = message.partition(": ")
+    if sep and head in _OPTION_OF:
+        return f"{_OPTION_OF[head] or option}: {rest}"
+    return f"{option}: {message}"
+
+
+def _load_files(args: argparse.Namespace, fmt: str, root: Path, given: Any) -> Any:
+    from .. import datasets
+
     trajectory = getattr(args, "trajectory", None)
     if trajectory is not None and fmt != "folder":
         raise InvalidInputError(f"--trajectory: only used with --format folder (a {fmt} dataset has its own poses)")

@@ -14,8 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from ..exceptions import InvalidInputError
-from ._common import Progress, load_dataset, localize_sequence, select
+from ..exceptions import DatasetError, InvalidInputError
+from ._common import Progress, load_dataset, localize_sequence, option_message, select
 
 __all__ = ["run"]
 
@@ -38,7 +38,10 @@ def _images(args: argparse.Namespace, camera: Any) -> Any:
         what = "is a file, expected a folder" if root.exists() else "does not exist"
         raise InvalidInputError(f"--images: folder {str(root)!r} {what}")
     # The folder's own size first (from its first image), so a size mismatch is one clear error.
-    sequence = load_folder(root, trajectory=None, intrinsics=camera.intrinsics)
+    try:
+        sequence = load_folder(root, trajectory=None, intrinsics=camera.intrinsics)
+    except DatasetError as e:
+        raise InvalidInputError(option_message(str(e), "--images")) from None
     size = (sequence.camera.width, sequence.camera.height)
     if size != (camera.width, camera.height):
         raise InvalidInputError(
