@@ -87,7 +87,7 @@ def intrinsics(text: str) -> tuple[float, float, float, float]:
         raise argparse.ArgumentTypeError(f"expected fx,fy,cx,cy (four numbers), got {text!r}") from None
     if len(values) != 4 or not all(math.isfinite(v) for v in values) or values[0] <= 0 or values[1] <= 0:
         raise argparse.ArgumentTypeError(f"expected fx,fy,cx,cy: four finite numbers with fx, fy > 0, got {text!r}")
-    return values  # type: ignore[return-value]
+    return values
 
 
 intrinsics.__name__ = "intrinsics"
