@@ -55,7 +55,7 @@ def _is_png(path: Path) -> bool:
 def test_every_command_has_help_with_an_example(command: str) -> None:
     result = _run(command, "--help")
     assert result.returncode == 0, result.stderr
-    assert f"example: geoloc {command}" in result.stdout
+    assert f"example:\n  geoloc {command} " in result.stdout
 
 
 def test_demo_writes_results_and_plots_and_localizes_to_a_centimetre(tmp_path: Path) -> None:

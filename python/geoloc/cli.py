@@ -38,6 +38,21 @@ MAX_FEATURES = 100_000
 Handler = Callable[[argparse.Namespace], int]
 
 
+class _HelpFormatter(argparse.HelpFormatter):
+    """Wraps descriptions as usual but prints an ``example:`` epilog verbatim, so the
+    example's command lines can be copied as they are."""
+
+    def _fill_text(self, text: str, width: int, indent: str) -> str:
+        if text.startswith("example"):
+            return text
+        return super()._fill_text(text, width, indent)
+
+
+def _example(*lines: str) -> str:
+    """An epilog: ``example:`` then the command, continuation lines ending in a backslash."""
+    return "example:\n  " + " \\\n      ".join(lines)
+
+
 def bounded_int(low: int, high: int) -> Callable[[str], int]:
     """An argparse ``type`` accepting integers in [low, high]; the message says the range."""
 
@@ -125,7 +140,9 @@ def retrieval(text: str) -> str:
     raise argparse.ArgumentTypeError(f"expected bow, got {text!r}")
 
 
-def _dataset_options(parser: argparse.ArgumentParser, trajectory: bool = False, required: bool = True) -> None:
+def _dataset_options(
+    parser: argparse.ArgumentParser, trajectory: bool = False, required: bool = True, intrinsics_default: str | None = None
+) -> None:
     from .commands._common import FORMATS
 
     parser.add_argument(
@@ -139,8 +156,9 @@ def _dataset_options(parser: argparse.ArgumentParser, trajectory: bool = False, 
     )
     parser.add_argument(
         "--intrinsics", type=intrinsics, metavar="fx,fy,cx,cy",
-        help="pinhole intrinsics in pixels (7scenes default: 525,525,320,240; tum: from the folder name "
-        "or camera.txt; folder: required)",
+        help="pinhole intrinsics in pixels (default: "
+        + (intrinsics_default or "7scenes 525,525,320,240; tum from the folder name or camera.txt; folder: required")
+        + ")",
     )
     if trajectory:
         parser.add_argument(
@@ -168,12 +186,13 @@ def _feature_options(parser: argparse.ArgumentParser) -> None:
 def _add_demo(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> Handler:
     demo = commands.add_parser(
         "demo",
+        formatter_class=_HelpFormatter,
         help="the synthetic room end to end; writes ./geoloc-demo/results.json + plots",
         description="Render the built-in synthetic room (two laps around it), build a map from the "
         "first lap, localize frames of the second lap in single mode (history forgotten before each "
         "frame) and sequential mode (motion model + fusion), print the paper-style table and the "
         "per-stage times, and write results.json and the plots. About half a minute on 2 cores.",
-        epilog="example: geoloc demo --out geoloc-demo",
+        epilog=_example("geoloc demo --out geoloc-demo"),
     )
     demo.add_argument(
         "--out", type=new_folder, default="geoloc-demo", metavar="DIR",
@@ -196,12 +215,15 @@ def _add_demo(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> 
 def _add_build_map(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> Handler:
     build = commands.add_parser(
         "build-map",
+        formatter_class=_HelpFormatter,
         help="build a map file from a dataset with poses",
         description="Extract local features of the dataset's frames, train the retrieval vocabulary "
         "and write everything to one .geoloc map file (safetensors; written atomically). "
         "A progress bar goes to stderr when it is a terminal.",
-        epilog="example: geoloc build-map --dataset ../shared/data/7scenes-redkitchen --format 7scenes "
-        "--intrinsics 525,525,320,240 --frames 0:600 --out redkitchen.geoloc",
+        epilog=_example(
+            "geoloc build-map --dataset ../shared/data/7scenes-redkitchen --format 7scenes",
+            "--intrinsics 525,525,320,240 --frames 0:600 --out redkitchen.geoloc",
+        ),
     )
     _dataset_options(build, trajectory=True)
     build.add_argument("--frames", type=frame_range, metavar="A:B", help="frame positions A..B-1 (A:B:K every K-th; default: all)")
@@ -222,17 +244,20 @@ def _add_build_map(commands: argparse._SubParsersAction[argparse.ArgumentParser]
 def _add_localize(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> Handler:
     loc = commands.add_parser(
         "localize",
+        formatter_class=_HelpFormatter,
         help="localize images against a map; writes a TUM trajectory",
         description="Localize every image of a folder (sorted by name; timestamps from numeric "
         "names, else index/30 s) or of a dataset against a map built by build-map, and write the "
         "poses (world_from_cam) as a TUM trajectory (timestamp tx ty tz qx qy qz qw), atomically. "
         "Lost frames are left out of the file and counted in the summary line on stderr.",
-        epilog="example: geoloc localize --map redkitchen.geoloc --dataset ../shared/data/7scenes-redkitchen "
-        "--format 7scenes --frames 600:700 --mode sequential --out poses.txt",
+        epilog=_example(
+            "geoloc localize --map redkitchen.geoloc --dataset ../shared/data/7scenes-redkitchen",
+            "--format 7scenes --frames 600:700 --mode sequential --out poses.txt",
+        ),
     )
     loc.add_argument("--map", type=existing_file, required=True, metavar="scene.geoloc", help="map file (from build-map)")
     loc.add_argument("--images", metavar="DIR", help="a folder of images of the map camera's size")
-    _dataset_options(loc, required=False)
+    _dataset_options(loc, required=False, intrinsics_default="the map's camera")
     loc.add_argument("--frames", type=frame_range, metavar="A:B", help="frame positions A..B-1 (A:B:K every K-th; default: all)")
     loc.add_argument(
         "--mode", choices=("single", "sequential"), default="sequential",
@@ -253,14 +278,17 @@ def _add_localize(commands: argparse._SubParsersAction[argparse.ArgumentParser])
 def _add_evaluate(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> Handler:
     ev = commands.add_parser(
         "evaluate",
+        formatter_class=_HelpFormatter,
         help="build a map from a train range, localize a test range, print errors and calibration",
         description="Build a map from the --train frames, localize the --test frames in single "
         "and/or sequential mode, and print the paper-style table: median translation/rotation "
         "error, recall (5 cm/5°, 25 cm/2°, 10 cm/1°), sources, NEES calibration and time per "
         "frame, with the paper's figures as a reference on 7-Scenes. Default split: the "
         "synthetic room's two laps; otherwise the last 100 frames are the test set.",
-        epilog="example: geoloc evaluate --dataset ../shared/data/7scenes-redkitchen --format 7scenes "
-        "--intrinsics 525,525,320,240 --train 0:600 --test 600:700 --json r.json --timings --plots out/",
+        epilog=_example(
+            "geoloc evaluate --dataset ../shared/data/7scenes-redkitchen --format 7scenes",
+            "--intrinsics 525,525,320,240 --train 0:600 --test 600:700 --json r.json --timings --plots out/",
+        ),
     )
     _dataset_options(ev)
     ev.add_argument("--train", type=frame_range, metavar="A:B", help="map frames (A:B:K every K-th)")
