@@ -101,6 +101,22 @@ def test_evaluate_synthetic_writes_the_json_and_plots(tmp_path: Path) -> None:
         assert stage in result.stdout
 
 
+@pytest.mark.parametrize("fmt", ["tum", "folder"])
+def test_evaluate_reads_tum_and_folder_datasets(tmp_path: Path, fmt: str) -> None:
+    """The room written as a TUM folder, read back as --format tum (intrinsics from its
+    camera.txt) and as --format folder (its rgb/ images + groundtruth.txt as trajectory)."""
+    root = datasets.synthetic_room(n_frames=40).write_tum(tmp_path / "room")
+    if fmt == "tum":
+        where = ["--dataset", str(root)]
+    else:
+        where = ["--dataset", str(root / "rgb"), "--trajectory", "../groundtruth.txt", "--intrinsics", "525,525,319.5,239.5"]
+    result = _run("evaluate", "--format", fmt, *where, "--train", "0:20", "--test", "20:40:5", "--mode", "single", "--json", str(tmp_path / "r.json"))
+    assert result.returncode == 0, result.stdout + result.stderr
+    data = json.loads((tmp_path / "r.json").read_text())
+    assert data["frames"] == 4 and data["format"] == fmt
+    assert data["median_translation_m"] <= SYNTHETIC_MEDIAN_M and data["median_rotation_deg"] <= SYNTHETIC_MEDIAN_DEG
+
+
 @pytest.mark.parametrize(
     ("args", "names"),
     [

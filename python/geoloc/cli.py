@@ -290,7 +290,7 @@ def _add_evaluate(commands: argparse._SubParsersAction[argparse.ArgumentParser])
             "--intrinsics 525,525,320,240 --train 0:600 --test 600:700 --json r.json --timings --plots out/",
         ),
     )
-    _dataset_options(ev)
+    _dataset_options(ev, trajectory=True)
     ev.add_argument("--train", type=frame_range, metavar="A:B", help="map frames (A:B:K every K-th)")
     ev.add_argument("--test", type=frame_range, metavar="C:D", help="test frames (C:D:K every K-th)")
     ev.add_argument(
