@@ -7,7 +7,7 @@ import pytest
 
 import geoloc
 from geoloc import lie
-from geoloc.localizer import FeatureLocalizer, FeatureMap
+from geoloc.localizer import FeatureLocalizer, FeatureMap, LocalizationResult
 from geoloc.montecarlo import look_at
 
 CAM = geoloc.Camera(525, 525, 320, 240)
@@ -83,3 +83,70 @@ def test_timestamps_must_increase(feature_map: tuple[FeatureMap, np.ndarray, np.
         loc.localize(0.5, kp, d)
     loc.reset()
     assert loc.localize(0.4, kp, d).source == "geometric"
+
+
+def _tiny_map_inputs() -> tuple[np.ndarray, list[np.ndarray], list[np.ndarray]]:
+    rng = np.random.default_rng(4)
+    poses = np.stack([_walk(0.1 * i, 0.0) for i in range(3)])
+    kps = [rng.uniform(0, 400, (20, 2)) for _ in range(3)]
+    descs = [rng.integers(0, 256, (20, 32), dtype=np.uint8) for _ in range(3)]
+    return poses, kps, descs
+
+
+def test_map_refuses_bad_input_by_name() -> None:
+    """Issue 11 regressions: each raises InvalidInputError naming the argument."""
+    poses, kps, descs = _tiny_map_inputs()
+    with pytest.raises(geoloc.InvalidInputError, match=r"^depth: "):
+        FeatureMap(CAM, poses, kps, descs, branching=2, depth=100000)
+    with pytest.raises(geoloc.InvalidInputError, match=r"^branching: "):
+        FeatureMap(CAM, poses, kps, descs, branching=-1)
+    with pytest.raises(geoloc.InvalidInputError, match=r"^seed: "):
+        FeatureMap(CAM, poses, kps, descs, seed=2**70)
+    covs = np.stack([np.eye(6) * 1e-4] * 3)
+    covs[1, 2, 2] = -1e-4  # negative variance: used to turn every later frame into "lost"
+    with pytest.raises(geoloc.InvalidInputError, match=r"^pose_covariances\[1\]: .*positive semi-definite"):
+        FeatureMap(CAM, poses, kps, descs, pose_covariances=covs)
+    covs = np.stack([np.eye(6) * 1e-4] * 3)
+    covs[2, 0, 1] = 1e-5
+    with pytest.raises(geoloc.InvalidInputError, match=r"^pose_covariances\[2\]: .*symmetric"):
+        FeatureMap(CAM, poses, kps, descs, pose_covariances=covs)
+    # a float64 descriptor beyond float32's range is refused at construction, not in localize
+    fdescs = [np.ones((20, 8)) for _ in range(3)]
+    fdescs[1][3, 0] = 1e39
+    with pytest.raises(geoloc.InvalidInputError, match=r"^descriptors\[1\]\[3\] overflows float32"):
+        FeatureMap(CAM, poses, kps, fdescs)
+
+
+def test_global_descriptor_shape_and_name() -> None:
+    """Issue 11: a (2, D) global_descriptor was silently flattened, and a wrong length was
+    reported as 'queries'."""
+    poses, kps, descs = _tiny_map_inputs()
+    g = np.random.default_rng(5).normal(size=(3, 4)).astype(np.float32)
+    m = FeatureMap(CAM, poses, kps, descs, global_descriptors=g, retrieval="global")
+    loc = FeatureLocalizer(m)
+    with pytest.raises(geoloc.InvalidInputError, match=r"^global_descriptor: expected shape \(D,\)"):
+        loc.localize(0.0, kps[0], descs[0], np.zeros((2, 2), np.float32))
+    with pytest.raises(geoloc.InvalidInputError, match=r"^global_descriptor: expected 4 values, got 3"):
+        loc.localize(0.0, kps[0], descs[0], np.zeros(3, np.float32))
+    r = loc.localize(0.0, kps[0], descs[0], g[2])
+    assert r.keyframe == 2
+
+
+def test_integer_like_options() -> None:
+    """Issue 11: FeatureLocalizer(history=np.int64(5)) was refused."""
+    poses, kps, descs = _tiny_map_inputs()
+    m = FeatureMap(CAM, poses, kps, descs, branching=np.int64(2), depth=np.int32(2), seed=np.uint64(1))
+    FeatureLocalizer(m, history=np.int64(5))
+    with pytest.raises(geoloc.InvalidInputError, match=r"^history: "):
+        FeatureLocalizer(m, history=-3)
+    with pytest.raises(geoloc.InvalidInputError, match=r"^history: "):
+        FeatureLocalizer(m, history=2**70)
+
+
+def test_result_is_a_typed_class(feature_map: tuple[FeatureMap, np.ndarray, np.ndarray]) -> None:
+    m, pts, desc = feature_map
+    kp, d = _observe(np.random.default_rng(3), _walk(0.5, 0.1), pts, desc)
+    r = FeatureLocalizer(m).localize(0.5, kp, d)
+    assert isinstance(r, LocalizationResult)
+    assert r.pose is not None and r.pose.shape == (4, 4) and r.covariance is not None and r.covariance.shape == (6, 6)
+    assert r.source == "geometric" and r.inliers > 0 and isinstance(r.keyframe, int)

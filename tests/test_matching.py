@@ -61,7 +61,20 @@ def test_bad_input() -> None:
     with pytest.raises(geoloc.InvalidInputError, match=r"descriptors_a: expected shape \(N, W\)"):
         matching.match_descriptors(np.zeros(5), a8)
     cam = geoloc.Camera(1, 1, 0, 0)
-    with pytest.raises(geoloc.InvalidInputError, match="matches"):
+    # issue 11: the errors name the Python arguments, pairs and max_px (were matches, max_epipolar_px)
+    with pytest.raises(geoloc.InvalidInputError, match=r"^pairs: "):
         matching.epipolar_filter(cam, np.eye(4), np.eye(4), np.zeros((1, 2)), np.zeros((1, 2)), np.array([[3, 0]]))
+    with pytest.raises(geoloc.InvalidInputError, match=r"^max_px: "):
+        matching.epipolar_filter(cam, np.eye(4), np.eye(4), np.zeros((1, 2)), np.zeros((1, 2)), np.array([[0, 0]]), max_px=-1)
+    with pytest.raises(geoloc.InvalidInputError, match=r"^pairs: "):
+        matching.epipolar_filter(cam, np.eye(4), np.eye(4), np.zeros((1, 2)), np.zeros((1, 2)), np.array([[-1, 0]]))
     pairs, dist = matching.match_descriptors(a8, np.zeros((0, 32), dtype=np.uint8))
     assert pairs.shape == (0, 2) and dist.shape == (0,)
+
+
+def test_self_matches_at_extreme_magnitudes() -> None:
+    """Issue 11: float32 values near 1e20 are finite but their squares are not; matching used
+    to find 0 of 50 self-matches there."""
+    x = (np.random.default_rng(0).normal(size=(50, 16)) * 1e20).astype(np.float32)
+    pairs, dist = matching.match_descriptors(x, x)
+    assert len(pairs) == 50 and np.all(pairs[:, 0] == pairs[:, 1]) and np.all(dist == 0)

@@ -93,3 +93,61 @@ def test_bow_bad_input() -> None:
         vocab.words(np.zeros((3, 8), dtype=np.uint8))
     with pytest.raises(geoloc.InvalidInputError, match="vocabulary: expected"):
         BowDatabase("vocab", [])  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("scale", [1e20, 1e-25])
+@pytest.mark.parametrize("backend", ["kdtree", "flat"])
+def test_exact_at_extreme_magnitudes(scale: float, backend: str) -> None:
+    """Issue 11: DescriptorIndex(x).query(x[[7, 42]]) with values near 1e20 returned index 0,
+    distance 0 (inf - inf = NaN); now equal to brute force in float64."""
+    rng = np.random.default_rng(1)
+    x = (rng.normal(size=(100, 4)) * scale).astype(np.float32)
+    q = np.vstack([x[[7, 42]], (rng.normal(size=(1, 4)) * scale).astype(np.float32)])
+    dist, ind = DescriptorIndex(x, backend=backend).query(q, k=3)  # type: ignore[arg-type]
+    d64 = np.linalg.norm(x.astype(np.float64)[None] - q.astype(np.float64)[:, None], axis=2)
+    want = np.argsort(d64, axis=1, kind="stable")[:, :3]
+    assert ind[:, 0].tolist()[:2] == [7, 42]
+    np.testing.assert_array_equal(ind, want)
+    np.testing.assert_allclose(dist, np.take_along_axis(d64, want, axis=1), rtol=1e-6)
+
+
+def test_vocabulary_limits_are_named_errors() -> None:
+    """Issue 11: depth 20000 overflowed the stack (segfault); counts that do not fit raise
+    InvalidInputError naming the argument (not OverflowError); numpy integers are accepted."""
+    from geoloc.retrieval import Vocabulary
+
+    zeros = np.zeros((50, 32), np.uint8)
+    with pytest.raises(geoloc.InvalidInputError, match=r"^depth: "):
+        Vocabulary.train(zeros, 2, 20000)
+    with pytest.raises(geoloc.InvalidInputError, match=r"^branching: "):
+        Vocabulary.train(zeros, -1, 2)
+    with pytest.raises(geoloc.InvalidInputError, match=r"^seed: "):
+        Vocabulary.train(zeros, 2, 2, seed=2**70)
+    with pytest.raises(geoloc.InvalidInputError, match=r"^branching: "):
+        Vocabulary.train(zeros, 2.5, 2)  # type: ignore[arg-type]
+    assert len(Vocabulary.train(zeros, np.int64(2), np.uint8(24), seed=np.int64(3))) >= 1
+
+
+def test_bow_scores_stay_in_unit_interval() -> None:
+    """Issue 11: BoW scores reached 1.0000011 (f32 sums); now clamped f64 sums in [0, 1]."""
+    from geoloc.retrieval import BowDatabase, Vocabulary
+
+    rng = np.random.default_rng(7)
+    images = [rng.integers(0, 256, (300, 32), dtype=np.uint8) for _ in range(30)]
+    vocab = Vocabulary.train(np.vstack(images), branching=10, depth=3)
+    db = BowDatabase(vocab, images)
+    for im in images:
+        scores, ids = db.query(im, k=30)
+        assert np.all((scores >= 0) & (scores <= 1)), scores.max()
+
+
+def test_bow_ties_rank_by_index() -> None:
+    """A stopped camera: identical images score exactly alike and rank by index."""
+    from geoloc.retrieval import BowDatabase, Vocabulary
+
+    rng = np.random.default_rng(8)
+    same = rng.integers(0, 256, (200, 32), dtype=np.uint8)
+    images = [rng.integers(0, 256, (200, 32), dtype=np.uint8) for _ in range(5)] + [same] * 4
+    db = BowDatabase(Vocabulary.train(np.vstack(images), branching=8, depth=2), images)
+    scores, ids = db.query(same, k=4)
+    assert ids.tolist() == [5, 6, 7, 8] and len(set(scores.tolist())) == 1

@@ -1,6 +1,7 @@
 # Stub of the compiled module geoloc._core (crates/geoloc-py); checked against the built
 # module by mypy.stubtest in tests/test_stubs.py. Every function maps rows: (N, in) float64,
 # C-contiguous, finite → (N, out) float64; matrices are flattened row-major.
+import os
 from typing import Any, final
 
 import numpy as np
@@ -100,7 +101,12 @@ def fuse(
     gate: str,
 ) -> dict[str, Any]: ...
 def match_descriptors(
-    a: NDArray[Any], b: NDArray[Any], ratio: float | None, mutual: bool, max_distance: float | None
+    descriptors_a: NDArray[Any],
+    descriptors_b: NDArray[Any],
+    *,
+    ratio: float | None = ...,
+    mutual: bool = True,
+    max_distance: float | None = None,
 ) -> tuple[NDArray[np.int64], NDArray[np.float32]]: ...
 def epipolar_filter(
     intrinsics: tuple[float, float, float, float],
@@ -109,13 +115,16 @@ def epipolar_filter(
     keypoints_a: NDArray[np.float64],
     keypoints_b: NDArray[np.float64],
     pairs: NDArray[np.int64],
-    max_px: float,
+    *,
+    max_px: float = 2.0,
 ) -> NDArray[np.bool_]: ...
+
+# --- retrieval, bow, matching, localizer (geoloc_core::{retrieval, bow, matching, map, localizer}) ---
 
 @final
 class DescriptorIndex:
-    def __new__(cls, descriptors: NDArray[np.float32], backend: str | None = None) -> DescriptorIndex: ...
-    def query(self, queries: NDArray[np.float32], k: int) -> tuple[NDArray[np.float32], NDArray[np.int64]]: ...
+    def __new__(cls, descriptors: NDArray[np.float32], *, backend: str | None = None) -> DescriptorIndex: ...
+    def query(self, queries: NDArray[np.float32], k: int | np.integer[Any] | None = None) -> tuple[NDArray[np.float32], NDArray[np.int64]]: ...
     def __len__(self) -> int: ...
     @property
     def dim(self) -> int: ...
@@ -125,14 +134,23 @@ class DescriptorIndex:
 @final
 class Vocabulary:
     @staticmethod
-    def train(descriptors: NDArray[Any], branching: int, depth: int, seed: int) -> Vocabulary: ...
+    def train(
+        descriptors: NDArray[Any],
+        *,
+        branching: int | np.integer[Any] | None = None,
+        depth: int | np.integer[Any] | None = None,
+        seed: int | np.integer[Any] | None = None,
+    ) -> Vocabulary: ...
     def words(self, descriptors: NDArray[Any]) -> NDArray[np.uint32]: ...
     def __len__(self) -> int: ...
 
 @final
 class BowDatabase:
-    def __new__(cls, vocabulary_len: int, images: list[list[int]]) -> BowDatabase: ...
-    def query(self, words: list[int], k: int) -> list[tuple[int, float]]: ...
+    def __new__(cls, vocabulary: Vocabulary, images: list[NDArray[Any]]) -> BowDatabase: ...
+    def query(self, descriptors: NDArray[Any], k: int | np.integer[Any] | None = None) -> tuple[NDArray[np.float32], NDArray[np.int64]]: ...
+    @property
+    def vocabulary(self) -> Vocabulary: ...
+    def __len__(self) -> int: ...
 
 @final
 class FeatureMap:
@@ -142,23 +160,54 @@ class FeatureMap:
         poses_wc: NDArray[np.float64],
         keypoints_list: list[NDArray[np.float64]],
         descriptors_list: list[NDArray[Any]],
-        global_descriptors: NDArray[np.float32] | None,
-        pose_covariances: NDArray[np.float64] | None,
-        retrieval: str,
-        branching: int,
-        depth: int,
-        seed: int,
+        *,
+        global_descriptors: NDArray[np.float32] | None = None,
+        pose_covariances: NDArray[np.float64] | None = None,
+        retrieval: str = "bow",
+        branching: int | np.integer[Any] | None = None,
+        depth: int | np.integer[Any] | None = None,
+        seed: int | np.integer[Any] | None = None,
     ) -> FeatureMap: ...
     def __len__(self) -> int: ...
+    @property
+    def intrinsics(self) -> tuple[float, float, float, float]: ...
+    def save(self, path: str | os.PathLike[str], frontend: str) -> None: ...
+    @staticmethod
+    def load(path: str | os.PathLike[str]) -> tuple[FeatureMap, str]: ...
+
+@final
+class Localization:
+    @property
+    def pose(self) -> NDArray[np.float64] | None: ...
+    @property
+    def covariance(self) -> NDArray[np.float64] | None: ...
+    @property
+    def source(self) -> str: ...
+    @property
+    def reason(self) -> str: ...
+    @property
+    def keyframe(self) -> int: ...
+    @property
+    def inliers(self) -> int: ...
+    @property
+    def timings_ms(self) -> dict[str, float]: ...
 
 @final
 class FeatureLocalizer:
-    def __new__(cls, map: FeatureMap, pixel_sigma: float, max_residual: float, gate_sigma: float, history: int) -> FeatureLocalizer: ...
+    def __new__(
+        cls,
+        map: FeatureMap,
+        *,
+        pixel_sigma: float = 1.0,
+        max_residual: float = 5.0,
+        gate_sigma: float = 3.0,
+        history: int | np.integer[Any] | None = None,
+    ) -> FeatureLocalizer: ...
     def localize(
         self,
         timestamp: float,
-        keypoints_px: NDArray[np.float64],
+        keypoints: NDArray[np.float64],
         descriptors: NDArray[Any],
-        global_descriptor: NDArray[np.float32] | None,
-    ) -> dict[str, Any]: ...
+        global_descriptor: NDArray[np.float32] | None = None,
+    ) -> Localization: ...
     def reset(self) -> None: ...

@@ -6,7 +6,7 @@ the builtin :class:`ValueError`, so ``except ValueError`` keeps working.
 
 from __future__ import annotations
 
-__all__ = ["DatasetError", "GeolocError", "InvalidInputError", "NotARotationError"]
+__all__ = ["FileAccessError", "FileFormatError", "DatasetError", "GeolocError", "InvalidInputError", "NotARotationError"]
 
 
 class GeolocError(Exception):
@@ -29,3 +29,14 @@ class DatasetError(InvalidInputError):
     """A dataset on disk cannot be read as asked: a missing folder or file, no images, an
     unreadable pose or trajectory file, mismatched counts, an image of another size. The
     message names the file or folder."""
+
+
+class FileFormatError(InvalidInputError):
+    """A file geoloc reads (a ``.geoloc`` map, a frame stream) is truncated, corrupt or of
+    another format version; the message names the file and the check that failed. Nothing of
+    such a file is loaded."""
+
+
+class FileAccessError(GeolocError, OSError):
+    """A file cannot be read or written (missing, a folder, not writable, disk full); the
+    message names the path."""

@@ -11,29 +11,24 @@ motion history. Image-level mapping (feature extraction, datasets) builds on the
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Any, Literal, Sequence
+import json
+import os
+
+from typing import Any, Literal, Mapping, Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from . import _core
+from ._core import Localization as LocalizationResult
 from ._validation import as_batch, as_float64
 from .camera import Camera
 from .exceptions import InvalidInputError
+from .retrieval import _f32_rows, _local_descriptors
 
 __all__ = ["FeatureLocalizer", "FeatureMap", "LocalizationResult"]
 
 Array = NDArray[np.float64]
-
-
-def _descriptors(x: ArrayLike, name: str) -> NDArray[Any]:
-    arr = np.asarray(x)
-    if arr.ndim != 2:
-        raise InvalidInputError(f"{name}: expected shape (N, W), got {arr.shape}")
-    if arr.dtype == np.uint8:
-        return np.ascontiguousarray(arr)
-    return np.ascontiguousarray(as_float64(arr, name), dtype=np.float32)
 
 
 def _keypoints(x: ArrayLike, name: str, n: int | None = None) -> Array:
@@ -45,7 +40,12 @@ def _keypoints(x: ArrayLike, name: str, n: int | None = None) -> Array:
 
 
 class FeatureMap:
-    """Keyframes (poses + features) and their retrieval structure; see the module doc."""
+    """Keyframes (poses + features) and their retrieval structure; see the module doc.
+
+    Everything is checked here, at construction (counts, finiteness, float32 range, pose
+    covariances symmetric positive semi-definite, ``retrieval`` in {"bow", "global"}, the
+    vocabulary's limits ``branching`` ≤ 1024, ``depth`` ≤ 24, ``branching**depth`` ≤ 2**24),
+    so a map that builds localizes."""
 
     def __init__(
         self,
@@ -68,75 +68,86 @@ class FeatureMap:
         n = flat.shape[0]
         if len(keypoints) != n or len(descriptors) != n:
             raise InvalidInputError(f"keypoints, descriptors: expected one array per pose ({n})")
-        descs = [_descriptors(d, f"descriptors[{i}]") for i, d in enumerate(descriptors)]
+        descs = [_local_descriptors(d, f"descriptors[{i}]") for i, d in enumerate(descriptors)]
         kps = [_keypoints(k, f"keypoints[{i}]", len(descs[i])) for i, k in enumerate(keypoints)]
-        g = None
-        if global_descriptors is not None:
-            g = np.ascontiguousarray(as_float64(global_descriptors, "global_descriptors"), dtype=np.float32)
-            if g.ndim != 2 or g.shape[0] != n:
-                raise InvalidInputError(f"global_descriptors: expected shape ({n}, D), got {g.shape}")
+        g = None if global_descriptors is None else _f32_rows(global_descriptors, "global_descriptors")
         covs = None
         if pose_covariances is not None:
             c = as_float64(pose_covariances, "pose_covariances")
             if c.shape != (n, 6, 6):
                 raise InvalidInputError(f"pose_covariances: expected shape ({n}, 6, 6), got {c.shape}")
             covs = np.ascontiguousarray(c.reshape(n, 36))
-        if retrieval not in ("bow", "global"):
-            raise InvalidInputError(f"retrieval: expected 'bow' or 'global', got {retrieval!r}")
         self.camera = camera
-        self._map = _core.FeatureMap(camera.intrinsics, flat, kps, descs, g, covs, retrieval, int(branching), int(depth), int(seed))
+        self.frontend: dict[str, Any] = {}
+        self._map = _core.FeatureMap(
+            camera.intrinsics, flat, kps, descs, global_descriptors=g, pose_covariances=covs,
+            retrieval=retrieval, branching=branching, depth=depth, seed=seed,
+        )
 
     def __len__(self) -> int:
         return len(self._map)
 
+    def save(self, path: str | os.PathLike[str], frontend: Mapping[str, Any] | None = None) -> None:
+        """Write the map to one ``.geoloc`` file (safetensors), atomically: an interrupted save
+        keeps the previous file. ``frontend`` (a JSON-able dict) records the caller's settings."""
+        text = json.dumps(dict(frontend or {}), sort_keys=True, allow_nan=False)
+        self._map.save(os.fspath(path), text)
 
-@dataclass(frozen=True)
-class LocalizationResult:
-    """One frame: pose (4, 4) world_from_cam and covariance (6, 6, right perturbation,
-    translation first), or None when lost; ``source`` is "geometric", "fused", "motion" or
-    "lost"; ``reason`` says why; per-stage ``timings_ms``."""
+    @classmethod
+    def load(cls, path: str | os.PathLike[str], camera: Camera | None = None) -> FeatureMap:
+        """Read a map written by :meth:`save`, checking it whole first: a truncated, corrupt or
+        other-version file raises :class:`geoloc.exceptions.FileFormatError`. ``camera`` gives
+        the image size and distortion (the file stores the intrinsics); its intrinsics must
+        match. The caller's settings are in ``.frontend``."""
+        core, text = _core.FeatureMap.load(os.fspath(path))
+        intrinsics = core.intrinsics
+        if camera is None:
+            camera = Camera(*intrinsics)
+        elif not isinstance(camera, Camera) or camera.intrinsics != intrinsics:
+            raise InvalidInputError(f"camera: must be a geoloc.Camera with the map's intrinsics {intrinsics}")
+        self = cls.__new__(cls)
+        self.camera = camera
+        self._map = core
+        self.frontend = json.loads(text)
+        return self
 
-    pose: Array | None
-    covariance: Array | None
-    source: str
-    reason: str
-    keyframe: int
-    inliers: int
-    timings_ms: dict[str, float] = field(default_factory=dict)
+
+LocalizationResult.__doc__ = """One frame: ``pose`` (4, 4) world_from_cam and ``covariance`` (6, 6, right
+perturbation, translation first), or None when lost; ``source`` is "geometric", "fused",
+"motion" or "lost"; ``reason`` says why; ``keyframe`` the retrieved keyframe, ``inliers``
+the PnP inliers; per-stage ``timings_ms``."""
 
 
 class FeatureLocalizer:
-    """Localizes frames (given as features) against a :class:`FeatureMap`, frame after frame."""
+    """Localizes frames (given as features) against a :class:`FeatureMap`, frame after frame.
+
+    Options (checked in the core): ``pixel_sigma``, ``max_residual``, ``gate_sigma`` finite
+    and > 0, ``history`` an integer ≥ 2 (numpy integers accepted)."""
 
     def __init__(
         self, map: FeatureMap, pixel_sigma: float = 1.0, max_residual: float = 5.0, gate_sigma: float = 3.0, history: int = 4
     ) -> None:
         if not isinstance(map, FeatureMap):
             raise InvalidInputError(f"map: expected a geoloc.localizer.FeatureMap, got {type(map).__name__}")
-        for name, v in (("pixel_sigma", pixel_sigma), ("max_residual", max_residual), ("gate_sigma", gate_sigma)):
-            if not np.isfinite(v) or v <= 0:
-                raise InvalidInputError(f"{name}: expected a finite number > 0, got {v!r}")
-        if not isinstance(history, int) or history < 2:
-            raise InvalidInputError(f"history: expected an integer ≥ 2, got {history!r}")
-        self._loc = _core.FeatureLocalizer(map._map, float(pixel_sigma), float(max_residual), float(gate_sigma), history)
+        self._loc = _core.FeatureLocalizer(
+            map._map, pixel_sigma=float(pixel_sigma), max_residual=float(max_residual),
+            gate_sigma=float(gate_sigma), history=history,
+        )
 
     def localize(
         self, timestamp: float, keypoints: ArrayLike, descriptors: ArrayLike, global_descriptor: ArrayLike | None = None
     ) -> LocalizationResult:
-        """Localize one frame taken at ``timestamp`` (seconds, increasing)."""
-        d = _descriptors(descriptors, "descriptors")
+        """Localize one frame taken at ``timestamp`` (seconds, increasing); ``global_descriptor``
+        is one (D,) vector when the map retrieves by global descriptor."""
+        d = _local_descriptors(descriptors, "descriptors")
         k = _keypoints(keypoints, "keypoints", len(d))
-        g = None if global_descriptor is None else np.ascontiguousarray(as_float64(global_descriptor, "global_descriptor").ravel(), dtype=np.float32)
-        raw: dict[str, Any] = self._loc.localize(float(timestamp), k, d, g)
-        return LocalizationResult(
-            pose=None if raw["pose"] is None else raw["pose"].reshape(4, 4),
-            covariance=None if raw["covariance"] is None else raw["covariance"].reshape(6, 6),
-            source=str(raw["source"]),
-            reason=str(raw["reason"]),
-            keyframe=int(raw["keyframe"]),
-            inliers=int(raw["inliers"]),
-            timings_ms=dict(raw["timings_ms"]),
-        )
+        g = None
+        if global_descriptor is not None:
+            g = np.asarray(global_descriptor)
+            if g.ndim != 1:
+                raise InvalidInputError(f"global_descriptor: expected shape (D,), got {g.shape}")
+            g = _f32_rows(g[None], "global_descriptor")[0]
+        return self._loc.localize(float(timestamp), k, d, g)
 
     def reset(self) -> None:
         """Forget the motion history."""

@@ -162,12 +162,13 @@ class Map:
         from ._io import check_output_path
 
         target = check_output_path(path, "path")
-        self._feature_map._save(str(target), json.dumps(self._frontend, sort_keys=True))  # type: ignore[attr-defined]
+        self._feature_map.save(target, self._frontend)
 
     @classmethod
     def load(cls, path: str | os.PathLike[str]) -> Map:
         """Read a map written by :meth:`save`; a truncated, corrupt or other-version file is refused."""
-        feature_map, frontend = FeatureMap._load(str(Path(path)))  # type: ignore[attr-defined]
+        feature_map = FeatureMap.load(Path(path))
+        frontend = feature_map.frontend
         if not isinstance(frontend, dict) or frontend.get("version") != FRONTEND_VERSION:
             raise InvalidInputError(f"path: {str(path)!r} was not written by this version of geoloc's Python package")
         f = frontend["features"]

@@ -10,6 +10,7 @@ from . import _core
 from ._validation import as_batch, as_float64
 from .camera import Camera
 from .exceptions import InvalidInputError
+from .retrieval import _local_descriptors as _descriptors
 
 __all__ = ["epipolar_filter", "match_descriptors"]
 
@@ -28,23 +29,9 @@ def match_descriptors(
     the ``mutual`` check (each is the other's best) and ``max_distance``. Returns the index
     pairs (M, 2) and their distances (M,), sorted by the first index. Parallel, GIL-free.
     """
-    a, b = np.asarray(descriptors_a), np.asarray(descriptors_b)
-    for name, arr in (("descriptors_a", a), ("descriptors_b", b)):
-        if arr.ndim != 2:
-            raise InvalidInputError(f"{name}: expected shape (N, W), got {arr.shape}")
-    if a.shape[1] != b.shape[1]:
-        raise InvalidInputError(f"descriptors_b: width {b.shape[1]} differs from descriptors_a's {a.shape[1]}")
-    if ratio is not None and not 0 < ratio <= 1:
-        raise InvalidInputError(f"ratio: expected a number in (0, 1] or None, got {ratio!r}")
-    if (a.dtype == np.uint8) != (b.dtype == np.uint8):
-        raise InvalidInputError("descriptors_b: binary (uint8) and float descriptors cannot be compared")
-    r = None if ratio is None else float(ratio)
-    md = None if max_distance is None else float(max_distance)
-    if a.dtype != np.uint8:
-        a = np.asarray(as_float64(a, "descriptors_a"), dtype=np.float32)
-        b = np.asarray(as_float64(b, "descriptors_b"), dtype=np.float32)
-    pairs, dist = _core.match_descriptors(np.ascontiguousarray(a), np.ascontiguousarray(b), r, bool(mutual), md)
-    return pairs, dist
+    a = _descriptors(descriptors_a, "descriptors_a")
+    b = _descriptors(descriptors_b, "descriptors_b")
+    return _core.match_descriptors(a, b, ratio=ratio, mutual=bool(mutual), max_distance=max_distance)
 
 
 def epipolar_filter(
@@ -73,8 +60,7 @@ def epipolar_filter(
     p = np.asarray(pairs)
     if p.ndim != 2 or p.shape[1] != 2 or p.dtype.kind not in "iu":
         raise InvalidInputError(f"pairs: expected integer pairs of shape (M, 2), got {p.shape} {p.dtype}")
-    out = _core.epipolar_filter(
+    return _core.epipolar_filter(
         cam.intrinsics, pa, pb, np.ascontiguousarray(ka), np.ascontiguousarray(kb),
-        np.ascontiguousarray(p, dtype=np.int64), float(max_px),
+        np.ascontiguousarray(p, dtype=np.int64), max_px=float(max_px),
     )
-    return np.asarray(out, dtype=bool)

@@ -22,6 +22,11 @@ def _f32_rows(x: ArrayLike, name: str, dim: int | None = None) -> NDArray[np.flo
     if arr.ndim != 2 or (dim is not None and arr.shape[1] != dim):
         want = f"(N, {dim})" if dim is not None else "(N, D)"
         raise InvalidInputError(f"{name}: expected shape {want}, got {arr.shape}")
+    if arr.dtype.kind == "f" and arr.dtype.itemsize > 4:
+        too_big = np.isfinite(arr) & (np.abs(arr) > np.finfo(np.float32).max)
+        if too_big.any():
+            row = int(np.argwhere(too_big)[0][0])
+            raise InvalidInputError(f"{name}[{row}] overflows float32 (|x| > {np.finfo(np.float32).max:.3g})")
     out = np.ascontiguousarray(arr, dtype=np.float32)
     if not np.isfinite(out).all():
         row = int(np.argwhere(~np.isfinite(out))[0][0])
@@ -42,12 +47,7 @@ class DescriptorIndex:
     """
 
     def __init__(self, descriptors: ArrayLike, backend: Literal["kdtree", "flat"] | None = None) -> None:
-        data = _f32_rows(descriptors, "descriptors")
-        if data.shape[0] == 0 or data.shape[1] == 0:
-            raise InvalidInputError(f"descriptors: expected a non-empty (N, D) array, got {data.shape}")
-        if backend not in (None, "kdtree", "flat"):
-            raise InvalidInputError(f"backend: expected 'kdtree', 'flat' or None, got {backend!r}")
-        self._index = _core.DescriptorIndex(data, backend)
+        self._index = _core.DescriptorIndex(_f32_rows(descriptors, "descriptors"), backend=backend)
 
     def __len__(self) -> int:
         return len(self._index)
@@ -64,15 +64,15 @@ class DescriptorIndex:
 
     def query(self, queries: ArrayLike, k: int = 1) -> tuple[NDArray[np.float32], NDArray[np.int64]]:
         """Distances and indices of the ``k`` nearest descriptors of each query row, each of
-        shape (Q, k), nearest first (a single (D,) query gives (1, k))."""
-        if not isinstance(k, (int, np.integer)) or k < 1 or k > len(self):
+        shape (Q, k), nearest first (a single (D,) query gives (1, k)). Exact for every
+        finite input (an f64 scan takes over at magnitudes where f32 squares overflow)."""
+        if not isinstance(k, (int, np.integer)) or isinstance(k, bool) or k < 1 or k > len(self):
             raise InvalidInputError(f"k: expected an integer in 1..{len(self)}, got {k!r}")
-        q = _f32_rows(queries, "queries", self.dim)
-        dist, ind = self._index.query(q, int(k))
-        return dist, ind
+        return self._index.query(_f32_rows(queries, "queries", self.dim), k)
 
 
 def _local_descriptors(x: ArrayLike, name: str) -> NDArray[np.uint8] | NDArray[np.float32]:
+    """(N, W) uint8 rows as they are (binary), anything real as C-contiguous float32 rows."""
     arr = np.asarray(x)
     if arr.ndim != 2 or arr.shape[1] == 0:
         raise InvalidInputError(f"{name}: expected shape (N, W), got {arr.shape}")
@@ -83,8 +83,9 @@ def _local_descriptors(x: ArrayLike, name: str) -> NDArray[np.uint8] | NDArray[n
 
 class Vocabulary:
     """A hierarchical visual vocabulary of up to ``branching``**``depth`` words, clustered
-    from local descriptors: k-means for float descriptors (SIFT), k-majority with Hamming
-    distance for binary uint8 ones (ORB). Needs no training framework."""
+    from local descriptors: k-means (k-means++ seeding, D² weights) for float descriptors
+    (SIFT), k-majority with Hamming distance for binary uint8 ones (ORB). Needs no training
+    framework. Limits: ``branching`` ≤ 1024, ``depth`` ≤ 24, ``branching**depth`` ≤ 2**24."""
 
     def __init__(self, core: _core.Vocabulary) -> None:
         self._vocabulary = core
@@ -92,40 +93,32 @@ class Vocabulary:
     @classmethod
     def train(cls, descriptors: ArrayLike, branching: int = 10, depth: int = 3, seed: int = 0) -> Vocabulary:
         """Cluster ``descriptors`` (N, W) into a vocabulary tree (seeded, reproducible)."""
-        for name, value in (("branching", branching), ("depth", depth), ("seed", seed)):
-            if not isinstance(value, (int, np.integer)) or value < 0:
-                raise InvalidInputError(f"{name}: expected a non-negative integer, got {value!r}")
         d = _local_descriptors(descriptors, "descriptors")
-        return cls(_core.Vocabulary.train(d, int(branching), int(depth), int(seed)))
+        return cls(_core.Vocabulary.train(d, branching=branching, depth=depth, seed=seed))
 
     def __len__(self) -> int:
         return len(self._vocabulary)
 
     def words(self, descriptors: ArrayLike) -> NDArray[np.uint32]:
         """The word of each descriptor (N,)."""
-        return np.asarray(self._vocabulary.words(_local_descriptors(descriptors, "descriptors")))
+        return self._vocabulary.words(_local_descriptors(descriptors, "descriptors"))
 
 
 class BowDatabase:
     """TF-IDF bag-of-words image database (L1 scoring, DBoW2's), built from the local
-    descriptors of each image; :meth:`query` ranks the images for a query image."""
+    descriptors of each image; :meth:`query` ranks the images for a query image. Scores are
+    in [0, 1] and reproducible bit for bit; equal scores rank by image index."""
 
     def __init__(self, vocabulary: Vocabulary, images: list[ArrayLike]) -> None:
         if not isinstance(vocabulary, Vocabulary):
             raise InvalidInputError(f"vocabulary: expected a geoloc.retrieval.Vocabulary, got {type(vocabulary).__name__}")
         self.vocabulary = vocabulary
-        words = [vocabulary.words(d).tolist() for d in images]
-        self._database = _core.BowDatabase(len(vocabulary), words)
-        self._n = len(images)
+        descs = [_local_descriptors(d, f"images[{i}]") for i, d in enumerate(images)]
+        self._database = _core.BowDatabase(vocabulary._vocabulary, descs)
 
     def __len__(self) -> int:
-        return self._n
+        return len(self._database)
 
     def query(self, descriptors: ArrayLike, k: int = 1) -> tuple[NDArray[np.float32], NDArray[np.int64]]:
         """Scores (k,) in [0, 1] and image indices (k,) of the best images, best first."""
-        if not isinstance(k, (int, np.integer)) or k < 1:
-            raise InvalidInputError(f"k: expected a positive integer, got {k!r}")
-        ranked = self._database.query(self.vocabulary.words(descriptors).tolist(), int(min(k, self._n)))
-        scores = np.array([s for _, s in ranked], dtype=np.float32)
-        ids = np.array([i for i, _ in ranked], dtype=np.int64)
-        return scores, ids
+        return self._database.query(_local_descriptors(descriptors, "descriptors"), k)

@@ -2,6 +2,7 @@
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use geoloc_core::matching::{Descriptors, MatchOptions, match_descriptors};
+use geoloc_core::parallel::{Parallelism, with_parallelism};
 use geoloc_core::retrieval::{Backend, DescriptorIndex};
 use geoloc_core::testing::SplitMix64;
 use std::hint::black_box;
@@ -48,6 +49,18 @@ fn matching(c: &mut Criterion) {
                 &Descriptors::Binary { data: black_box(&b), width: 32 },
                 &MatchOptions::default(),
             )
+        })
+    });
+    // the same work on the calling thread (GEOLOC_PARALLELISM=false), for the speed-up
+    g.bench_function("binary_2000x2000_sequential", |bch| {
+        bch.iter(|| {
+            with_parallelism(&Parallelism::Off, || {
+                match_descriptors(
+                    &Descriptors::Binary { data: &a, width: 32 },
+                    &Descriptors::Binary { data: black_box(&b), width: 32 },
+                    &MatchOptions::default(),
+                )
+            })
         })
     });
     let fa = normalized(&mut rng, 1000, 128);

@@ -1,47 +1,51 @@
 //! Bag-of-visual-words retrieval (the paper's "BoW + Locator" baseline, and geoloc's default
 //! when no descriptor network is given — it needs no training framework).
 //!
-//! * **Vocabulary**: a tree of `branching`ᵈᵉᵖᵗʰ words built by hierarchical clustering of local
-//!   descriptors (Nistér & Stewénius 2006; DBoW2): k-means++ seeding and Lloyd iterations per
-//!   node, with Euclidean distance and mean centres for float descriptors (SIFT) and Hamming
-//!   distance and bitwise-majority centres (k-majority) for binary ones (ORB). A descriptor's
-//!   word is found by descending to the nearest child at each level.
+//! * **Vocabulary**: a tree of up to `branching`ᵈᵉᵖᵗʰ words built by hierarchical clustering
+//!   of local descriptors (Nistér & Stewénius 2006; DBoW2): k-means++ seeding (each next seed
+//!   drawn with probability ∝ D(x)², D = [`Row::distance`], the nearest seed's distance) and
+//!   Lloyd iterations per node, with Euclidean distance and mean centres for float
+//!   descriptors (SIFT) and Hamming distance and bitwise-majority centres (k-majority) for
+//!   binary ones (ORB). A descriptor's word is found by descending to the nearest child at
+//!   each level. The tree is built iteratively (depth-first, so word ids follow the
+//!   recursion's order), with `branching` ≤ [`MAX_BRANCHING`], `depth` ≤ [`MAX_DEPTH`] and
+//!   `branching`ᵈᵉᵖᵗʰ ≤ [`MAX_WORDS`].
 //! * **Database**: TF-IDF vectors vᵢ,w = tfᵢ,w · ln(N / n_w) (N images, n_w of them containing
 //!   w), L1-normalized, in an inverted file; the score of two images is the L1 similarity
-//!   s = 1 − ½‖v − u‖₁ ∈ [0, 1] (DBoW2's), accumulated over the words they share.
+//!   s = 1 − ½‖v − u‖₁ = Σ_w min(v_w, u_w) ∈ [0, 1] (DBoW2's; the weights are ≥ 0), summed
+//!   over the words they share.
+//!
+//! Reproducibility: vectors are sorted by word, every sum runs in f64 in word order (then
+//! image order), and ties rank by image index, so scores and rankings are bit-identical in
+//! every process and with any thread count.
 
-use std::collections::HashMap;
+mod arrays;
 
-use rayon::prelude::*;
+pub use arrays::VocabularyArrays;
 
 use crate::error::{GeolocError, Result};
-use crate::matching::{DescriptorSet, Descriptors};
-use crate::testing::SplitMix64;
+use crate::matching::{DescriptorSet, Descriptors, Row};
+use crate::parallel::map_indices;
+use crate::rng::SplitMix64;
 
+/// Largest `branching` [`Vocabulary::train`] accepts.
+pub const MAX_BRANCHING: usize = 1024;
+/// Largest `depth` [`Vocabulary::train`] accepts.
+pub const MAX_DEPTH: usize = 24;
+/// Largest `branching`ᵈᵉᵖᵗʰ [`Vocabulary::train`] accepts (16.7 M words; DBoW2's largest
+/// published vocabularies have 10⁶).
+pub const MAX_WORDS: usize = 1 << 24;
 /// Lloyd iterations per tree node.
 const LLOYD_ITERATIONS: usize = 10;
+/// Descriptors below which [`Vocabulary::words_of`] stays on the calling thread.
+const WORDS_PARALLEL_MIN: usize = 64;
 
-fn distance(desc: &Descriptors<'_>, i: usize, centres: &DescriptorSet, c: usize) -> f32 {
-    match (desc, centres) {
-        (Descriptors::Binary { data, width }, DescriptorSet::Binary { data: cd, .. }) => {
-            crate::matching::hamming(&data[i * width..(i + 1) * width], &cd[c * width..(c + 1) * width]) as f32
-        }
-        (Descriptors::Float { data, width }, DescriptorSet::Float { data: cd, .. }) => data[i * width..(i + 1) * width]
-            .iter()
-            .zip(&cd[c * width..(c + 1) * width])
-            .map(|(a, b)| (a - b) * (a - b))
-            .sum::<f32>(),
-        _ => f32::INFINITY,
-    }
+/// The centre nearest to `row` (the first on ties).
+fn nearest_centre(row: &Row<'_>, centres: &Descriptors<'_>) -> usize {
+    (0..centres.len())
+        .min_by(|&a, &b| row.distance(&centres.row(a)).total_cmp(&row.distance(&centres.row(b))))
+        .expect("invariant: nodes have at least one centre")
 }
-
-fn count(desc: &Descriptors<'_>) -> usize {
-    match *desc {
-        Descriptors::Binary { data, width } => data.len() / width.max(1),
-        Descriptors::Float { data, width } => data.len() / width.max(1),
-    }
-}
-
 /// Centre of `members` (k-majority bits or means).
 fn centre_of(desc: &Descriptors<'_>, members: &[usize]) -> DescriptorSet {
     match *desc {
@@ -71,32 +75,6 @@ fn centre_of(desc: &Descriptors<'_>, members: &[usize]) -> DescriptorSet {
     }
 }
 
-fn concat(parts: Vec<DescriptorSet>) -> DescriptorSet {
-    match parts.first() {
-        Some(DescriptorSet::Binary { width, .. }) => {
-            let width = *width;
-            DescriptorSet::Binary {
-                data: parts
-                    .into_iter()
-                    .flat_map(|p| if let DescriptorSet::Binary { data, .. } = p { data } else { Vec::new() })
-                    .collect(),
-                width,
-            }
-        }
-        Some(DescriptorSet::Float { width, .. }) => {
-            let width = *width;
-            DescriptorSet::Float {
-                data: parts
-                    .into_iter()
-                    .flat_map(|p| if let DescriptorSet::Float { data, .. } = p { data } else { Vec::new() })
-                    .collect(),
-                width,
-            }
-        }
-        None => DescriptorSet::Float { data: Vec::new(), width: 0 },
-    }
-}
-
 /// One node of the vocabulary tree: the centres of its children and where they lead.
 #[derive(Clone, Debug, PartialEq)]
 struct Node {
@@ -111,6 +89,16 @@ enum Child {
     Word(u32),
 }
 
+/// A node whose clusters are being turned into children (the explicit stack of the build).
+struct Pending {
+    node: usize,
+    clusters: std::vec::IntoIter<Vec<usize>>,
+    /// Levels left below this node's children.
+    depth_left: usize,
+    /// How many members the node split.
+    members: usize,
+}
+
 /// A hierarchical visual vocabulary.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Vocabulary {
@@ -120,64 +108,80 @@ pub struct Vocabulary {
     width: usize,
 }
 
+/// The checks of [`Vocabulary::train`].
+fn check_training(descriptors: &Descriptors<'_>, branching: usize, depth: usize) -> Result<()> {
+    descriptors.check("descriptors")?;
+    if !(2..=MAX_BRANCHING).contains(&branching) {
+        return Err(GeolocError::invalid("branching", format!("must be in 2..={MAX_BRANCHING}, got {branching}")));
+    }
+    if !(1..=MAX_DEPTH).contains(&depth) {
+        return Err(GeolocError::invalid("depth", format!("must be in 1..={MAX_DEPTH}, got {depth}")));
+    }
+    let words = u32::try_from(depth).ok().and_then(|d| branching.checked_pow(d));
+    if words.is_none_or(|w| w > MAX_WORDS) {
+        return Err(GeolocError::invalid(
+            "depth",
+            format!("branching^depth = {branching}^{depth} exceeds the limit of {MAX_WORDS} words"),
+        ));
+    }
+    let n = descriptors.len();
+    if n < branching {
+        return Err(GeolocError::invalid("descriptors", format!("{n} descriptors cannot make {branching} clusters")));
+    }
+    Ok(())
+}
+
 impl Vocabulary {
     /// Clusters `descriptors` into a tree of up to `branching`^`depth` words (seeded).
     ///
     /// # Errors
-    /// Fewer descriptors than `branching`, branching < 2, depth 0, a zero width.
+    /// `branching` outside 2..=[`MAX_BRANCHING`], `depth` outside 1..=[`MAX_DEPTH`],
+    /// `branching`^`depth` above [`MAX_WORDS`] (named `depth`), fewer descriptors than
+    /// `branching`, a zero width or non-finite float values (named `descriptors`).
     pub fn train(descriptors: &Descriptors<'_>, branching: usize, depth: usize, seed: u64) -> Result<Self> {
-        let (binary, width) = match *descriptors {
-            Descriptors::Binary { width, .. } => (true, width),
-            Descriptors::Float { width, .. } => (false, width),
-        };
-        if width == 0 {
-            return Err(GeolocError::invalid("descriptors", "zero-width descriptors"));
-        }
-        if branching < 2 || depth == 0 {
-            return Err(GeolocError::invalid(
-                "branching",
-                format!("need branching ≥ 2 and depth ≥ 1, got {branching}, {depth}"),
-            ));
-        }
-        let n = count(descriptors);
-        if n < branching {
-            return Err(GeolocError::invalid(
-                "descriptors",
-                format!("{n} descriptors cannot make {branching} clusters"),
-            ));
-        }
-        let mut vocabulary = Self { nodes: Vec::new(), words: 0, binary, width };
+        check_training(descriptors, branching, depth)?;
+        let mut vocabulary =
+            Self { nodes: Vec::new(), words: 0, binary: descriptors.is_binary(), width: descriptors.width() };
         let mut rng = SplitMix64::new(seed);
-        let all: Vec<usize> = (0..n).collect();
-        vocabulary.build(descriptors, &all, branching, depth, &mut rng);
+        let all: Vec<usize> = (0..descriptors.len()).collect();
+        let mut stack = vec![vocabulary.split(descriptors, &all, branching, depth, &mut rng)];
+        // depth-first, children in cluster order: the order of the recursive definition
+        while let Some(top) = stack.last_mut() {
+            let Some(cluster) = top.clusters.next() else {
+                stack.pop();
+                continue;
+            };
+            let (parent, depth_left, parent_members) = (top.node, top.depth_left, top.members);
+            // a cluster holding all of its parent's members (identical descriptors) cannot split
+            let child = if depth_left > 0 && cluster.len() > branching && cluster.len() < parent_members {
+                let pending = vocabulary.split(descriptors, &cluster, branching, depth_left, &mut rng);
+                let index = pending.node;
+                stack.push(pending);
+                Child::Node(index)
+            } else {
+                vocabulary.words += 1;
+                Child::Word((vocabulary.words - 1) as u32)
+            };
+            vocabulary.nodes[parent].children.push(child);
+        }
         Ok(vocabulary)
     }
 
-    /// Builds the node for `members`; returns its index.
-    fn build(
+    /// Clusters `members` into a new node with `depth` levels (this one included).
+    fn split(
         &mut self,
         desc: &Descriptors<'_>,
         members: &[usize],
         branching: usize,
         depth: usize,
         rng: &mut SplitMix64,
-    ) -> usize {
+    ) -> Pending {
         let k = branching.min(members.len());
-        let (centres, clusters) = kmeans(desc, members, k, rng);
-        let index = self.nodes.len();
-        self.nodes.push(Node { centres, children: Vec::new() });
-        let mut children = Vec::with_capacity(k);
-        for cluster in clusters {
-            if depth > 1 && cluster.len() > branching {
-                let child = self.build(desc, &cluster, branching, depth - 1, rng);
-                children.push(Child::Node(child));
-            } else {
-                children.push(Child::Word(self.words as u32));
-                self.words += 1;
-            }
-        }
-        self.nodes[index].children = children;
-        index
+        let seeds = seed_centres(desc, members, k, rng);
+        let (centres, clusters) = lloyd(desc, members, &seeds);
+        let node = self.nodes.len();
+        self.nodes.push(Node { centres, children: Vec::with_capacity(k) });
+        Pending { node, clusters: clusters.into_iter(), depth_left: depth - 1, members: members.len() }
     }
 
     /// Number of words (leaves).
@@ -190,16 +194,25 @@ impl Vocabulary {
         self.words == 0
     }
 
-    /// The word of each descriptor (descending to the nearest child at each level).
+    /// The word of one descriptor: descend to the nearest child at each level.
+    fn word_of(&self, row: &Row<'_>) -> u32 {
+        let mut node = 0;
+        loop {
+            let n = &self.nodes[node];
+            match n.children[nearest_centre(row, &n.centres.view())] {
+                Child::Node(next) => node = next,
+                Child::Word(w) => return w,
+            }
+        }
+    }
+
+    /// The word of each descriptor (parallel over descriptors; see [`crate::parallel`]).
     ///
     /// # Errors
-    /// Descriptors of the other kind or width than the vocabulary's.
+    /// Descriptors of the other kind or width than the vocabulary's, or non-finite values.
     pub fn words_of(&self, descriptors: &Descriptors<'_>) -> Result<Vec<u32>> {
-        let (binary, width) = match *descriptors {
-            Descriptors::Binary { width, .. } => (true, width),
-            Descriptors::Float { width, .. } => (false, width),
-        };
-        if binary != self.binary || width != self.width {
+        descriptors.check("descriptors")?;
+        if descriptors.is_binary() != self.binary || descriptors.width() != self.width {
             return Err(GeolocError::invalid(
                 "descriptors",
                 format!(
@@ -209,42 +222,21 @@ impl Vocabulary {
                 ),
             ));
         }
-        Ok((0..count(descriptors))
-            .into_par_iter()
-            .map(|i| {
-                let mut node = 0;
-                loop {
-                    let n = &self.nodes[node];
-                    let best = (0..n.children.len())
-                        .min_by(|&a, &b| {
-                            distance(descriptors, i, &n.centres, a).total_cmp(&distance(descriptors, i, &n.centres, b))
-                        })
-                        .expect("invariant: nodes have children");
-                    match n.children[best] {
-                        Child::Node(next) => node = next,
-                        Child::Word(w) => return w,
-                    }
-                }
-            })
-            .collect())
+        Ok(map_indices(descriptors.len(), WORDS_PARALLEL_MIN, |i| self.word_of(&descriptors.row(i))))
     }
 }
 
-/// k-means++ seeding then Lloyd iterations over `members`; returns centres and clusters.
-fn kmeans(
-    desc: &Descriptors<'_>,
-    members: &[usize],
-    k: usize,
-    rng: &mut SplitMix64,
-) -> (DescriptorSet, Vec<Vec<usize>>) {
-    // k-means++: first centre uniform, then proportional to the squared distance
+/// k-means++ seeding (Arthur & Vassilvitskii 2007): the first seed uniform over `members`,
+/// each next one drawn with probability D(x)² / Σ_y D(y)², D(x) the [`Row::distance`] from x
+/// to its nearest seed so far. Returns the seeds (descriptor indices).
+fn seed_centres(desc: &Descriptors<'_>, members: &[usize], k: usize, rng: &mut SplitMix64) -> Vec<usize> {
     let mut seeds = vec![members[(rng.next_u64() % members.len() as u64) as usize]];
     let mut nearest: Vec<f32> = vec![f32::INFINITY; members.len()];
     while seeds.len() < k {
-        let last = centre_of(desc, &[*seeds.last().expect("invariant: one seed")]);
+        let last = desc.row(*seeds.last().expect("invariant: one seed"));
         let mut total = 0.0f64;
         for (slot, &m) in nearest.iter_mut().zip(members) {
-            *slot = slot.min(distance(desc, m, &last, 0));
+            *slot = slot.min(desc.row(m).distance(&last));
             total += f64::from(*slot) * f64::from(*slot);
         }
         let mut target = rng.uniform() * total;
@@ -258,26 +250,26 @@ fn kmeans(
         }
         seeds.push(pick);
     }
-    let mut centres = concat(seeds.iter().map(|&s| centre_of(desc, &[s])).collect());
+    seeds
+}
+
+/// Lloyd iterations from `seeds` over `members`; returns the centres and the clusters (an
+/// empty cluster keeps its seed as centre).
+fn lloyd(desc: &Descriptors<'_>, members: &[usize], seeds: &[usize]) -> (DescriptorSet, Vec<Vec<usize>>) {
+    let k = seeds.len();
+    let mut centres = DescriptorSet::stack(&seeds.iter().map(|&s| centre_of(desc, &[s])).collect::<Vec<_>>());
     let mut clusters = vec![Vec::new(); k];
     for _ in 0..LLOYD_ITERATIONS {
         clusters = vec![Vec::new(); k];
         for &m in members {
-            let best = (0..k)
-                .min_by(|&a, &b| distance(desc, m, &centres, a).total_cmp(&distance(desc, m, &centres, b)))
-                .expect("k ≥ 1");
-            clusters[best].push(m);
+            clusters[nearest_centre(&desc.row(m), &centres.view())].push(m);
         }
-        let next = concat(
-            clusters
+        let next = DescriptorSet::stack(
+            &clusters
                 .iter()
-                .enumerate()
-                .map(
-                    |(c, members)| {
-                        if members.is_empty() { centre_of(desc, &[seeds[c]]) } else { centre_of(desc, members) }
-                    },
-                )
-                .collect(),
+                .zip(seeds)
+                .map(|(c, &seed)| if c.is_empty() { centre_of(desc, &[seed]) } else { centre_of(desc, c) })
+                .collect::<Vec<_>>(),
         );
         if next == centres {
             break;
@@ -290,21 +282,27 @@ fn kmeans(
 /// TF-IDF image database with an inverted file.
 #[derive(Clone, Debug)]
 pub struct BowDatabase {
-    idf: Vec<f32>,
-    /// word → (image, weight) for the images containing it.
-    inverted: Vec<Vec<(u32, f32)>>,
+    idf: Vec<f64>,
+    /// word → (image, weight > 0) for the images containing it, by image.
+    inverted: Vec<Vec<(u32, f64)>>,
     images: usize,
 }
 
-/// L1-normalized TF-IDF vector of one image (sparse: word → weight).
-fn bow_vector(words: &[u32], idf: &[f32]) -> HashMap<u32, f32> {
-    let mut v: HashMap<u32, f32> = HashMap::new();
-    for &w in words {
-        *v.entry(w).or_insert(0.0) += idf[w as usize];
+/// L1-normalized TF-IDF vector of one image, sorted by word, zero weights left out:
+/// v_w = n_w · idf_w / Σ_u n_u · idf_u (n_w: occurrences of w), summed in f64 in word order.
+fn bow_vector(words: &[u32], idf: &[f64]) -> Vec<(u32, f64)> {
+    let mut sorted = words.to_vec();
+    sorted.sort_unstable();
+    let mut v: Vec<(u32, f64)> = Vec::new();
+    for run in sorted.chunk_by(|a, b| a == b) {
+        let weight = run.len() as f64 * idf[run[0] as usize];
+        if weight > 0.0 {
+            v.push((run[0], weight));
+        }
     }
-    let norm: f32 = v.values().map(|x| x.abs()).sum();
+    let norm: f64 = v.iter().map(|(_, x)| x).sum();
     if norm > 0.0 {
-        v.values_mut().for_each(|x| *x /= norm);
+        v.iter_mut().for_each(|(_, x)| *x /= norm);
     }
     v
 }
@@ -313,7 +311,7 @@ impl BowDatabase {
     /// The database of images given as their words (see [`Vocabulary::words_of`]).
     ///
     /// # Errors
-    /// A word id beyond the vocabulary.
+    /// A word id beyond the vocabulary (named `images[i]`).
     pub fn new(vocabulary_len: usize, images: &[Vec<u32>]) -> Result<Self> {
         let mut containing = vec![0u32; vocabulary_len];
         for (i, words) in images.iter().enumerate() {
@@ -330,8 +328,8 @@ impl BowDatabase {
                 containing[w as usize] += 1;
             }
         }
-        let n = images.len().max(1) as f32;
-        let idf: Vec<f32> = containing.iter().map(|&c| if c == 0 { 0.0 } else { (n / c as f32).ln() }).collect();
+        let n = images.len().max(1) as f64;
+        let idf: Vec<f64> = containing.iter().map(|&c| if c == 0 { 0.0 } else { (n / f64::from(c)).ln() }).collect();
         let mut inverted = vec![Vec::new(); vocabulary_len];
         for (i, words) in images.iter().enumerate() {
             for (w, weight) in bow_vector(words, &idf) {
@@ -341,21 +339,30 @@ impl BowDatabase {
         Ok(Self { idf, inverted, images: images.len() })
     }
 
-    /// The `k` best images for a query's words: (image index, L1 score), best first, ties by
-    /// index.
+    /// Number of images.
+    pub fn len(&self) -> usize {
+        self.images
+    }
+
+    /// Whether the database holds no images.
+    pub fn is_empty(&self) -> bool {
+        self.images == 0
+    }
+
+    /// The `k` best images for a query's words: (image index, L1 score in [0, 1]), best first.
+    /// Scores are summed in f64 in word order, rounded to f32 and clamped to [0, 1]; equal
+    /// (rounded) scores rank by image index. Words beyond the vocabulary are ignored.
     pub fn query(&self, words: &[u32], k: usize) -> Vec<(usize, f32)> {
-        let q = bow_vector(
-            &words.iter().copied().filter(|&w| (w as usize) < self.idf.len()).collect::<Vec<_>>(),
-            &self.idf,
-        );
-        let mut scores = vec![0.0f32; self.images];
-        for (&w, &qv) in &q {
+        let known: Vec<u32> = words.iter().copied().filter(|&w| (w as usize) < self.idf.len()).collect();
+        let mut scores = vec![0.0f64; self.images];
+        for (w, q) in bow_vector(&known, &self.idf) {
             for &(image, v) in &self.inverted[w as usize] {
-                // ½(|q| + |v| − |q − v|) summed over shared words = 1 − ½‖q − v‖₁
-                scores[image as usize] += 0.5 * (qv.abs() + v.abs() - (qv - v).abs());
+                // ½(|q| + |v| − |q − v|) = min(q, v) for weights ≥ 0; summed: 1 − ½‖q − v‖₁
+                scores[image as usize] += q.min(v);
             }
         }
-        let mut ranked: Vec<(usize, f32)> = scores.into_iter().enumerate().collect();
+        let mut ranked: Vec<(usize, f32)> =
+            scores.into_iter().map(|s| (s.clamp(0.0, 1.0) as f32).clamp(0.0, 1.0)).enumerate().collect();
         ranked.sort_by(|a, b| b.1.total_cmp(&a.1).then(a.0.cmp(&b.0)));
         ranked.truncate(k);
         ranked
@@ -433,6 +440,133 @@ mod tests {
         let best = db.query(&words, 2);
         assert_eq!(best[0].0, 0);
         assert!((best[0].1 - 1.0).abs() < 1e-5, "{}", best[0].1);
+    }
+
+    /// k-means++ draws the second seed with probability D²/ΣD² (D the distance to the first
+    /// seed): the observed frequencies of (first, second) seed pairs over many seeded draws
+    /// against the closed form P(i, j) = (1/n) · D_ij² / Σ_l D_il², by a χ² test; the D⁴
+    /// weighting (the old bug) is rejected by the same test.
+    #[test]
+    fn kmeanspp_seeding_follows_d_squared() {
+        let xs = [0.0f32, 1.0, 2.0, 4.0, 8.0];
+        let n = xs.len();
+        let d = Descriptors::Float { data: &xs, width: 1 };
+        let members: Vec<usize> = (0..n).collect();
+        let trials = 40_000;
+        let mut counts = vec![0usize; n * n];
+        let mut rng = SplitMix64::new(2024);
+        for _ in 0..trials {
+            let seeds = seed_centres(&d, &members, 2, &mut rng);
+            counts[seeds[0] * n + seeds[1]] += 1;
+        }
+        let chi2 = |power: i32| -> f64 {
+            let mut chi2 = 0.0;
+            for i in 0..n {
+                let w: Vec<f64> = xs.iter().map(|&x| f64::from((x - xs[i]).abs()).powi(power)).collect();
+                let total: f64 = w.iter().sum();
+                for j in 0..n {
+                    let expected = trials as f64 / n as f64 * w[j] / total;
+                    if expected > 0.0 {
+                        chi2 += (counts[i * n + j] as f64 - expected).powi(2) / expected;
+                    } else {
+                        assert_eq!(counts[i * n + j], 0, "a zero-probability pair ({i}, {j}) was drawn");
+                    }
+                }
+            }
+            chi2
+        };
+        // 20 cells with positive probability, 19 degrees of freedom: χ²₁₉(0.999) = 43.82
+        const CHI2_19_999: f64 = 43.82;
+        let (d2, d4) = (chi2(2), chi2(4));
+        assert!(d2 < CHI2_19_999, "D² seeding rejected: χ² = {d2}");
+        assert!(d4 > 10.0 * CHI2_19_999, "the test cannot tell D⁴ from D²: χ² = {d4}");
+    }
+
+    /// Binary descriptors use the same D² law, D the Hamming distance.
+    #[test]
+    fn kmeanspp_binary_weights_are_hamming_squared() {
+        // rows at Hamming distance 0, 1, 3 and 8 from row 0
+        let rows = [0x00u8, 0x01, 0x07, 0xff];
+        let d = Descriptors::Binary { data: &rows, width: 1 };
+        let members = [0usize, 1, 2, 3];
+        let (mut seen, mut rng) = ([0usize; 4], SplitMix64::new(9));
+        let mut firsts = 0;
+        while firsts < 20_000 {
+            let seeds = seed_centres(&d, &members, 2, &mut rng);
+            if seeds[0] == 0 {
+                seen[seeds[1]] += 1;
+                firsts += 1;
+            }
+        }
+        let total: f64 = 1.0 + 9.0 + 64.0;
+        for (j, w) in [(1, 1.0_f64), (2, 9.0), (3, 64.0)] {
+            let p = f64::from(seen[j] as u32) / 20_000.0;
+            let want = w / total;
+            let sigma = (want * (1.0 - want) / 20_000.0).sqrt();
+            assert!((p - want).abs() < 4.0 * sigma, "row {j}: {p} vs {want}");
+        }
+        assert_eq!(seen[0], 0);
+    }
+
+    /// Scores stay in [0, 1] (summing min(q, v) can round above 1 in f32); an image scores 1
+    /// against itself.
+    #[test]
+    fn scores_stay_in_the_unit_interval() {
+        let mut rng = SplitMix64::new(5);
+        let images: Vec<Vec<u32>> =
+            (0..50).map(|_| (0..300).map(|_| (rng.next_u64() % 997) as u32).collect()).collect();
+        let db = BowDatabase::new(997, &images).expect("valid");
+        for im in &images {
+            for (_, score) in db.query(im, 50) {
+                assert!((0.0..=1.0).contains(&score), "{score}");
+            }
+            assert!((db.query(im, 1)[0].1 - 1.0).abs() < 1e-6);
+        }
+    }
+
+    /// The same words in another order give bit-identical scores, and identical images (a
+    /// stopped camera) tie exactly and rank by index.
+    #[test]
+    fn scores_do_not_depend_on_word_order_and_ties_rank_by_index() {
+        let mut rng = SplitMix64::new(6);
+        let base: Vec<u32> = (0..200).map(|_| (rng.next_u64() % 300) as u32).collect();
+        let mut images: Vec<Vec<u32>> =
+            (0..10).map(|_| (0..200).map(|_| (rng.next_u64() % 300) as u32).collect()).collect();
+        images.extend([base.clone(), base.clone(), base.clone()]); // 10, 11, 12 identical
+        let db = BowDatabase::new(300, &images).expect("valid");
+        let mut reversed = base.clone();
+        reversed.reverse();
+        let (a, b) = (db.query(&base, 13), db.query(&reversed, 13));
+        assert_eq!(
+            a.iter().map(|(i, s)| (*i, s.to_bits())).collect::<Vec<_>>(),
+            b.iter().map(|(i, s)| (*i, s.to_bits())).collect::<Vec<_>>()
+        );
+        assert_eq!(a[..3].iter().map(|r| r.0).collect::<Vec<_>>(), vec![10, 11, 12]);
+        assert_eq!(a[0].1.to_bits(), a[2].1.to_bits());
+    }
+
+    /// Depth and branching come from the caller: capped, and the build is iterative (50
+    /// identical descriptors used to recurse 20 000 levels deep and overflow the stack).
+    #[test]
+    fn depth_and_branching_are_capped() {
+        let zeros = [0u8; 50 * 32];
+        let d = Descriptors::Binary { data: &zeros, width: 32 };
+        let named = |r: Result<Vocabulary>, want: &str| match r {
+            Err(GeolocError::InvalidInput { name, .. }) => assert_eq!(name, want),
+            other => panic!("expected InvalidInput({want}), got {other:?}"),
+        };
+        named(Vocabulary::train(&d, 2, 20_000, 0), "depth");
+        named(Vocabulary::train(&d, 2, 0, 0), "depth");
+        named(Vocabulary::train(&d, MAX_BRANCHING + 1, 2, 0), "branching");
+        named(Vocabulary::train(&d, 1, 2, 0), "branching");
+        named(Vocabulary::train(&d, 1000, 3, 0), "depth"); // 10⁹ words
+        let v = Vocabulary::train(&d, 2, MAX_DEPTH, 0).expect("identical descriptors at the deepest depth");
+        assert!(!v.is_empty() && v.len() <= 2);
+        let nan = [f32::NAN; 8];
+        match Vocabulary::train(&Descriptors::Float { data: &nan, width: 4 }, 2, 1, 0) {
+            Err(GeolocError::NonFinite { name, index }) => assert_eq!((name.as_str(), index), ("descriptors", 0)),
+            other => panic!("{other:?}"),
+        }
     }
 
     #[test]

@@ -23,6 +23,7 @@ pub mod optim;
 pub mod parallel;
 pub mod pnp;
 pub mod retrieval;
+pub mod rng;
 pub mod testing;
 pub mod triangulate;
 

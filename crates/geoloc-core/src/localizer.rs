@@ -62,6 +62,30 @@ impl Default for LocalizerOptions {
     }
 }
 
+impl LocalizerOptions {
+    /// Checks the options the localizer itself uses (the solvers check theirs again).
+    ///
+    /// # Errors
+    /// See [`Localizer::new`].
+    pub fn check(&self) -> Result<()> {
+        if self.history < 2 {
+            return Err(GeolocError::invalid("history", format!("must be ≥ 2, got {}", self.history)));
+        }
+        let positive = [
+            ("gate_sigma", self.gate_sigma),
+            ("epipolar_px", self.epipolar_px),
+            ("pixel_sigma", self.pnp.pixel_sigma),
+            ("pixel_sigma", self.triangulation.pixel_sigma),
+            ("max_residual", self.pnp.max_residual_px),
+            ("max_residual", self.triangulation.max_residual_px),
+        ];
+        match positive.into_iter().find(|(_, v)| !(v.is_finite() && *v > 0.0)) {
+            Some((name, v)) => Err(GeolocError::invalid(name, format!("must be finite and > 0, got {v}"))),
+            None => Ok(()),
+        }
+    }
+}
+
 /// One query frame: its features, from the caller's detector.
 #[derive(Clone, Copy, Debug)]
 pub struct Frame<'a> {
@@ -88,6 +112,49 @@ pub enum Source {
     Lost,
 }
 
+impl Source {
+    /// Every source, in declaration order.
+    pub const ALL: [Self; 4] = [Self::Geometric, Self::Fused, Self::Motion, Self::Lost];
+
+    /// The name: `"geometric"`, `"fused"`, `"motion"` or `"lost"` (the one place that spells it).
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Geometric => "geometric",
+            Self::Fused => "fused",
+            Self::Motion => "motion",
+            Self::Lost => "lost",
+        }
+    }
+}
+
+impl std::fmt::Display for Source {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+impl std::str::FromStr for Source {
+    type Err = GeolocError;
+
+    fn from_str(s: &str) -> Result<Self> {
+        Self::ALL.into_iter().find(|v| v.as_str() == s).ok_or_else(|| {
+            GeolocError::invalid(
+                "source",
+                format!("expected \"geometric\", \"fused\", \"motion\" or \"lost\", got {s:?}"),
+            )
+        })
+    }
+}
+
+/// A pose with its covariance.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Estimate {
+    /// world_from_cam.
+    pub world_from_cam: SE3,
+    /// 6×6 covariance, right perturbation, translation first.
+    pub covariance: Matrix6<f64>,
+}
+
 /// Milliseconds spent in each stage.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct Timings {
@@ -110,10 +177,8 @@ pub struct Timings {
 /// The localization of one frame.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Localization {
-    /// world_from_cam (None when lost).
-    pub world_from_cam: Option<SE3>,
-    /// 6×6 covariance, right perturbation, translation first (None when lost).
-    pub covariance: Option<Matrix6<f64>>,
+    /// The pose and its covariance (None when lost).
+    pub estimate: Option<Estimate>,
     /// Which path produced it.
     pub source: Source,
     /// Why (e.g. why the geometric pose was not used).
@@ -152,8 +217,14 @@ fn ms(start: Instant) -> f64 {
 
 impl Localizer {
     /// A localizer with an empty history.
-    pub fn new(map: Arc<Map>, options: LocalizerOptions) -> Self {
-        Self { map, options, history: VecDeque::new(), cache: HashMap::new() }
+    ///
+    /// # Errors
+    /// Options out of range, named as the Python caller spells them: `history` < 2,
+    /// `gate_sigma`, `pixel_sigma` (of PnP or triangulation), `max_residual` or
+    /// `epipolar_px` not finite and > 0.
+    pub fn new(map: Arc<Map>, options: LocalizerOptions) -> Result<Self> {
+        options.check()?;
+        Ok(Self { map, options, history: VecDeque::new(), cache: HashMap::new() })
     }
 
     /// Forgets the motion history (e.g. after a jump).
@@ -161,23 +232,53 @@ impl Localizer {
         self.history.clear();
     }
 
-    /// Localizes one frame; see the module doc.
+    /// Localizes one frame: the steps of DESIGN.md §1, (a)–(e), each a method below.
     ///
     /// # Errors
-    /// Invalid frames: keypoints and descriptors of different counts, a non-increasing
-    /// timestamp, descriptors the map cannot compare with, a missing global descriptor.
-    /// A frame that cannot be localized is not an error: it comes back with source `Lost`.
+    /// Invalid frames: keypoints and descriptors of different counts, non-finite keypoints or
+    /// descriptors, a non-increasing timestamp, descriptors the map cannot compare with, a
+    /// missing or wrongly sized global descriptor. A frame that cannot be localized is not
+    /// an error: it comes back with source `Lost` and the reason.
     pub fn localize(&mut self, frame: &Frame<'_>) -> Result<Localization> {
         let start = Instant::now();
-        let n_desc = match frame.descriptors {
-            Descriptors::Binary { data, width } => data.len() / width.max(1),
-            Descriptors::Float { data, width } => data.len() / width.max(1),
-        };
+        self.check_frame(frame)?;
+        let mut timings = Timings::default();
+        // (a) retrieval and (b) the co-visible keyframe group around the retrieved keyframe
+        let t = Instant::now();
+        let keyframe = self.map.retrieve(&frame.descriptors, frame.global)?;
+        timings.retrieval_ms = ms(t);
+        let t = Instant::now();
+        let group = select_keyframes(&self.map.poses(), keyframe, &self.options.keyframes)?;
+        timings.keyframes_ms = ms(t);
+        // (c) forward intersection (cached per group), then backward intersection
+        let t = Instant::now();
+        let points = self.map_points(keyframe, &group)?;
+        timings.map_points_ms = ms(t);
+        let (geometric, inliers) = self.geometric_pose(frame, &points, group.len(), &mut timings)?;
+        // (d) motion model and (e) gated fusion
+        let t = Instant::now();
+        let prediction = self.predict(frame.timestamp);
+        let (estimate, source, reason) = self.combine(geometric, prediction);
+        timings.motion_fusion_ms = ms(t);
+        if let Some(e) = &estimate {
+            self.remember(frame.timestamp, e);
+        }
+        timings.total_ms = ms(start);
+        Ok(Localization { estimate, source, reason, keyframe, inliers, timings })
+    }
+
+    /// The frame's own checks (the map checks what it compares against).
+    fn check_frame(&self, frame: &Frame<'_>) -> Result<()> {
+        frame.descriptors.check("descriptors")?;
+        let n_desc = frame.descriptors.len();
         if n_desc != frame.keypoints.len() {
             return Err(GeolocError::invalid(
                 "descriptors",
                 format!("{n_desc} descriptors for {} keypoints", frame.keypoints.len()),
             ));
+        }
+        if let Some(i) = frame.keypoints.iter().position(|k| !(k.x.is_finite() && k.y.is_finite())) {
+            return Err(GeolocError::NonFinite { name: "keypoints".into(), index: i });
         }
         if !frame.timestamp.is_finite() || self.history.back().is_some_and(|(t, _, _)| frame.timestamp <= *t) {
             return Err(GeolocError::invalid(
@@ -185,148 +286,120 @@ impl Localizer {
                 format!("must be finite and increase, got {}", frame.timestamp),
             ));
         }
-        let mut timings = Timings::default();
-        let t = Instant::now();
-        let keyframe = self.map.retrieve(&frame.descriptors, frame.global)?;
-        timings.retrieval_ms = ms(t);
-        let t = Instant::now();
-        let group = select_keyframes(&self.map.poses(), keyframe, &self.options.keyframes)?;
-        timings.keyframes_ms = ms(t);
-        let t = Instant::now();
-        let points = self.map_points(keyframe, &group)?;
-        timings.map_points_ms = ms(t);
+        Ok(())
+    }
 
-        // geometric pose
+    /// (c) backward intersection: the query's keypoints matched to the group's points, then
+    /// PnP with the points' uncertainty (and the keyframe poses' shared uncertainty): T_G, C_G,
+    /// or why not; with the PnP inlier count.
+    fn geometric_pose(
+        &self,
+        frame: &Frame<'_>,
+        points: &MapPoints,
+        group_len: usize,
+        timings: &mut Timings,
+    ) -> Result<(std::result::Result<Estimate, String>, usize)> {
         let t = Instant::now();
         let matches = match_descriptors(&frame.descriptors, &points.descriptors.view(), &self.options.matching)?;
         timings.matching_ms = ms(t);
         let t = Instant::now();
-        let mut inliers = 0;
-        let geometric = if matches.len() < self.options.min_correspondences {
-            Err(format!("{} query-map matches < {}", matches.len(), self.options.min_correspondences))
-        } else {
-            let pts: Vec<Vector3<f64>> = matches.iter().map(|m| points.points[m.b]).collect();
-            let px: Vec<Vector2<f64>> = matches.iter().map(|m| frame.keypoints[m.a]).collect();
-            let covs: Vec<Matrix3<f64>> = matches.iter().map(|m| points.pixel_covariances[m.b]).collect();
-            let k = group.len();
-            let jacobians: Option<Vec<Matrix3x6<f64>>> = points
-                .shared
-                .as_ref()
-                .map(|(j, _)| matches.iter().flat_map(|m| j[m.b * k..(m.b + 1) * k].iter().copied()).collect());
-            let shared = match (&jacobians, &points.shared) {
-                (Some(j), Some((_, c))) => Some(SharedPoseUncertainty { jacobians: j, pose_covariances: c }),
-                _ => None,
-            };
-            let uncertainty = PointUncertainty { covariances: &covs, shared };
-            let res = solve_pnp(&self.map.camera, &pts, &px, None, Some(&uncertainty), &self.options.pnp)?;
-            inliers = res.inliers.iter().filter(|b| **b).count();
-            if res.success { Ok((res.world_from_cam, res.covariance)) } else { Err(res.reason) }
-        };
-        timings.pnp_ms = ms(t);
-
-        // motion model and fusion
-        let t = Instant::now();
-        let prediction = if self.history.len() >= 2 {
-            let (ts, poses, covs): (Vec<f64>, Vec<SE3>, Vec<Matrix6<f64>>) =
-                self.history.iter().fold((vec![], vec![], vec![]), |(mut a, mut b, mut c), (t, p, cv)| {
-                    a.push(*t);
-                    b.push(*p);
-                    c.push(*cv);
-                    (a, b, c)
-                });
-            motion_predict(&poses, &ts, frame.timestamp, Some(&covs)).ok()
-        } else {
-            None
-        };
-        let (pose, covariance, source, reason) = match (geometric, prediction) {
-            (Ok((tg, cg)), Some(pred)) => {
-                match fuse(&pred.world_from_cam, &pred.covariance, &tg, &cg, self.options.gate_sigma, self.options.gate)
-                {
-                    Ok(f) if f.source == FusionSource::Fused => {
-                        (Some(f.world_from_cam), Some(f.covariance), Source::Fused, "ok".to_string())
-                    }
-                    Ok(f) => (
-                        Some(f.world_from_cam),
-                        Some(f.covariance),
-                        Source::Motion,
-                        "geometric pose outside the motion gate".to_string(),
-                    ),
-                    Err(e) => (Some(tg), Some(cg), Source::Geometric, format!("fusion skipped: {e}")),
-                }
-            }
-            (Ok((tg, cg)), None) => (Some(tg), Some(cg), Source::Geometric, "ok (no motion history yet)".to_string()),
-            (Err(why), Some(pred)) => (
-                Some(pred.world_from_cam),
-                Some(pred.covariance),
-                Source::Motion,
-                format!("geometric locator failed: {why}"),
-            ),
-            (Err(why), None) => {
-                (None, None, Source::Lost, format!("geometric locator failed and no motion history: {why}"))
-            }
-        };
-        timings.motion_fusion_ms = ms(t);
-        if let (Some(p), Some(c)) = (pose, covariance) {
-            self.history.push_back((frame.timestamp, p, c));
-            while self.history.len() > self.options.history.max(2) {
-                self.history.pop_front();
-            }
+        if matches.len() < self.options.min_correspondences {
+            timings.pnp_ms = ms(t);
+            let why = format!("{} query-map matches < {}", matches.len(), self.options.min_correspondences);
+            return Ok((Err(why), 0));
         }
-        timings.total_ms = ms(start);
-        Ok(Localization { world_from_cam: pose, covariance, source, reason, keyframe, inliers, timings })
+        let pts: Vec<Vector3<f64>> = matches.iter().map(|m| points.points[m.b]).collect();
+        let px: Vec<Vector2<f64>> = matches.iter().map(|m| frame.keypoints[m.a]).collect();
+        let covs: Vec<Matrix3<f64>> = matches.iter().map(|m| points.pixel_covariances[m.b]).collect();
+        let jacobians: Option<Vec<Matrix3x6<f64>>> = points.shared.as_ref().map(|(j, _)| {
+            matches.iter().flat_map(|m| j[m.b * group_len..(m.b + 1) * group_len].iter().copied()).collect()
+        });
+        let shared = match (&jacobians, &points.shared) {
+            (Some(j), Some((_, c))) => Some(SharedPoseUncertainty { jacobians: j, pose_covariances: c }),
+            _ => None,
+        };
+        let uncertainty = PointUncertainty { covariances: &covs, shared };
+        let res = solve_pnp(&self.map.camera, &pts, &px, None, Some(&uncertainty), &self.options.pnp)?;
+        timings.pnp_ms = ms(t);
+        let inliers = res.inliers.iter().filter(|b| **b).count();
+        let pose = if res.success {
+            Ok(Estimate { world_from_cam: res.world_from_cam, covariance: res.covariance })
+        } else {
+            Err(res.reason)
+        };
+        Ok((pose, inliers))
     }
 
-    /// Triangulated points of the group around `seed`: tracks from the seed's keypoints
-    /// matched (and epipolar-checked) into every other group keyframe. Cached.
+    /// (d) the constant-velocity prediction T_M, C_M at `timestamp` from the last fused
+    /// poses (None with fewer than two, or when the fit fails).
+    fn predict(&self, timestamp: f64) -> Option<Estimate> {
+        if self.history.len() < 2 {
+            return None;
+        }
+        let ts: Vec<f64> = self.history.iter().map(|(t, _, _)| *t).collect();
+        let poses: Vec<SE3> = self.history.iter().map(|(_, p, _)| *p).collect();
+        let covs: Vec<Matrix6<f64>> = self.history.iter().map(|(_, _, c)| *c).collect();
+        motion_predict(&poses, &ts, timestamp, Some(&covs))
+            .ok()
+            .map(|p| Estimate { world_from_cam: p.world_from_cam, covariance: p.covariance })
+    }
+
+    /// (e) the gate and the fusion of T_G with T_M: which estimate the frame gets, its
+    /// source, and why.
+    fn combine(
+        &self,
+        geometric: std::result::Result<Estimate, String>,
+        prediction: Option<Estimate>,
+    ) -> (Option<Estimate>, Source, String) {
+        match (geometric, prediction) {
+            (Ok(g), Some(m)) => {
+                let (gate_sigma, gate) = (self.options.gate_sigma, self.options.gate);
+                match fuse(&m.world_from_cam, &m.covariance, &g.world_from_cam, &g.covariance, gate_sigma, gate) {
+                    Ok(f) => {
+                        let e = Estimate { world_from_cam: f.world_from_cam, covariance: f.covariance };
+                        if f.source == FusionSource::Fused {
+                            (Some(e), Source::Fused, "ok".to_string())
+                        } else {
+                            (Some(e), Source::Motion, "geometric pose outside the motion gate".to_string())
+                        }
+                    }
+                    Err(e) => (Some(g), Source::Geometric, format!("fusion skipped: {e}")),
+                }
+            }
+            (Ok(g), None) => (Some(g), Source::Geometric, "ok (no motion history yet)".to_string()),
+            (Err(why), Some(m)) => (Some(m), Source::Motion, format!("geometric locator failed: {why}")),
+            (Err(why), None) => (None, Source::Lost, format!("geometric locator failed and no motion history: {why}")),
+        }
+    }
+
+    /// Adds a frame's estimate to the motion history (the last `history` of them).
+    fn remember(&mut self, timestamp: f64, estimate: &Estimate) {
+        self.history.push_back((timestamp, estimate.world_from_cam, estimate.covariance));
+        while self.history.len() > self.options.history.max(2) {
+            self.history.pop_front();
+        }
+    }
+
+    /// (c) forward intersection: triangulated points of the group around `seed`, from
+    /// tracks of the seed's keypoints matched (and epipolar-checked) into every other group
+    /// keyframe. Cached per (seed, group).
     fn map_points(&mut self, seed: usize, group: &[usize]) -> Result<Arc<MapPoints>> {
         let key = (seed, group.to_vec());
         if let Some(hit) = self.cache.get(&key) {
             return Ok(Arc::clone(hit));
         }
-        let map = &self.map;
-        let kf = &map.keyframes;
-        let seed_local = group.iter().position(|&g| g == seed).expect("invariant: the group holds its seed");
-        let (mut cam_ids, mut track_ids, mut pixels) = (Vec::new(), Vec::new(), Vec::new());
-        for (local, &g) in group.iter().enumerate() {
-            if g == seed {
-                continue;
-            }
-            let matches =
-                match_descriptors(&kf[seed].descriptors.view(), &kf[g].descriptors.view(), &self.options.matching)?;
-            let kept = epipolar_filter(
-                &map.camera,
-                &kf[seed].world_from_cam,
-                &kf[g].world_from_cam,
-                &kf[seed].keypoints,
-                &kf[g].keypoints,
-                &matches,
-                self.options.epipolar_px,
-            )?;
-            for m in kept {
-                cam_ids.push(local);
-                track_ids.push(m.a);
-                pixels.push(kf[g].keypoints[m.b]);
-            }
-        }
-        // the seed's own observation of every track that reached another keyframe
-        let mut tracked: Vec<usize> = track_ids.clone();
-        tracked.sort_unstable();
-        tracked.dedup();
-        for &i in &tracked {
-            cam_ids.push(seed_local);
-            track_ids.push(i);
-            pixels.push(kf[seed].keypoints[i]);
-        }
+        let (observations, tracked) = self.group_tracks(seed, group)?;
+        let kf = &self.map.keyframes;
         let poses: Vec<SE3> = group.iter().map(|&g| kf[g].world_from_cam).collect();
         let covs: Option<Vec<Matrix6<f64>>> =
-            map.pose_covariances.as_ref().map(|c| group.iter().map(|&g| c[g]).collect());
+            self.map.pose_covariances.as_ref().map(|c| group.iter().map(|&g| c[g]).collect());
         let tri = triangulate(
-            &map.camera,
+            &self.map.camera,
             &poses,
             covs.as_deref(),
-            &cam_ids,
-            &track_ids,
-            &pixels,
+            &observations.cam_ids,
+            &observations.track_ids,
+            &observations.pixels,
             &self.options.triangulation,
         )?;
         let valid: Vec<usize> =
@@ -349,5 +422,57 @@ impl Localizer {
         });
         self.cache.insert(key, Arc::clone(&points));
         Ok(points)
+    }
+
+    /// The observations of the group's tracks (a track is a keypoint of the seed, by index):
+    /// the seed's keypoints matched into each other group keyframe and epipolar-checked with
+    /// the known poses, plus the seed's own observation of every track that reached another
+    /// keyframe. Returns them with the sorted tracked keypoints.
+    fn group_tracks(&self, seed: usize, group: &[usize]) -> Result<(Observations, Vec<usize>)> {
+        let kf = &self.map.keyframes;
+        let seed_local = group.iter().position(|&g| g == seed).expect("invariant: the group holds its seed");
+        let mut obs = Observations::default();
+        for (local, &g) in group.iter().enumerate() {
+            if g == seed {
+                continue;
+            }
+            let matches =
+                match_descriptors(&kf[seed].descriptors.view(), &kf[g].descriptors.view(), &self.options.matching)?;
+            let keep = epipolar_filter(
+                &self.map.camera,
+                &kf[seed].world_from_cam,
+                &kf[g].world_from_cam,
+                &kf[seed].keypoints,
+                &kf[g].keypoints,
+                &matches,
+                self.options.epipolar_px,
+            )?;
+            for (m, _) in matches.iter().zip(keep).filter(|(_, k)| *k) {
+                obs.push(local, m.a, kf[g].keypoints[m.b]);
+            }
+        }
+        let mut tracked: Vec<usize> = obs.track_ids.clone();
+        tracked.sort_unstable();
+        tracked.dedup();
+        for &i in &tracked {
+            obs.push(seed_local, i, kf[seed].keypoints[i]);
+        }
+        Ok((obs, tracked))
+    }
+}
+
+/// Observations for [`triangulate`]: camera (group position), track, pixel.
+#[derive(Default)]
+struct Observations {
+    cam_ids: Vec<usize>,
+    track_ids: Vec<usize>,
+    pixels: Vec<Vector2<f64>>,
+}
+
+impl Observations {
+    fn push(&mut self, cam: usize, track: usize, pixel: Vector2<f64>) {
+        self.cam_ids.push(cam);
+        self.track_ids.push(track);
+        self.pixels.push(pixel);
     }
 }

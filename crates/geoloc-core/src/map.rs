@@ -4,6 +4,9 @@
 //! provides global descriptors, else a bag-of-words vocabulary and database).
 
 pub mod file;
+mod persist;
+
+pub use persist::{CameraHeader, MapHeader, RetrievalHeader};
 
 use nalgebra::{Matrix6, Vector2};
 
@@ -67,12 +70,96 @@ pub enum RetrievalKind {
     },
 }
 
+/// The retrieval methods by name (`"bow"`, `"global"`), without their parameters.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum RetrievalMethod {
+    /// Bag of words ([`RetrievalKind::Bow`]).
+    Bow,
+    /// Global descriptors ([`RetrievalKind::Global`]).
+    Global,
+}
+
+impl RetrievalMethod {
+    /// Every method, in declaration order.
+    pub const ALL: [Self; 2] = [Self::Bow, Self::Global];
+
+    /// The name: `"bow"` or `"global"` (the one place that spells it).
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Bow => "bow",
+            Self::Global => "global",
+        }
+    }
+
+    /// The retrieval to build (`branching`, `depth` are used by BoW only).
+    pub fn with(self, branching: usize, depth: usize) -> RetrievalKind {
+        match self {
+            Self::Bow => RetrievalKind::Bow { branching, depth },
+            Self::Global => RetrievalKind::Global,
+        }
+    }
+}
+
+impl std::str::FromStr for RetrievalMethod {
+    type Err = GeolocError;
+
+    fn from_str(s: &str) -> Result<Self> {
+        Self::ALL
+            .into_iter()
+            .find(|m| m.as_str() == s)
+            .ok_or_else(|| GeolocError::invalid("retrieval", format!("expected \"bow\" or \"global\", got {s:?}")))
+    }
+}
+
+/// Relative tolerance of the symmetry and positive-semi-definiteness checks of covariances.
+const COVARIANCE_TOLERANCE: f64 = 1e-9;
+
+/// Checks that `c` is a covariance: finite, symmetric (|cᵢⱼ − cⱼᵢ| ≤ tol·max|c|) and positive
+/// semi-definite (smallest eigenvalue ≥ −tol·max|c|). Errors name `name`.
+// The other helper adds optim::covariance::check_covariance; deduplicate at merge.
+fn check_covariance(name: &str, c: &Matrix6<f64>) -> Result<()> {
+    if c.iter().any(|v| !v.is_finite()) {
+        return Err(GeolocError::invalid(name, "holds a non-finite value"));
+    }
+    let scale = c.amax();
+    let tol = COVARIANCE_TOLERANCE * scale;
+    if (c - c.transpose()).amax() > tol {
+        return Err(GeolocError::invalid(name, "must be symmetric"));
+    }
+    let smallest = c.symmetric_eigenvalues().min();
+    if smallest < -tol {
+        return Err(GeolocError::invalid(name, format!("must be positive semi-definite, has eigenvalue {smallest:e}")));
+    }
+    Ok(())
+}
+
+impl std::fmt::Debug for Map {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let retrieval = match &self.retrieval {
+            Retrieval::Global(index) => format!("global ({}-D)", index.dim()),
+            Retrieval::Bow { vocabulary, .. } => format!("bow ({} words)", vocabulary.len()),
+        };
+        f.debug_struct("Map")
+            .field("camera", &self.camera)
+            .field("keyframes", &self.keyframes.len())
+            .field("pose_covariances", &self.pose_covariances.is_some())
+            .field("retrieval", &retrieval)
+            .finish()
+    }
+}
+
 impl Map {
-    /// Builds the map and its retrieval structure.
+    /// Builds the map and its retrieval structure: checks every keyframe, then builds the
+    /// global-descriptor index or trains the BoW vocabulary (seeded by `seed`) and indexes
+    /// the keyframes' words.
     ///
     /// # Errors
-    /// No keyframes, keypoint/descriptor counts that disagree, mixed descriptor kinds or
-    /// widths, missing or unequal global descriptors for `Global`, bad covariances count.
+    /// Named as the Python caller spells them: no keyframes (`keyframes`), keypoint and
+    /// descriptor counts that disagree or non-finite keypoints (`keypoints[i]`), mixed
+    /// descriptor kinds or widths or non-finite float descriptors (`descriptors[i]`), missing,
+    /// unequal or non-finite global descriptors (`global_descriptors`), a wrong count or a
+    /// covariance that is not symmetric positive semi-definite (`pose_covariances[i]`), and
+    /// the vocabulary's own limits (`branching`, `depth`).
     pub fn build(
         camera: Camera,
         keyframes: Vec<Keyframe>,
@@ -80,88 +167,13 @@ impl Map {
         kind: RetrievalKind,
         seed: u64,
     ) -> Result<Self> {
-        if keyframes.is_empty() {
-            return Err(GeolocError::invalid("keyframes", "the map needs at least one keyframe"));
-        }
-        if let Some(c) = &pose_covariances
-            && c.len() != keyframes.len()
-        {
-            return Err(GeolocError::invalid(
-                "pose_covariances",
-                format!("has {} entries for {} keyframes", c.len(), keyframes.len()),
-            ));
-        }
-        let kind_of = |d: &DescriptorSet| match d {
-            DescriptorSet::Binary { width, .. } => (true, *width),
-            DescriptorSet::Float { width, .. } => (false, *width),
-        };
-        let first = kind_of(&keyframes[0].descriptors);
-        for (i, kf) in keyframes.iter().enumerate() {
-            if kf.keypoints.len() != kf.descriptors.len() {
-                return Err(GeolocError::invalid(
-                    format!("keyframes[{i}]"),
-                    format!("{} keypoints but {} descriptors", kf.keypoints.len(), kf.descriptors.len()),
-                ));
-            }
-            if kind_of(&kf.descriptors) != first {
-                return Err(GeolocError::invalid(
-                    format!("keyframes[{i}]"),
-                    "descriptors differ in kind or width from keyframe 0's",
-                ));
-            }
+        check_keyframes(&keyframes)?;
+        if let Some(c) = &pose_covariances {
+            check_pose_covariances(c, keyframes.len())?;
         }
         let retrieval = match kind {
-            RetrievalKind::Global => {
-                let dim = keyframes[0].global.as_ref().map_or(0, Vec::len);
-                let mut data = Vec::with_capacity(dim * keyframes.len());
-                for (i, kf) in keyframes.iter().enumerate() {
-                    match &kf.global {
-                        Some(g) if g.len() == dim && dim > 0 => data.extend_from_slice(g),
-                        _ => {
-                            return Err(GeolocError::invalid(
-                                format!("keyframes[{i}]"),
-                                format!("needs a global descriptor of length {dim}"),
-                            ));
-                        }
-                    }
-                }
-                Retrieval::Global(DescriptorIndex::new(data, dim)?)
-            }
-            RetrievalKind::Bow { branching, depth } => {
-                let all = match &keyframes[0].descriptors {
-                    DescriptorSet::Binary { width, .. } => DescriptorSet::Binary {
-                        data: keyframes
-                            .iter()
-                            .flat_map(|k| {
-                                if let DescriptorSet::Binary { data, .. } = &k.descriptors {
-                                    data.clone()
-                                } else {
-                                    Vec::new()
-                                }
-                            })
-                            .collect(),
-                        width: *width,
-                    },
-                    DescriptorSet::Float { width, .. } => DescriptorSet::Float {
-                        data: keyframes
-                            .iter()
-                            .flat_map(|k| {
-                                if let DescriptorSet::Float { data, .. } = &k.descriptors {
-                                    data.clone()
-                                } else {
-                                    Vec::new()
-                                }
-                            })
-                            .collect(),
-                        width: *width,
-                    },
-                };
-                let vocabulary = Vocabulary::train(&all.view(), branching, depth, seed)?;
-                let words: Vec<Vec<u32>> =
-                    keyframes.iter().map(|k| vocabulary.words_of(&k.descriptors.view())).collect::<Result<_>>()?;
-                let database = BowDatabase::new(vocabulary.len(), &words)?;
-                Retrieval::Bow { vocabulary, database }
-            }
+            RetrievalKind::Global => Retrieval::Global(global_index(&keyframes)?),
+            RetrievalKind::Bow { branching, depth } => bow_retrieval(&keyframes, branching, depth, seed)?,
         };
         Ok(Self { camera, keyframes, pose_covariances, retrieval })
     }
@@ -172,16 +184,26 @@ impl Map {
     }
 
     /// The keyframe most similar to a query (by its global descriptor, or by its local
-    /// descriptors through BoW).
+    /// descriptors through BoW; ties go to the lower index).
     ///
     /// # Errors
-    /// A query without what the map's retrieval needs, or of the wrong size.
+    /// A query without what the map's retrieval needs, or of the wrong size
+    /// (`global_descriptor`, `descriptors`).
     pub fn retrieve(&self, descriptors: &Descriptors<'_>, global: Option<&[f32]>) -> Result<usize> {
         match &self.retrieval {
             Retrieval::Global(index) => {
                 let g = global.ok_or_else(|| {
-                    GeolocError::invalid("global", "this map retrieves by global descriptor; give one")
+                    GeolocError::invalid("global_descriptor", "this map retrieves by global descriptor; give one")
                 })?;
+                if g.len() != index.dim() {
+                    return Err(GeolocError::invalid(
+                        "global_descriptor",
+                        format!("expected {} values, got {}", index.dim(), g.len()),
+                    ));
+                }
+                if let Some(i) = g.iter().position(|v| !v.is_finite()) {
+                    return Err(GeolocError::NonFinite { name: "global_descriptor".into(), index: i });
+                }
                 let (_, idx) = index.query(g, 1)?;
                 Ok(idx[0])
             }
@@ -195,4 +217,75 @@ impl Map {
             }
         }
     }
+}
+
+/// Every keyframe: as many finite keypoints as descriptors, descriptors valid and of
+/// keyframe 0's kind and width.
+fn check_keyframes(keyframes: &[Keyframe]) -> Result<()> {
+    let Some(first) = keyframes.first() else {
+        return Err(GeolocError::invalid("keyframes", "the map needs at least one keyframe"));
+    };
+    let kind = |d: &DescriptorSet| (d.view().is_binary(), d.view().width());
+    for (i, kf) in keyframes.iter().enumerate() {
+        kf.descriptors.view().check(&format!("descriptors[{i}]"))?;
+        if kf.keypoints.len() != kf.descriptors.len() {
+            return Err(GeolocError::invalid(
+                format!("keypoints[{i}]"),
+                format!("{} keypoints but {} descriptors", kf.keypoints.len(), kf.descriptors.len()),
+            ));
+        }
+        if let Some(j) = kf.keypoints.iter().position(|k| !(k.x.is_finite() && k.y.is_finite())) {
+            return Err(GeolocError::NonFinite { name: format!("keypoints[{i}]"), index: j });
+        }
+        if kind(&kf.descriptors) != kind(&first.descriptors) {
+            return Err(GeolocError::invalid(
+                format!("descriptors[{i}]"),
+                "descriptors differ in kind or width from keyframe 0's",
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// One covariance per keyframe, each symmetric positive semi-definite.
+fn check_pose_covariances(covariances: &[Matrix6<f64>], keyframes: usize) -> Result<()> {
+    if covariances.len() != keyframes {
+        return Err(GeolocError::invalid(
+            "pose_covariances",
+            format!("has {} entries for {keyframes} keyframes", covariances.len()),
+        ));
+    }
+    covariances.iter().enumerate().try_for_each(|(i, c)| check_covariance(&format!("pose_covariances[{i}]"), c))
+}
+
+/// (a) by global descriptor: the exact index over the keyframes' descriptors.
+fn global_index(keyframes: &[Keyframe]) -> Result<DescriptorIndex> {
+    let dim = keyframes[0].global.as_ref().map_or(0, Vec::len);
+    let mut data = Vec::with_capacity(dim * keyframes.len());
+    for (i, kf) in keyframes.iter().enumerate() {
+        match &kf.global {
+            Some(g) if g.len() == dim && dim > 0 => data.extend_from_slice(g),
+            _ => {
+                return Err(GeolocError::invalid(
+                    "global_descriptors",
+                    format!("keyframes[{i}] needs a global descriptor of length {dim}"),
+                ));
+            }
+        }
+    }
+    if let Some(v) = data.iter().position(|v| !v.is_finite()) {
+        return Err(GeolocError::NonFinite { name: "global_descriptors".into(), index: v / dim });
+    }
+    DescriptorIndex::new(data, dim)
+}
+
+/// (a) by bag of words: a vocabulary trained on every keyframe's descriptors, and the
+/// TF-IDF database of the keyframes' words.
+fn bow_retrieval(keyframes: &[Keyframe], branching: usize, depth: usize, seed: u64) -> Result<Retrieval> {
+    let all = DescriptorSet::stack(keyframes.iter().map(|k| &k.descriptors));
+    let vocabulary = Vocabulary::train(&all.view(), branching, depth, seed)?;
+    let words: Vec<Vec<u32>> =
+        keyframes.iter().map(|k| vocabulary.words_of(&k.descriptors.view())).collect::<Result<_>>()?;
+    let database = BowDatabase::new(vocabulary.len(), &words)?;
+    Ok(Retrieval::Bow { vocabulary, database })
 }

@@ -9,7 +9,6 @@
 //! Sampson distance (xᵦᵀFxₐ)² / (‖(Fxₐ)₁,₂‖² + ‖(Fᵀxᵦ)₁,₂‖²) is at most `max_px`².
 
 use nalgebra::{Matrix3, Vector2, Vector3};
-use rayon::prelude::*;
 
 use crate::camera::Camera;
 use crate::error::{GeolocError, Result};
@@ -34,31 +33,95 @@ pub enum Descriptors<'a> {
     },
 }
 
-impl Descriptors<'_> {
-    fn len(&self) -> usize {
+/// One descriptor row.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Row<'a> {
+    /// `width` bytes.
+    Binary(&'a [u8]),
+    /// `width` values.
+    Float(&'a [f32]),
+}
+
+impl Row<'_> {
+    /// **The** descriptor distance of geoloc, one meaning everywhere (matching, the BoW
+    /// vocabulary, its k-means++ weights D²):
+    /// * binary rows: the Hamming distance, in bits, d = Σ popcount(aᵢ ⊕ bᵢ);
+    /// * float rows: the Euclidean distance d = √Σ(aᵢ − bᵢ)² (not squared), summed in f32.
+    ///
+    /// Rows of different kinds are infinitely far apart (entry points refuse mixing them).
+    #[inline]
+    pub fn distance(&self, other: &Row<'_>) -> f32 {
+        match (*self, *other) {
+            (Row::Binary(a), Row::Binary(b)) => hamming(a, b) as f32,
+            (Row::Float(a), Row::Float(b)) => a.iter().zip(b).map(|(x, y)| (x - y) * (x - y)).sum::<f32>().sqrt(),
+            _ => f32::INFINITY,
+        }
+    }
+}
+
+impl<'a> Descriptors<'a> {
+    /// Number of descriptors N (0 for a zero width, which [`Descriptors::check`] refuses).
+    pub fn len(&self) -> usize {
         match *self {
-            Self::Binary { data, width } => data.len() / width.max(1),
-            Self::Float { data, width } => data.len() / width.max(1),
+            Self::Binary { data, width } => data.len().checked_div(width).unwrap_or(0),
+            Self::Float { data, width } => data.len().checked_div(width).unwrap_or(0),
         }
     }
 
-    fn width(&self) -> usize {
+    /// Whether there are no descriptors.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Bytes (binary) or values (float) per descriptor.
+    pub fn width(&self) -> usize {
         match *self {
             Self::Binary { width, .. } | Self::Float { width, .. } => width,
         }
     }
 
-    fn distance(&self, i: usize, other: &Self, j: usize) -> f32 {
-        match (*self, *other) {
-            (Self::Binary { data: a, width }, Self::Binary { data: b, .. }) => {
-                hamming(&a[i * width..(i + 1) * width], &b[j * width..(j + 1) * width]) as f32
-            }
-            (Self::Float { data: a, width }, Self::Float { data: b, .. }) => {
-                let (ra, rb) = (&a[i * width..(i + 1) * width], &b[j * width..(j + 1) * width]);
-                ra.iter().zip(rb).map(|(x, y)| (x - y) * (x - y)).sum::<f32>().sqrt()
-            }
-            _ => f32::INFINITY,
+    /// Whether the rows are binary (Hamming) descriptors.
+    pub fn is_binary(&self) -> bool {
+        matches!(self, Self::Binary { .. })
+    }
+
+    /// Row `i` (panics past the end, like slice indexing; callers index below [`Self::len`]).
+    #[inline]
+    pub fn row(&self, i: usize) -> Row<'a> {
+        match *self {
+            Self::Binary { data, width } => Row::Binary(&data[i * width..(i + 1) * width]),
+            Self::Float { data, width } => Row::Float(&data[i * width..(i + 1) * width]),
         }
+    }
+
+    /// [`Row::distance`] between row `i` of `self` and row `j` of `other`.
+    #[inline]
+    pub fn distance(&self, i: usize, other: &Descriptors<'_>, j: usize) -> f32 {
+        self.row(i).distance(&other.row(j))
+    }
+
+    /// Checks the view for argument `name`: a positive width, whole rows, finite values.
+    ///
+    /// # Errors
+    /// [`GeolocError::InvalidInput`] for a zero width or a partial row,
+    /// [`GeolocError::NonFinite`] (with the row) for NaN or ±∞ in float rows.
+    pub fn check(&self, name: &str) -> Result<()> {
+        let (values, width) = match *self {
+            Self::Binary { data, width } => (data.len(), width),
+            Self::Float { data, width } => (data.len(), width),
+        };
+        if width == 0 || !values.is_multiple_of(width) {
+            return Err(GeolocError::invalid(
+                name,
+                format!("expected rows of a positive width, got {values} values for width {width}"),
+            ));
+        }
+        if let Self::Float { data, width } = *self
+            && let Some(i) = data.iter().position(|v| !v.is_finite())
+        {
+            return Err(GeolocError::NonFinite { name: name.to_owned(), index: i / width });
+        }
+        Ok(())
     }
 }
 
@@ -90,17 +153,34 @@ impl DescriptorSet {
         }
     }
 
-    /// Number of descriptors.
+    /// Number of descriptors (see [`Descriptors::len`]).
     pub fn len(&self) -> usize {
-        match self {
-            Self::Binary { data, width } => data.len() / (*width).max(1),
-            Self::Float { data, width } => data.len() / (*width).max(1),
-        }
+        self.view().len()
     }
 
     /// Whether there are none.
     pub fn is_empty(&self) -> bool {
         self.len() == 0
+    }
+
+    /// The rows of `parts` one after the other (all of the first part's kind and width; a
+    /// part of another kind is skipped — callers check kinds first). Empty float rows of
+    /// width 0 for no parts.
+    pub fn stack<'a>(parts: impl IntoIterator<Item = &'a DescriptorSet>) -> Self {
+        let mut parts = parts.into_iter().peekable();
+        match parts.peek() {
+            Some(Self::Binary { width, .. }) => {
+                let width = *width;
+                let data = parts.filter_map(|p| if let Self::Binary { data, .. } = p { Some(data) } else { None });
+                Self::Binary { data: data.flatten().copied().collect(), width }
+            }
+            Some(Self::Float { width, .. }) => {
+                let width = *width;
+                let data = parts.filter_map(|p| if let Self::Float { data, .. } = p { Some(data) } else { None });
+                Self::Float { data: data.flatten().copied().collect(), width }
+            }
+            None => Self::Float { data: Vec::new(), width: 0 },
+        }
     }
 
     /// The rows `rows`, in that order.
@@ -164,9 +244,23 @@ pub struct Match {
 
 /// Best and second-best of `i` (of `from`) among all rows of `to`: (best index, best, second).
 fn best_two(from: &Descriptors<'_>, i: usize, to: &Descriptors<'_>) -> (usize, f32, f32) {
+    // the kind is matched once per query row, not once per distance (the hot loop)
+    match (from.row(i), *to) {
+        (Row::Binary(q), Descriptors::Binary { data, width }) => {
+            best_two_of(data.chunks_exact(width).map(|r| hamming(q, r) as f32))
+        }
+        (q @ Row::Float(_), Descriptors::Float { data, width }) => {
+            best_two_of(data.chunks_exact(width).map(|r| q.distance(&Row::Float(r))))
+        }
+        _ => (usize::MAX, f32::INFINITY, f32::INFINITY),
+    }
+}
+
+/// (index of the smallest, smallest, second smallest) of `distances` (first index on ties).
+#[inline]
+fn best_two_of(distances: impl Iterator<Item = f32>) -> (usize, f32, f32) {
     let (mut best, mut d1, mut d2) = (usize::MAX, f32::INFINITY, f32::INFINITY);
-    for j in 0..to.len() {
-        let d = from.distance(i, to, j);
+    for (j, d) in distances.enumerate() {
         if d < d1 {
             (d2, d1, best) = (d1, d, j);
         } else if d < d2 {
@@ -176,17 +270,27 @@ fn best_two(from: &Descriptors<'_>, i: usize, to: &Descriptors<'_>) -> (usize, f
     (best, d1, d2)
 }
 
-/// Matches the descriptors of two images; see the module doc. Sorted by `a`.
+/// Per row of `from`: (nearest row of `to`, its distance, the second-nearest distance).
+type BestTwo = Vec<(usize, f32, f32)>;
+
+/// Rows per parallel task below which matching stays on the calling thread.
+const MATCH_PARALLEL_MIN_ROWS: usize = 64;
+
+/// Matches the descriptors of two images; see the module doc. Sorted by `a`. Distances are
+/// [`Row::distance`]s, exact for every finite input (float rows go through the exact
+/// [`crate::retrieval::DescriptorIndex`] scan).
 ///
 /// # Errors
-/// Mixed binary/float descriptors, different widths, a zero width, a bad ratio.
+/// Mixed binary/float descriptors, different widths, a zero width, non-finite float values
+/// (named `descriptors_a` / `descriptors_b`), a ratio outside (0, 1], a negative or NaN
+/// `max_distance`.
 pub fn match_descriptors(a: &Descriptors<'_>, b: &Descriptors<'_>, options: &MatchOptions) -> Result<Vec<Match>> {
-    match (a, b) {
-        (Descriptors::Binary { .. }, Descriptors::Binary { .. })
-        | (Descriptors::Float { .. }, Descriptors::Float { .. }) => {}
-        _ => return Err(GeolocError::invalid("descriptors_b", "binary and float descriptors cannot be compared")),
+    a.check("descriptors_a")?;
+    b.check("descriptors_b")?;
+    if a.is_binary() != b.is_binary() {
+        return Err(GeolocError::invalid("descriptors_b", "binary and float descriptors cannot be compared"));
     }
-    if a.width() == 0 || a.width() != b.width() {
+    if a.width() != b.width() {
         return Err(GeolocError::invalid(
             "descriptors_b",
             format!("width {} differs from descriptors_a's {}", b.width(), a.width()),
@@ -197,38 +301,23 @@ pub fn match_descriptors(a: &Descriptors<'_>, b: &Descriptors<'_>, options: &Mat
     {
         return Err(GeolocError::invalid("ratio", format!("must be in (0, 1], got {r}")));
     }
-    if b.len() == 0 {
+    if let Some(m) = options.max_distance
+        && (m.is_nan() || m < 0.0)
+    {
+        return Err(GeolocError::invalid("max_distance", format!("must be ≥ 0, got {m}")));
+    }
+    if a.is_empty() || b.is_empty() {
         return Ok(Vec::new());
     }
     let (forward, backward) = match (a, b) {
-        // float: the exact k-NN of the retrieval index (blocked matrix products + exact
-        // re-scoring) finds the same two nearest as the scan below, several times faster
-        (Descriptors::Float { data: da, width }, Descriptors::Float { data: db, .. }) if a.len() > 0 => {
-            let index_b = crate::retrieval::DescriptorIndex::with_backend(
-                db.to_vec(),
-                *width,
-                Some(crate::retrieval::Backend::Flat),
-            )?;
-            let k = b.len().min(2);
-            let (dist, idx) = index_b.query(da, k)?;
-            let forward: Vec<(usize, f32, f32)> = (0..a.len())
-                .map(|i| (idx[i * k], dist[i * k], if k == 2 { dist[i * k + 1] } else { f32::INFINITY }))
-                .collect();
-            let backward = if options.mutual {
-                let index_a = crate::retrieval::DescriptorIndex::with_backend(
-                    da.to_vec(),
-                    *width,
-                    Some(crate::retrieval::Backend::Flat),
-                )?;
-                Some(index_a.query(db, 1)?.1)
-            } else {
-                None
-            };
-            (forward, backward)
+        (Descriptors::Float { data: da, width }, Descriptors::Float { data: db, .. }) => {
+            (float_best_two(da, db, *width)?, options.mutual.then(|| float_nearest(db, da, *width)).transpose()?)
         }
         _ => (
-            (0..a.len()).into_par_iter().map(|i| best_two(a, i, b)).collect::<Vec<_>>(),
-            options.mutual.then(|| (0..b.len()).into_par_iter().map(|j| best_two(b, j, a).0).collect::<Vec<_>>()),
+            crate::parallel::map_indices(a.len(), MATCH_PARALLEL_MIN_ROWS, |i| best_two(a, i, b)),
+            options
+                .mutual
+                .then(|| crate::parallel::map_indices(b.len(), MATCH_PARALLEL_MIN_ROWS, |j| best_two(b, j, a).0)),
         ),
     };
     Ok(forward
@@ -240,6 +329,26 @@ pub fn match_descriptors(a: &Descriptors<'_>, b: &Descriptors<'_>, options: &Mat
         .filter(|&(i, (j, _, _))| backward.as_ref().is_none_or(|back| back[j] == i))
         .map(|(i, (j, d, _))| Match { a: i, b: j, distance: d })
         .collect())
+}
+
+/// Float rows: the exact k-NN of the retrieval index (blocked matrix products + exact
+/// re-scoring, an f64 scan at extreme magnitudes) finds the same two nearest as
+/// [`best_two`], several times faster.
+fn float_best_two(from: &[f32], to: &[f32], width: usize) -> Result<BestTwo> {
+    use crate::retrieval::{Backend, DescriptorIndex};
+    let index = DescriptorIndex::with_backend(to.to_vec(), width, Some(Backend::Flat))?;
+    let k = index.len().min(2);
+    let (dist, idx) = index.query(from, k)?;
+    Ok((0..from.len() / width)
+        .map(|i| (idx[i * k], dist[i * k], if k == 2 { dist[i * k + 1] } else { f32::INFINITY }))
+        .collect())
+}
+
+/// Float rows: the nearest row of `to` for each row of `from`.
+fn float_nearest(from: &[f32], to: &[f32], width: usize) -> Result<Vec<usize>> {
+    use crate::retrieval::{Backend, DescriptorIndex};
+    let index = DescriptorIndex::with_backend(to.to_vec(), width, Some(Backend::Flat))?;
+    Ok(index.query(from, 1)?.1)
 }
 
 /// The fundamental matrix F (pixels) with x_bᵀ F x_a = 0 for images taken at world_from_cam
@@ -271,32 +380,31 @@ pub fn sampson_distance(f: &Matrix3<f64>, xa: &Vector2<f64>, xb: &Vector2<f64>) 
     if den <= 0.0 { f64::INFINITY } else { (num * num / den).sqrt() }
 }
 
-/// Keeps the matches whose keypoints are within `max_px` (Sampson) of the epipolar geometry
-/// of the two known poses. Keypoints are undistorted pixels.
+/// Which `pairs` have keypoints within `max_px` (Sampson) of the epipolar geometry of the
+/// two known poses: a mask over `pairs` (true: kept). Keypoints are undistorted pixels.
 ///
 /// # Errors
-/// A match indexing past the keypoints, or a non-positive threshold.
+/// A pair indexing past the keypoints (`pairs`), or a non-positive `max_px`.
 pub fn epipolar_filter(
     camera: &Camera,
     pose_a: &SE3,
     pose_b: &SE3,
     keypoints_a: &[Vector2<f64>],
     keypoints_b: &[Vector2<f64>],
-    matches: &[Match],
+    pairs: &[Match],
     max_px: f64,
-) -> Result<Vec<Match>> {
+) -> Result<Vec<bool>> {
     if !(max_px.is_finite() && max_px > 0.0) {
-        return Err(GeolocError::invalid("max_epipolar_px", format!("must be finite and > 0, got {max_px}")));
+        return Err(GeolocError::invalid("max_px", format!("must be finite and > 0, got {max_px}")));
     }
-    if let Some(m) = matches.iter().find(|m| m.a >= keypoints_a.len() || m.b >= keypoints_b.len()) {
-        return Err(GeolocError::invalid("matches", format!("({}, {}) indexes past the keypoints", m.a, m.b)));
+    if let Some(i) = pairs.iter().position(|m| m.a >= keypoints_a.len() || m.b >= keypoints_b.len()) {
+        return Err(GeolocError::invalid(
+            "pairs",
+            format!("pairs[{i}] = ({}, {}) indexes past the keypoints", pairs[i].a, pairs[i].b),
+        ));
     }
     let f = fundamental_matrix(camera, pose_a, pose_b);
-    Ok(matches
-        .iter()
-        .copied()
-        .filter(|m| sampson_distance(&f, &keypoints_a[m.a], &keypoints_b[m.b]) <= max_px)
-        .collect())
+    Ok(pairs.iter().map(|m| sampson_distance(&f, &keypoints_a[m.a], &keypoints_b[m.b]) <= max_px).collect())
 }
 
 #[cfg(test)]
@@ -304,6 +412,7 @@ pub fn epipolar_filter(
 mod tests {
     use super::*;
     use crate::camera::project;
+    use crate::error::GeolocError;
     use crate::testing::{SplitMix64, look_at};
 
     fn random_bytes(rng: &mut SplitMix64, n: usize) -> Vec<u8> {
@@ -353,6 +462,20 @@ mod tests {
         assert!(m.iter().all(|mm| mm.b == perm[mm.a]));
     }
 
+    /// Issue 11: float descriptors near 10²⁰ (finite in f32, but their squares are not) used
+    /// to find 0 of 50 self-matches.
+    #[test]
+    fn self_matches_at_extreme_magnitudes() {
+        let mut rng = SplitMix64::new(8);
+        for scale in [1e20_f32, 1e-30] {
+            let x: Vec<f32> = (0..50 * 16).map(|_| rng.normal() as f32 * scale).collect();
+            let d = Descriptors::Float { data: &x, width: 16 };
+            let m = match_descriptors(&d, &d, &MatchOptions::default()).expect("finite input");
+            assert_eq!(m.len(), 50, "scale {scale}");
+            assert!(m.iter().all(|mm| mm.a == mm.b && mm.distance == 0.0));
+        }
+    }
+
     #[test]
     fn epipolar_check_keeps_consistent_pairs_only() {
         let cam = Camera::new(525.0, 525.0, 320.0, 240.0).expect("valid");
@@ -369,7 +492,8 @@ mod tests {
         let f = fundamental_matrix(&cam, &pa, &pb);
         assert!(sampson_distance(&f, &ka[50], &kb[50]) < 1e-9);
         let matches: Vec<Match> = (0..100).map(|i| Match { a: i, b: i, distance: 0.0 }).collect();
-        let kept = epipolar_filter(&cam, &pa, &pb, &ka, &kb, &matches, 2.0).expect("valid");
+        let mask = epipolar_filter(&cam, &pa, &pb, &ka, &kb, &matches, 2.0).expect("valid");
+        let kept: Vec<Match> = matches.iter().zip(mask).filter(|(_, k)| *k).map(|(m, _)| *m).collect();
         // a vertical shift can lie along a near-vertical epipolar line for a few points
         assert!(kept.iter().all(|m| m.a >= 20 || sampson_distance(&f, &ka[m.a], &kb[m.b]) <= 2.0));
         assert!(kept.iter().filter(|m| m.a >= 20).count() == 80);
@@ -407,6 +531,25 @@ mod tests {
         );
         let cam = Camera::new(1.0, 1.0, 0.0, 0.0).expect("valid");
         let m = [Match { a: 3, b: 0, distance: 0.0 }];
-        assert!(epipolar_filter(&cam, &SE3::identity(), &SE3::identity(), &[], &[], &m, 1.0).is_err());
+        fn name_of<T>(r: Result<T>) -> String {
+            match r {
+                Err(GeolocError::InvalidInput { name, .. } | GeolocError::NonFinite { name, .. }) => name,
+                Err(other) => panic!("expected a named error, got {other:?}"),
+                Ok(_) => panic!("expected a named error, got Ok"),
+            }
+        }
+        let (i, k) = (SE3::identity(), [Vector2::zeros(); 4]);
+        assert_eq!(name_of(epipolar_filter(&cam, &i, &i, &[], &[], &m, 1.0)), "pairs");
+        assert_eq!(name_of(epipolar_filter(&cam, &i, &i, &k, &k, &[], 0.0)), "max_px");
+        assert_eq!(name_of(epipolar_filter(&cam, &i, &i, &k, &k, &[], f64::NAN)), "max_px");
+        let nan = [1.0, f32::NAN, 0.0, 0.0];
+        let fine = [0.0f32; 4];
+        let (dn, df) = (Descriptors::Float { data: &nan, width: 2 }, Descriptors::Float { data: &fine, width: 2 });
+        assert_eq!(name_of(match_descriptors(&df, &dn, &MatchOptions::default())), "descriptors_b");
+        assert_eq!(name_of(match_descriptors(&dn, &df, &MatchOptions::default())), "descriptors_a");
+        let bad_max = MatchOptions { max_distance: Some(-1.0), ..MatchOptions::default() };
+        assert_eq!(name_of(match_descriptors(&df, &df, &bad_max)), "max_distance");
+        let ragged = Descriptors::Float { data: &fine[..3], width: 2 };
+        assert_eq!(name_of(match_descriptors(&ragged, &df, &MatchOptions::default())), "descriptors_a");
     }
 }

@@ -1,4 +1,24 @@
-//! The one place that decides whether a batch runs on rayon.
+//! The one place that decides whether, and on which threads, geoloc-core runs in parallel.
+//!
+//! Every parallel loop of the crate goes through the helpers below ([`map_indices`],
+//! [`map_slice`], [`try_fill_items`]); nothing else calls rayon. Each helper returns its
+//! results in input order and never reduces across items in a schedule-dependent order, so
+//! results are **bit-identical whatever the thread count**, and with parallelism off.
+//!
+//! # Environment switch (read once, at the first parallel call of the process)
+//! * `GEOLOC_PARALLELISM=false` (or `0`, `off`, `no`): run everything on the calling thread.
+//! * `GEOLOC_NUM_THREADS=N` (N ≥ 1): run on a dedicated pool of N threads, built once
+//!   (`N = 1` is the calling thread plus nothing: it runs sequentially).
+//! * Neither: rayon's global pool (which itself honours `RAYON_NUM_THREADS`).
+//!
+//! Values that do not parse are ignored (the default applies). A call made from inside a
+//! rayon worker (a caller's own pool, or a nested geoloc loop) runs on that pool.
+//! [`with_parallelism`] overrides the setting for one closure on the calling thread (tests
+//! and benchmarks use it to compare thread counts within one process).
+
+use std::cell::RefCell;
+use std::num::NonZero;
+use std::sync::{Arc, OnceLock};
 
 use rayon::prelude::*;
 
@@ -8,6 +28,131 @@ use crate::error::{GeolocError, Result};
 /// run on the calling thread, where the pool's start-up and stealing would cost more than
 /// the work (an SE(3) exp is ~30 ns).
 pub const PARALLEL_MIN_ITEMS: usize = 2048;
+
+/// How parallel loops run.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Parallelism {
+    /// On the calling thread.
+    Off,
+    /// On rayon's global pool.
+    Global,
+    /// On a pool of this many threads.
+    Threads(NonZero<usize>),
+}
+
+impl Parallelism {
+    /// The setting of the environment (see the module doc).
+    fn from_env() -> Self {
+        let off = std::env::var("GEOLOC_PARALLELISM")
+            .is_ok_and(|v| matches!(v.trim().to_ascii_lowercase().as_str(), "false" | "0" | "off" | "no"));
+        if off {
+            return Self::Off;
+        }
+        match std::env::var("GEOLOC_NUM_THREADS").ok().and_then(|v| v.trim().parse::<usize>().ok()) {
+            Some(1) => Self::Off,
+            Some(n) => NonZero::new(n).map_or(Self::Global, Self::Threads),
+            None => Self::Global,
+        }
+    }
+}
+
+/// A resolved setting: sequential, or a pool (None: rayon's global one).
+#[derive(Clone)]
+enum Runner {
+    Sequential,
+    Pool(Option<Arc<rayon::ThreadPool>>),
+}
+
+fn runner_for(p: &Parallelism) -> Runner {
+    match p {
+        Parallelism::Off => Runner::Sequential,
+        Parallelism::Global => Runner::Pool(None),
+        Parallelism::Threads(n) => rayon::ThreadPoolBuilder::new()
+            .num_threads(n.get())
+            .thread_name(|i| format!("geoloc-{i}"))
+            .build()
+            .map_or(Runner::Sequential, |pool| Runner::Pool(Some(Arc::new(pool)))),
+    }
+}
+
+/// The process-wide setting, from the environment, resolved once.
+fn process_runner() -> &'static Runner {
+    static RUNNER: OnceLock<Runner> = OnceLock::new();
+    RUNNER.get_or_init(|| runner_for(&Parallelism::from_env()))
+}
+
+thread_local! {
+    static OVERRIDE: RefCell<Option<Runner>> = const { RefCell::new(None) };
+}
+
+/// The process-wide setting as read from the environment.
+pub fn configured() -> Parallelism {
+    Parallelism::from_env()
+}
+
+/// Runs `f` with parallel loops started on this thread run as `parallelism` says (the
+/// environment's setting is restored afterwards, also if `f` panics).
+pub fn with_parallelism<R>(parallelism: &Parallelism, f: impl FnOnce() -> R) -> R {
+    struct Restore(Option<Runner>);
+    impl Drop for Restore {
+        fn drop(&mut self) {
+            let previous = self.0.take();
+            OVERRIDE.with(|o| *o.borrow_mut() = previous);
+        }
+    }
+    let previous = OVERRIDE.with(|o| o.borrow_mut().replace(runner_for(parallelism)));
+    let _restore = Restore(previous);
+    f()
+}
+
+/// Where a loop of `n_items` runs: None on the calling thread, else on the given pool
+/// (`Some(None)`: the current one — rayon's global pool, or the worker's pool we are on).
+fn pool_for(n_items: usize, min_items: usize) -> Option<Option<Arc<rayon::ThreadPool>>> {
+    if n_items < min_items.max(2) {
+        return None;
+    }
+    if rayon::current_thread_index().is_some() {
+        return Some(None); // already on a pool's worker: stay there
+    }
+    match OVERRIDE.with(|o| o.borrow().clone()).unwrap_or_else(|| process_runner().clone()) {
+        Runner::Sequential => None,
+        Runner::Pool(pool) => Some(pool),
+    }
+}
+
+/// Runs `f` on `pool` (None: the current pool).
+fn install<R: Send>(pool: Option<Arc<rayon::ThreadPool>>, f: impl FnOnce() -> R + Send) -> R {
+    match pool {
+        Some(pool) => pool.install(f),
+        None => f(),
+    }
+}
+
+/// `[f(0), f(1), …, f(n − 1)]`, in parallel when `n ≥ min_items` (results in index order, so
+/// identical whatever the schedule).
+pub fn map_indices<T, F>(n: usize, min_items: usize, f: F) -> Vec<T>
+where
+    T: Send,
+    F: Fn(usize) -> T + Sync + Send,
+{
+    match pool_for(n, min_items) {
+        None => (0..n).map(f).collect(),
+        Some(pool) => install(pool, || (0..n).into_par_iter().map(f).collect()),
+    }
+}
+
+/// `items.iter().map(f)`, in parallel when there are at least `min_items` (results in order).
+pub fn map_slice<T, U, F>(items: &[T], min_items: usize, f: F) -> Vec<U>
+where
+    T: Sync,
+    U: Send,
+    F: Fn(&T) -> U + Sync + Send,
+{
+    match pool_for(items.len(), min_items) {
+        None => items.iter().map(f).collect(),
+        Some(pool) => install(pool, || items.par_iter().map(f).collect()),
+    }
+}
 
 /// Fills `output`, viewed as consecutive items of `item_len` values, with `fill(i, item)`.
 ///
@@ -25,15 +170,16 @@ where
         return Err(GeolocError::invalid("item_len", "must be positive"));
     }
     let n_items = output.len() / item_len;
-    if n_items >= PARALLEL_MIN_ITEMS {
-        let first_error = output
-            .par_chunks_mut(item_len)
-            .enumerate()
-            .filter_map(|(i, item)| fill(i, item).err().map(|e| (i, e)))
-            .min_by_key(|(i, _)| *i);
-        first_error.map_or(Ok(()), |(_, e)| Err(e))
-    } else {
-        output.chunks_mut(item_len).enumerate().try_for_each(|(i, item)| fill(i, item))
+    match pool_for(n_items, PARALLEL_MIN_ITEMS) {
+        None => output.chunks_mut(item_len).enumerate().try_for_each(|(i, item)| fill(i, item)),
+        Some(pool) => install(pool, || {
+            let first_error = output
+                .par_chunks_mut(item_len)
+                .enumerate()
+                .filter_map(|(i, item)| fill(i, item).err().map(|e| (i, e)))
+                .min_by_key(|(i, _)| *i);
+            first_error.map_or(Ok(()), |(_, e)| Err(e))
+        }),
     }
 }
 
@@ -68,6 +214,32 @@ mod tests {
         })
         .expect_err("items fail");
         assert_eq!(err, GeolocError::invalid("x999", "bad"));
+    }
+
+    /// The same loop with parallelism off, and on 1, 2 and 4 threads: identical results.
+    #[test]
+    fn every_setting_gives_the_same_results() {
+        let work = || map_indices(10_000, 1, |i| ((i as f64).sqrt() * 1.5).sin().to_bits());
+        let reference = with_parallelism(&Parallelism::Off, work);
+        for n in [1, 2, 4] {
+            let p = Parallelism::Threads(NonZero::new(n).expect("n > 0"));
+            assert_eq!(with_parallelism(&p, work), reference, "{n} threads");
+        }
+        assert_eq!(with_parallelism(&Parallelism::Global, work), reference);
+    }
+
+    /// With 2 threads the work really runs on the dedicated pool's workers.
+    #[test]
+    fn threads_setting_uses_its_pool() {
+        let p = Parallelism::Threads(NonZero::new(2).expect("2 > 0"));
+        let names =
+            with_parallelism(&p, || map_indices(64, 1, |_| std::thread::current().name().unwrap_or("").to_owned()));
+        assert!(names.iter().all(|n| n.starts_with("geoloc-")), "{names:?}");
+        let names = with_parallelism(&Parallelism::Off, || {
+            map_indices(64, 1, |_| std::thread::current().name().unwrap_or("").to_owned())
+        });
+        let here = std::thread::current().name().unwrap_or("").to_owned();
+        assert!(names.iter().all(|n| *n == here));
     }
 
     #[test]

@@ -7,19 +7,59 @@
 //! Many identical descriptors (a stopped camera) are fine: should the tree's construction
 //! panic on them anyway, the index falls back to the scan instead of unwinding into the
 //! caller.
+//!
+//! Both fast paths compute squared distances in f32, which overflow above |x| ≈ 1.8·10¹⁹ and
+//! underflow below ≈ 10⁻¹⁹. Where the data or the queries hold magnitudes outside
+//! [[`F32_SAFE_MIN_ABS`], [`F32_SAFE_MAX_ABS`]] (zeros aside), the query runs as an exact
+//! scan in f64 instead (every finite f32 squares without overflow or underflow there), so
+//! results are exact for every finite input. Returned distances are rounded to f32 and
+//! saturate at `f32::MAX`.
 
 use std::num::NonZero;
 
+use crate::error::{GeolocError, Result};
+use crate::parallel::map_indices;
 use kiddo::SquaredEuclidean;
 use kiddo::immutable::float::kdtree::ImmutableKdTree;
-use rayon::prelude::*;
-
-use crate::error::{GeolocError, Result};
 
 /// Highest dimension served by the k-d tree (kiddo's dimension is a compile-time constant).
 pub const KDTREE_MAX_DIM: usize = 8;
-/// Queries per rayon task in batched searches.
+/// Queries per parallel task in batched searches.
 const QUERY_CHUNK: usize = 16;
+/// Largest magnitude served by the f32 paths: (2·10¹⁵)²·D stays far below `f32::MAX` for
+/// any realistic D, with room for the matrix-product scan's rounding bound.
+pub const F32_SAFE_MAX_ABS: f32 = 1e15;
+/// Smallest non-zero magnitude served by the f32 paths (squared differences of smaller values
+/// underflow and tie).
+pub const F32_SAFE_MIN_ABS: f32 = 1e-15;
+
+/// (smallest non-zero |x|, largest |x|) of `values` (∞, 0 when all are zero). Eight
+/// independent lanes, so the loop vectorizes (it runs over every descriptor value).
+fn magnitude_range(values: &[f32]) -> (f32, f32) {
+    const LANES: usize = 8;
+    let (mut lo, mut hi) = ([f32::INFINITY; LANES], [0.0_f32; LANES]);
+    let mut update = |lane: usize, v: f32| {
+        let a = v.abs();
+        hi[lane] = if a > hi[lane] { a } else { hi[lane] };
+        lo[lane] = if a > 0.0 && a < lo[lane] { a } else { lo[lane] };
+    };
+    let chunks = values.chunks_exact(LANES);
+    let tail = chunks.remainder();
+    for chunk in chunks {
+        for (lane, &v) in chunk.iter().enumerate() {
+            update(lane, v);
+        }
+    }
+    for (lane, &v) in tail.iter().enumerate() {
+        update(lane, v);
+    }
+    (lo.into_iter().fold(f32::INFINITY, f32::min), hi.into_iter().fold(0.0, f32::max))
+}
+
+/// Whether the f32 paths are exact for values of this range.
+fn f32_safe((lo, hi): (f32, f32)) -> bool {
+    hi <= F32_SAFE_MAX_ABS && (lo >= F32_SAFE_MIN_ABS || lo.is_infinite())
+}
 
 /// Which search structure an index uses.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -28,6 +68,30 @@ pub enum Backend {
     KdTree,
     /// Exact parallel scan.
     Flat,
+}
+
+impl Backend {
+    /// Every backend, in declaration order.
+    pub const ALL: [Self; 2] = [Self::KdTree, Self::Flat];
+
+    /// The name: `"kdtree"` or `"flat"` (the one place that spells it).
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::KdTree => "kdtree",
+            Self::Flat => "flat",
+        }
+    }
+}
+
+impl std::str::FromStr for Backend {
+    type Err = GeolocError;
+
+    fn from_str(s: &str) -> Result<Self> {
+        Self::ALL
+            .into_iter()
+            .find(|b| b.as_str() == s)
+            .ok_or_else(|| GeolocError::invalid("backend", format!("expected \"kdtree\" or \"flat\", got {s:?}")))
+    }
 }
 
 trait Tree: Send + Sync {
@@ -68,6 +132,8 @@ pub struct DescriptorIndex {
     data: Vec<f32>,
     /// ‖x‖² per row (for the matrix-product scan).
     norms: Vec<f32>,
+    /// (smallest non-zero |x|, largest |x|) of the data.
+    magnitudes: (f32, f32),
     tree: Option<Box<dyn Tree>>,
 }
 
@@ -117,7 +183,8 @@ impl DescriptorIndex {
         };
         let tree = if use_tree { build_for_dim(&data, dim) } else { None };
         let norms = data.chunks_exact(dim).map(|r| r.iter().map(|v| v * v).sum()).collect();
-        Ok(Self { dim, data, norms, tree })
+        let magnitudes = magnitude_range(&data);
+        Ok(Self { dim, data, norms, magnitudes, tree })
     }
 
     /// N.
@@ -156,32 +223,54 @@ impl DescriptorIndex {
             return Err(GeolocError::invalid("k", format!("must be in 1..={}, got {k}", self.len())));
         }
         let q_count = queries.len() / self.dim;
-        let mut distances = vec![0.0_f32; q_count * k];
-        let mut indices = vec![0_usize; q_count * k];
-        let block = if self.tree.is_some() { QUERY_CHUNK } else { GEMM_QUERY_BLOCK };
-        distances.par_chunks_mut(k * block).zip(indices.par_chunks_mut(k * block)).enumerate().for_each(
-            |(chunk, (d_out, i_out))| {
+        let (q_lo, q_hi) = magnitude_range(queries);
+        let found: Vec<Vec<(f32, usize)>> = if f32_safe((self.magnitudes.0.min(q_lo), self.magnitudes.1.max(q_hi))) {
+            let block = if self.tree.is_some() { QUERY_CHUNK } else { GEMM_QUERY_BLOCK };
+            map_indices(q_count.div_ceil(block), 2, |chunk| {
                 let first = chunk * block;
-                let count = d_out.len() / k;
-                let rows = &queries[first * self.dim..(first + count) * self.dim];
-                let results: Vec<Vec<(f32, usize)>> = match &self.tree {
-                    Some(tree) => rows.chunks_exact(self.dim).map(|q| tree.nearest(q, k)).collect(),
-                    None if count == 1 => vec![self.scan(rows, k)],
-                    None => self.scan_block(rows, k),
-                };
-                for ((mut found, d_row), i_row) in results.into_iter().zip(d_out.chunks_mut(k)).zip(i_out.chunks_mut(k))
-                {
-                    // a canonical order: distance, then index (trees may order ties freely)
-                    found.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-                    found.truncate(k);
-                    for (slot, (d2, i)) in found.into_iter().enumerate() {
-                        d_row[slot] = d2.max(0.0).sqrt();
-                        i_row[slot] = i;
-                    }
-                }
-            },
-        );
+                let rows = &queries[first * self.dim..(first + block).min(q_count) * self.dim];
+                self.search_f32(rows, k)
+            })
+            .concat()
+        } else {
+            map_indices(q_count, 2, |q| self.scan_f64(&queries[q * self.dim..(q + 1) * self.dim], k))
+        };
+        let mut distances = Vec::with_capacity(q_count * k);
+        let mut indices = Vec::with_capacity(q_count * k);
+        for row in found {
+            distances.extend(row.iter().map(|&(d, _)| d));
+            indices.extend(row.iter().map(|&(_, i)| i));
+        }
         Ok((distances, indices))
+    }
+
+    /// The k nearest (distance, index) of each of a block of queries, by the f32 paths.
+    fn search_f32(&self, rows: &[f32], k: usize) -> Vec<Vec<(f32, usize)>> {
+        let results: Vec<Vec<(f32, usize)>> = match &self.tree {
+            Some(tree) => rows.chunks_exact(self.dim).map(|q| tree.nearest(q, k)).collect(),
+            None if rows.len() == self.dim => vec![self.scan(rows, k)],
+            None => self.scan_block(rows, k),
+        };
+        results
+            .into_iter()
+            .map(|mut found| {
+                // a canonical order: distance, then index (trees may order ties freely)
+                found.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+                found.truncate(k);
+                found.into_iter().map(|(d2, i)| (d2.max(0.0).sqrt(), i)).collect()
+            })
+            .collect()
+    }
+
+    /// Exact scan in f64 for one query (any finite magnitudes): Σ (xᵢ − qᵢ)² in f64, the k
+    /// best by (distance, index), distances rounded to f32 and saturated at `f32::MAX`.
+    fn scan_f64(&self, query: &[f32], k: usize) -> Vec<(f32, usize)> {
+        let mut best = TopK::<f64>::new(k);
+        for (i, row) in self.data.chunks_exact(self.dim).enumerate() {
+            let d2: f64 = row.iter().zip(query).map(|(&x, &q)| (f64::from(x) - f64::from(q)).powi(2)).sum();
+            best.push(d2, i);
+        }
+        best.into_sorted().into_iter().map(|(d2, i)| (d2.sqrt().min(f64::from(f32::MAX)) as f32, i)).collect()
     }
 
     /// Brute force for one query: squared distances to every row, keeping the k best.
@@ -200,24 +289,44 @@ fn squared_distance(a: &[f32], b: &[f32]) -> f32 {
     a.iter().zip(b).map(|(x, y)| (x - y) * (x - y)).sum()
 }
 
-/// The k smallest (distance, index) pairs seen, ties by index.
-struct TopK {
-    k: usize,
-    best: Vec<(f32, usize)>,
+/// A squared distance (f32 on the fast paths, f64 on the exact fallback).
+trait Distance: Copy {
+    const INFINITY: Self;
+    fn total_cmp(&self, other: &Self) -> std::cmp::Ordering;
 }
 
-impl TopK {
+impl Distance for f32 {
+    const INFINITY: Self = f32::INFINITY;
+    fn total_cmp(&self, other: &Self) -> std::cmp::Ordering {
+        f32::total_cmp(self, other)
+    }
+}
+
+impl Distance for f64 {
+    const INFINITY: Self = f64::INFINITY;
+    fn total_cmp(&self, other: &Self) -> std::cmp::Ordering {
+        f64::total_cmp(self, other)
+    }
+}
+
+/// The k smallest (distance, index) pairs seen, ties by index.
+struct TopK<D> {
+    k: usize,
+    best: Vec<(D, usize)>,
+}
+
+impl<D: Distance> TopK<D> {
     fn new(k: usize) -> Self {
         Self { k, best: Vec::with_capacity(k + 1) }
     }
 
-    fn worst(&self) -> f32 {
-        if self.best.len() < self.k { f32::INFINITY } else { self.best[self.k - 1].0 }
+    fn worst(&self) -> D {
+        if self.best.len() < self.k { D::INFINITY } else { self.best[self.k - 1].0 }
     }
 
     #[inline]
-    fn push(&mut self, d2: f32, i: usize) {
-        if self.best.len() == self.k && d2 > self.worst() {
+    fn push(&mut self, d2: D, i: usize) {
+        if self.best.len() == self.k && d2.total_cmp(&self.worst()).is_gt() {
             return;
         }
         // ties are exact equalities of identically computed distances: order by index
@@ -228,7 +337,7 @@ impl TopK {
         }
     }
 
-    fn into_sorted(self) -> Vec<(f32, usize)> {
+    fn into_sorted(self) -> Vec<(D, usize)> {
         self.best
     }
 }
@@ -257,7 +366,7 @@ impl DescriptorIndex {
         let margin: Vec<f32> = q_norm.iter().map(|&qn| 2.0 * gamma * (max_norm + qn.sqrt()).powi(2)).collect();
         let q_mat = DMatrix::from_row_slice(b, dim, queries);
         let mut candidates: Vec<Vec<(f32, usize)>> = vec![Vec::new(); b];
-        let mut estimates: Vec<TopK> = (0..b).map(|_| TopK::new(k)).collect();
+        let mut estimates: Vec<TopK<f32>> = (0..b).map(|_| TopK::new(k)).collect();
         for start in (0..n).step_by(GEMM_ROW_BLOCK) {
             let rows = GEMM_ROW_BLOCK.min(n - start);
             let block = &self.data[start * dim..(start + rows) * dim];
@@ -368,6 +477,68 @@ mod tests {
         }
     }
 
+    /// Brute force in f64: the reference at magnitudes where f32 squares overflow or underflow.
+    fn brute_f64(data: &[f32], dim: usize, q: &[f32], k: usize) -> Vec<(f64, usize)> {
+        let mut all: Vec<(f64, usize)> = data
+            .chunks_exact(dim)
+            .enumerate()
+            .map(|(i, r)| (r.iter().zip(q).map(|(&a, &b)| (f64::from(a) - f64::from(b)).powi(2)).sum::<f64>(), i))
+            .collect();
+        all.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+        all.truncate(k);
+        all
+    }
+
+    /// Issue 11: finite values near 10²⁰ (and near 10⁻²⁵) used to give NaN/∞/0 distances in
+    /// f32 and index 0 for every query; every backend now equals brute force in f64.
+    #[test]
+    fn exact_at_extreme_magnitudes() {
+        let mut rng = SplitMix64::new(4);
+        for scale in [1e20_f32, 3e37, 1e-25, 1e-40] {
+            for dim in [3, 32] {
+                let data: Vec<f32> = (0..100 * dim).map(|_| rng.normal() as f32 * scale).collect();
+                let mut queries: Vec<f32> = data[7 * dim..8 * dim].to_vec();
+                queries.extend_from_slice(&data[42 * dim..43 * dim]);
+                queries.extend((0..dim).map(|_| rng.normal() as f32 * scale));
+                for backend in [Backend::KdTree, Backend::Flat] {
+                    if backend == Backend::KdTree && dim > KDTREE_MAX_DIM {
+                        continue;
+                    }
+                    let index = DescriptorIndex::with_backend(data.clone(), dim, Some(backend)).expect("valid");
+                    let (d, i) = index.query(&queries, 3).expect("finite input");
+                    assert_eq!(&i[..1], &[7]);
+                    assert_eq!(&i[3..4], &[42]);
+                    for q in 0..3 {
+                        let want = brute_f64(&data, dim, &queries[q * dim..(q + 1) * dim], 3);
+                        for s in 0..3 {
+                            assert_eq!(i[q * 3 + s], want[s].1, "scale {scale} dim {dim} {backend:?} query {q}");
+                            let w = want[s].0.sqrt().min(f64::from(f32::MAX)) as f32;
+                            assert!(d[q * 3 + s].is_finite() && d[q * 3 + s] == w, "{} vs {w}", d[q * 3 + s]);
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    /// A huge query against ordinary data also takes the exact path.
+    #[test]
+    fn huge_query_against_ordinary_data() {
+        let data: Vec<f32> = vec![0.0, 0.0, 1e25, 0.0, 0.0, 1e25];
+        let index = DescriptorIndex::new(data, 2).expect("valid");
+        let (d, i) = index.query(&[1e30, 0.0], 3).expect("finite");
+        assert_eq!(i, vec![1, 0, 2]);
+        assert!(d.iter().all(|v| v.is_finite()));
+    }
+
+    #[test]
+    fn backend_names_round_trip() {
+        for b in Backend::ALL {
+            assert_eq!(b.as_str().parse::<Backend>(), Ok(b));
+        }
+        assert!(matches!("ann".parse::<Backend>(), Err(GeolocError::InvalidInput { name, .. }) if name == "backend"));
+    }
+
     #[test]
     fn bad_input() {
         assert!(DescriptorIndex::new(vec![], 3).is_err());
@@ -381,5 +552,13 @@ mod tests {
         assert!(index.query(&[f32::INFINITY, 0.0, 0.0], 1).is_err());
         let (d, i) = index.query(&[], 1).expect("no queries is fine");
         assert!(d.is_empty() && i.is_empty());
+        let name_of = |e: GeolocError| match e {
+            GeolocError::InvalidInput { name, .. } | GeolocError::NonFinite { name, .. } => name,
+            other => panic!("{other:?}"),
+        };
+        assert_eq!(name_of(index.query(&[1.0; 3], 3).expect_err("k > N")), "k");
+        assert_eq!(name_of(index.query(&[1.0; 4], 1).expect_err("ragged")), "queries");
+        assert_eq!(name_of(index.query(&[0.0, f32::NAN, 0.0], 1).expect_err("NaN")), "queries");
+        assert_eq!(name_of(DescriptorIndex::new(vec![f32::NAN; 6], 3).expect_err("NaN")), "descriptors");
     }
 }

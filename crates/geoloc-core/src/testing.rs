@@ -1,4 +1,5 @@
-//! Seeded sampling helpers shared by tests, property tests and benchmarks.
+//! Seeded sampling helpers shared by tests, property tests and benchmarks (not for
+//! production code paths, which draw from [`crate::rng`]).
 //!
 //! Deterministic and dependency-free so a failing case can be replayed from its seed on any
 //! machine.
@@ -7,44 +8,11 @@ use nalgebra::{Matrix6, Vector3, Vector6};
 
 use crate::lie::{SE3, SO3, Twist};
 
-/// SplitMix64 (Steele, Lea & Flood 2014): a small, fast, well-mixed 64-bit generator.
-#[derive(Clone, Debug)]
-pub struct SplitMix64 {
-    state: u64,
-}
+pub use crate::rng::SplitMix64;
 
+/// Samplers of geometric objects, for tests and benchmarks (the generator itself, and the
+/// scalar draws production code uses, live in [`crate::rng`]).
 impl SplitMix64 {
-    /// A generator seeded with `seed`.
-    pub fn new(seed: u64) -> Self {
-        Self { state: seed }
-    }
-
-    /// The next 64 random bits.
-    pub fn next_u64(&mut self) -> u64 {
-        self.state = self.state.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.state;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-
-    /// Uniform in [0, 1) with 53 random bits.
-    pub fn uniform(&mut self) -> f64 {
-        (self.next_u64() >> 11) as f64 * (1.0 / (1u64 << 53) as f64)
-    }
-
-    /// Uniform in [lo, hi).
-    pub fn uniform_in(&mut self, lo: f64, hi: f64) -> f64 {
-        lo + (hi - lo) * self.uniform()
-    }
-
-    /// Standard normal (Box–Muller).
-    pub fn normal(&mut self) -> f64 {
-        let u1 = 1.0 - self.uniform(); // (0, 1]
-        let u2 = self.uniform();
-        (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
-    }
-
     /// A direction uniform on the unit sphere.
     pub fn unit_vector(&mut self) -> Vector3<f64> {
         loop {
@@ -121,29 +89,6 @@ pub const ANGLE_REGIMES_RAD: [f64; 7] = [0.0, 1e-9, 1e-8, 0.19, 0.21, 1.3, std::
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn uniform_is_in_range_and_deterministic() {
-        let mut a = SplitMix64::new(7);
-        let mut b = SplitMix64::new(7);
-        for _ in 0..1000 {
-            let x = a.uniform();
-            assert!((0.0..1.0).contains(&x));
-            assert_eq!(x.to_bits(), b.uniform().to_bits());
-        }
-    }
-
-    /// The mean of many normals is ~0 and their variance ~1 (independent moments check).
-    #[test]
-    fn normal_moments() {
-        let mut rng = SplitMix64::new(3);
-        let n = 100_000;
-        let xs: Vec<f64> = (0..n).map(|_| rng.normal()).collect();
-        let mean = xs.iter().sum::<f64>() / n as f64;
-        let var = xs.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / n as f64;
-        assert!(mean.abs() < 0.02, "{mean}");
-        assert!((var - 1.0).abs() < 0.02, "{var}");
-    }
 
     /// For uniform rotations the angle has density (1 − cos θ)/π, so E[cos θ]... use
     /// E[tr R] = 0 (the trace of a Haar-random rotation has mean 0).

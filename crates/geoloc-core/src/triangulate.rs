@@ -26,7 +26,6 @@
 //! later PnP must propagate them jointly (see `pnp`), not as independent point errors.
 
 use nalgebra::{Matrix2, Matrix3, Matrix3x6, Matrix6, Vector2, Vector3, Vector4};
-use rayon::prelude::*;
 
 use crate::camera::{Camera, j_uv_point, j_uv_pose, project};
 use crate::error::{GeolocError, Result};
@@ -174,13 +173,10 @@ pub fn triangulate(
     for (o, &t) in track_ids.iter().enumerate() {
         by_track[t].push(o);
     }
-    let points: Vec<TriangulatedPoint> = by_track
-        .par_iter()
-        .map(|obs| {
-            let views: Vec<View> = obs.iter().map(|&o| View { camera: camera_ids[o], uv: pixels[o] }).collect();
-            triangulate_track(camera, world_from_cams, pose_covariances, &views, options)
-        })
-        .collect();
+    let points: Vec<TriangulatedPoint> = crate::parallel::map_slice(&by_track, 2, |obs| {
+        let views: Vec<View> = obs.iter().map(|&o| View { camera: camera_ids[o], uv: pixels[o] }).collect();
+        triangulate_track(camera, world_from_cams, pose_covariances, &views, options)
+    });
     let mut observation_inliers = vec![false; n_obs];
     for (track, obs) in points.iter().zip(&by_track) {
         for (&o, &inlier) in obs.iter().zip(&track.inliers) {

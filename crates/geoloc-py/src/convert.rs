@@ -163,3 +163,27 @@ impl<'py> BorrowedDescriptors<'py> {
         })
     }
 }
+
+/// An integer argument — a Python `int` or an integer-like numpy scalar (`np.int64(5)`) —
+/// as u64; `None` gives `default`. Negative or too large values and non-integers raise
+/// `InvalidInputError` naming `name` (never `OverflowError`/`TypeError`).
+pub fn u64_arg(obj: Option<&Bound<'_, PyAny>>, name: &str, default: u64) -> PyResult<u64> {
+    let Some(obj) = obj.filter(|o| !o.is_none()) else { return Ok(default) };
+    if obj.is_instance_of::<pyo3::types::PyBool>() {
+        return Err(invalid(name, "expected an integer, got a bool"));
+    }
+    obj.extract::<u64>().map_err(|e| {
+        if e.is_instance_of::<pyo3::exceptions::PyOverflowError>(obj.py()) {
+            invalid(name, format!("must be an integer in 0..={}, got {obj}", u64::MAX))
+        } else {
+            let type_name = obj.get_type().name().map_or_else(|_| "?".to_owned(), |n| n.to_string());
+            invalid(name, format!("expected an integer, got {type_name}"))
+        }
+    })
+}
+
+/// [`u64_arg`] as a count (usize).
+pub fn count_arg(obj: Option<&Bound<'_, PyAny>>, name: &str, default: usize) -> PyResult<usize> {
+    let v = u64_arg(obj, name, default as u64)?;
+    usize::try_from(v).map_err(|_| invalid(name, format!("must be at most {}, got {v}", usize::MAX)))
+}

@@ -12,6 +12,8 @@ fn exception_class_name(err: &GeolocError) -> &'static str {
     match err {
         GeolocError::InvalidInput { .. } | GeolocError::NonFinite { .. } => "InvalidInputError",
         GeolocError::NotARotation { .. } => "NotARotationError",
+        GeolocError::Format { .. } => "FileFormatError",
+        GeolocError::Io { .. } => "FileAccessError",
         _ => "GeolocError",
     }
 }

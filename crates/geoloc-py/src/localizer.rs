@@ -1,21 +1,60 @@
 //! Bindings of `geoloc_core::{map, localizer}` at the level of features (keypoints and
 //! descriptors); images and feature extraction live in Python.
 
+use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 
 use geoloc_core::camera::Camera;
-use geoloc_core::localizer::{Frame, Localizer as CoreLocalizer, LocalizerOptions, Source};
-use geoloc_core::map::{Keyframe, Map as CoreMap, RetrievalKind};
+use geoloc_core::localizer::{Frame, Localization as CoreLocalization, Localizer as CoreLocalizer, LocalizerOptions};
+use geoloc_core::map::{Keyframe, Map as CoreMap, RetrievalMethod};
 use nalgebra::Vector2;
-use numpy::{PyReadonlyArray1, PyReadonlyArray2, PyUntypedArrayMethods};
+use numpy::{PyArray2, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
-use crate::convert::{BorrowedDescriptors, matrices, matrices_to_array, poses, rows};
+use crate::convert::{BorrowedDescriptors, count_arg, matrices, matrices_to_array, poses, rows, u64_arg};
 use crate::errors::{invalid, to_py_err};
 
 fn keypoints(name: &str, a: &PyReadonlyArray2<'_, f64>) -> PyResult<Vec<Vector2<f64>>> {
     Ok(rows::<2>(name, a)?.chunks_exact(2).map(|c| Vector2::new(c[0], c[1])).collect())
+}
+
+/// One global descriptor per keyframe, from an (N, D) float32 array.
+fn globals(g: Option<&PyReadonlyArray2<'_, f32>>, n: usize) -> PyResult<Vec<Option<Vec<f32>>>> {
+    let Some(g) = g else { return Ok(vec![None; n]) };
+    let dim = g.shape()[1];
+    if g.shape()[0] != n {
+        return Err(invalid("global_descriptors", format!("expected shape ({n}, D), got {:?}", g.shape())));
+    }
+    let values = g.as_slice().map_err(|_| invalid("global_descriptors", "must be C-contiguous"))?;
+    Ok(values.chunks_exact(dim.max(1)).map(|r| Some(r.to_vec())).chain(std::iter::repeat(None)).take(n).collect())
+}
+
+/// The keyframes: one pose, keypoint array and descriptor array each.
+fn keyframes(
+    poses_wc: &PyReadonlyArray2<'_, f64>,
+    keypoints_list: &[PyReadonlyArray2<'_, f64>],
+    descriptors_list: &[Bound<'_, PyAny>],
+    global_descriptors: Option<&PyReadonlyArray2<'_, f32>>,
+) -> PyResult<Vec<Keyframe>> {
+    let poses = poses("poses", poses_wc)?;
+    for (name, len) in [("keypoints", keypoints_list.len()), ("descriptors", descriptors_list.len())] {
+        if len != poses.len() {
+            return Err(invalid(name, format!("expected one array per pose ({}), got {len}", poses.len())));
+        }
+    }
+    let globals = globals(global_descriptors, poses.len())?;
+    (0..poses.len())
+        .map(|i| {
+            let name = format!("descriptors[{i}]");
+            Ok(Keyframe {
+                world_from_cam: poses[i],
+                keypoints: keypoints(&format!("keypoints[{i}]"), &keypoints_list[i])?,
+                descriptors: BorrowedDescriptors::extract(&descriptors_list[i], &name)?.to_owned_set(&name)?,
+                global: globals[i].clone(),
+            })
+        })
+        .collect()
 }
 
 /// A map of keyframes (features level).
@@ -27,7 +66,7 @@ pub struct FeatureMap {
 #[pymethods]
 impl FeatureMap {
     #[new]
-    #[pyo3(signature = (intrinsics, poses_wc, keypoints_list, descriptors_list, global_descriptors, pose_covariances, retrieval, branching, depth, seed))]
+    #[pyo3(signature = (intrinsics, poses_wc, keypoints_list, descriptors_list, *, global_descriptors=None, pose_covariances=None, retrieval="bow", branching=None, depth=None, seed=None))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         py: Python<'_>,
@@ -38,52 +77,123 @@ impl FeatureMap {
         global_descriptors: Option<PyReadonlyArray2<'_, f32>>,
         pose_covariances: Option<PyReadonlyArray2<'_, f64>>,
         retrieval: &str,
-        branching: usize,
-        depth: usize,
-        seed: u64,
+        branching: Option<&Bound<'_, PyAny>>,
+        depth: Option<&Bound<'_, PyAny>>,
+        seed: Option<&Bound<'_, PyAny>>,
     ) -> PyResult<Self> {
+        let method: RetrievalMethod = retrieval.parse().map_err(to_py_err)?;
+        let kind = method.with(count_arg(branching, "branching", 10)?, count_arg(depth, "depth", 3)?);
+        let seed = u64_arg(seed, "seed", 0)?;
         let (fx, fy, cx, cy) = intrinsics;
         let camera = Camera::new(fx, fy, cx, cy).map_err(to_py_err)?;
-        let poses = poses("poses", &poses_wc)?;
-        if keypoints_list.len() != poses.len() || descriptors_list.len() != poses.len() {
-            return Err(invalid(
-                "keypoints",
-                format!("need one keypoint and one descriptor array per pose ({})", poses.len()),
-            ));
-        }
-        let globals: Option<(Vec<f32>, usize)> = global_descriptors
-            .as_ref()
-            .map(|g| {
-                Ok::<_, PyErr>((
-                    g.as_slice().map_err(|_| invalid("global_descriptors", "must be C-contiguous"))?.to_vec(),
-                    g.shape()[1],
-                ))
-            })
-            .transpose()?;
-        let mut keyframes = Vec::with_capacity(poses.len());
-        for (i, pose) in poses.iter().enumerate() {
-            keyframes.push(Keyframe {
-                world_from_cam: *pose,
-                keypoints: keypoints(&format!("keypoints[{i}]"), &keypoints_list[i])?,
-                descriptors: {
-                    let name = format!("descriptors[{i}]");
-                    BorrowedDescriptors::extract(&descriptors_list[i], &name)?.to_owned_set(&name)?
-                },
-                global: globals.as_ref().map(|(g, d)| g[i * d..(i + 1) * d].to_vec()),
-            });
-        }
+        let kfs = keyframes(&poses_wc, &keypoints_list, &descriptors_list, global_descriptors.as_ref())?;
         let covs = pose_covariances.as_ref().map(|c| matrices::<6, 6, 36>("pose_covariances", c)).transpose()?;
-        let kind = match retrieval {
-            "bow" => RetrievalKind::Bow { branching, depth },
-            "global" => RetrievalKind::Global,
-            other => return Err(invalid("retrieval", format!("expected \"bow\" or \"global\", got {other:?}"))),
-        };
-        let map = py.detach(|| CoreMap::build(camera, keyframes, covs, kind, seed)).map_err(to_py_err)?;
+        let map = py.detach(|| CoreMap::build(camera, kfs, covs, kind, seed)).map_err(to_py_err)?;
         Ok(Self { inner: Arc::new(map) })
     }
 
     fn __len__(&self) -> usize {
         self.inner.keyframes.len()
+    }
+
+    /// (fx, fy, cx, cy) of the map's camera.
+    #[getter]
+    fn intrinsics(&self) -> (f64, f64, f64, f64) {
+        let c = self.inner.camera;
+        (c.fx, c.fy, c.cx, c.cy)
+    }
+
+    /// Writes the map to `path` atomically; `frontend` is the caller's settings (JSON object text).
+    fn save(&self, py: Python<'_>, path: PathBuf, frontend: &str) -> PyResult<()> {
+        py.detach(|| self.inner.save(&path, frontend)).map_err(to_py_err)
+    }
+
+    /// Reads a map written by `save`: the map and its frontend settings (JSON text).
+    #[staticmethod]
+    fn load(py: Python<'_>, path: PathBuf) -> PyResult<(Self, String)> {
+        let (map, header) = py.detach(|| CoreMap::load(&path)).map_err(to_py_err)?;
+        Ok((Self { inner: Arc::new(map) }, header.frontend.to_string()))
+    }
+}
+
+/// The localization of one frame; see `geoloc.localizer.LocalizationResult`.
+#[pyclass(module = "geoloc._core", frozen, name = "Localization")]
+pub struct Localization {
+    inner: CoreLocalization,
+}
+
+/// A square matrix as an (n, n) float64 array.
+fn square<'py, const N: usize>(
+    py: Python<'py>,
+    m: &nalgebra::SMatrix<f64, N, N>,
+) -> PyResult<Bound<'py, PyArray2<f64>>> {
+    matrices_to_array(py, &[*m]).reshape([N, N])
+}
+
+#[pymethods]
+impl Localization {
+    /// world_from_cam (4, 4), or None when lost.
+    #[getter]
+    fn pose<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyArray2<f64>>>> {
+        self.inner.estimate.map(|e| square(py, &e.world_from_cam.matrix())).transpose()
+    }
+
+    /// 6×6 covariance (right perturbation, translation first), or None when lost.
+    #[getter]
+    fn covariance<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyArray2<f64>>>> {
+        self.inner.estimate.map(|e| square::<6>(py, &e.covariance)).transpose()
+    }
+
+    /// "geometric", "fused", "motion" or "lost".
+    #[getter]
+    fn source(&self) -> &'static str {
+        self.inner.source.as_str()
+    }
+
+    /// Why (e.g. why the geometric pose was not used).
+    #[getter]
+    fn reason(&self) -> &str {
+        &self.inner.reason
+    }
+
+    /// The retrieved keyframe.
+    #[getter]
+    fn keyframe(&self) -> usize {
+        self.inner.keyframe
+    }
+
+    /// PnP inliers (0 without a geometric pose).
+    #[getter]
+    fn inliers(&self) -> usize {
+        self.inner.inliers
+    }
+
+    /// Milliseconds per stage: retrieval, keyframes, map_points, matching, pnp, motion_fusion, total.
+    #[getter]
+    fn timings_ms<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
+        let t = self.inner.timings;
+        let out = PyDict::new(py);
+        for (k, v) in [
+            ("retrieval", t.retrieval_ms),
+            ("keyframes", t.keyframes_ms),
+            ("map_points", t.map_points_ms),
+            ("matching", t.matching_ms),
+            ("pnp", t.pnp_ms),
+            ("motion_fusion", t.motion_fusion_ms),
+            ("total", t.total_ms),
+        ] {
+            out.set_item(k, v)?;
+        }
+        Ok(out)
+    }
+
+    fn __repr__(&self) -> String {
+        format!(
+            "Localization(source={:?}, reason={:?}, keyframe={})",
+            self.source(),
+            self.inner.reason,
+            self.inner.keyframe
+        )
     }
 }
 
@@ -96,66 +206,51 @@ pub struct FeatureLocalizer {
 #[pymethods]
 impl FeatureLocalizer {
     #[new]
-    fn new(map: &FeatureMap, pixel_sigma: f64, max_residual: f64, gate_sigma: f64, history: usize) -> PyResult<Self> {
-        let mut options = LocalizerOptions { gate_sigma, history, ..LocalizerOptions::default() };
+    #[pyo3(signature = (map, *, pixel_sigma=1.0, max_residual=5.0, gate_sigma=3.0, history=None))]
+    fn new(
+        map: &FeatureMap,
+        pixel_sigma: f64,
+        max_residual: f64,
+        gate_sigma: f64,
+        history: Option<&Bound<'_, PyAny>>,
+    ) -> PyResult<Self> {
+        let mut options =
+            LocalizerOptions { gate_sigma, history: count_arg(history, "history", 4)?, ..LocalizerOptions::default() };
         options.pnp.pixel_sigma = pixel_sigma;
         options.pnp.max_residual_px = max_residual;
         options.triangulation.pixel_sigma = pixel_sigma;
         options.triangulation.max_residual_px = max_residual;
-        Ok(Self { inner: Mutex::new(CoreLocalizer::new(Arc::clone(&map.inner), options)) })
+        let inner = CoreLocalizer::new(Arc::clone(&map.inner), options).map_err(to_py_err)?;
+        Ok(Self { inner: Mutex::new(inner) })
     }
 
-    /// dict(pose (1, 16) | None, covariance (1, 36) | None, source, reason, keyframe, inliers, timings)
-    fn localize<'py>(
+    /// Localizes one frame (keypoints (N, 2) undistorted pixels, descriptors (N, W)).
+    #[pyo3(signature = (timestamp, keypoints, descriptors, global_descriptor=None))]
+    fn localize(
         &self,
-        py: Python<'py>,
+        py: Python<'_>,
         timestamp: f64,
-        keypoints_px: PyReadonlyArray2<'py, f64>,
-        descriptors: Bound<'py, PyAny>,
-        global_descriptor: Option<PyReadonlyArray1<'py, f32>>,
-    ) -> PyResult<Bound<'py, PyDict>> {
-        let kps = keypoints("keypoints", &keypoints_px)?;
+        keypoints: PyReadonlyArray2<'_, f64>,
+        descriptors: Bound<'_, PyAny>,
+        global_descriptor: Option<Bound<'_, PyAny>>,
+    ) -> PyResult<Localization> {
+        let kps = self::keypoints("keypoints", &keypoints)?;
         let borrowed = BorrowedDescriptors::extract(&descriptors, "descriptors")?;
-        let global = global_descriptor
-            .as_ref()
-            .map(|g| g.as_slice().map_err(|_| invalid("global", "must be contiguous")))
+        let global: Option<PyReadonlyArray1<'_, f32>> = global_descriptor
+            .map(|g| {
+                g.extract().map_err(|_| invalid("global_descriptor", "expected a 1-D float32 array of shape (D,)"))
+            })
             .transpose()?;
-        let view = borrowed.view("descriptors")?;
-        let frame = Frame { timestamp, keypoints: &kps, descriptors: view, global };
-        let result = py
+        let global = global
+            .as_ref()
+            .map(|g| g.as_slice().map_err(|_| invalid("global_descriptor", "must be contiguous")))
+            .transpose()?;
+        let frame = Frame { timestamp, keypoints: &kps, descriptors: borrowed.view("descriptors")?, global };
+        let inner = py
             .detach(|| self.inner.lock().ok().map(|mut loc| loc.localize(&frame)))
             .ok_or_else(|| invalid("localizer", "a previous call panicked; create a new localizer"))?
             .map_err(to_py_err)?;
-        let out = PyDict::new(py);
-        out.set_item("pose", result.world_from_cam.map(|p| matrices_to_array(py, &[p.matrix()])))?;
-        out.set_item("covariance", result.covariance.map(|c| matrices_to_array(py, &[c])))?;
-        out.set_item(
-            "source",
-            match result.source {
-                Source::Geometric => "geometric",
-                Source::Fused => "fused",
-                Source::Motion => "motion",
-                Source::Lost => "lost",
-            },
-        )?;
-        out.set_item("reason", result.reason)?;
-        out.set_item("keyframe", result.keyframe)?;
-        out.set_item("inliers", result.inliers)?;
-        let t = result.timings;
-        let timings = PyDict::new(py);
-        for (k, v) in [
-            ("retrieval", t.retrieval_ms),
-            ("keyframes", t.keyframes_ms),
-            ("map_points", t.map_points_ms),
-            ("matching", t.matching_ms),
-            ("pnp", t.pnp_ms),
-            ("motion_fusion", t.motion_fusion_ms),
-            ("total", t.total_ms),
-        ] {
-            timings.set_item(k, v)?;
-        }
-        out.set_item("timings_ms", timings)?;
-        Ok(out)
+        Ok(Localization { inner })
     }
 
     fn reset(&self) -> PyResult<()> {
@@ -167,5 +262,6 @@ impl FeatureLocalizer {
 /// Registers the classes on the module.
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<FeatureMap>()?;
+    m.add_class::<Localization>()?;
     m.add_class::<FeatureLocalizer>()
 }

@@ -1,0 +1,513 @@
+//! The map as a `.geoloc` file: which arrays and header fields hold what, and the checks that
+//! make loading all-or-nothing.
+//!
+//! Arrays (row-major, see [`super::file`] for the container):
+//!
+//! | name | dtype, shape | content |
+//! |---|---|---|
+//! | `keyframes.world_from_cam` | f64 (K, 4, 4) | pose labels, camera-to-world |
+//! | `keyframes.keypoint_offsets` | i64 (K + 1) | keyframe k's keypoints are rows `offsets[k]..offsets[k+1]` |
+//! | `keypoints` | f64 (N, 2) | undistorted pixels |
+//! | `descriptors` | u8 (N, W) or f32 (N, W) | local descriptors (binary or float) |
+//! | `keyframes.global_descriptors` | f32 (K, D) | only for global-descriptor retrieval |
+//! | `keyframes.pose_covariances` | f64 (K, 6, 6) | optional; right perturbation, translation first |
+//! | `vocabulary.node_offsets` | i64 (nodes + 1) | BoW only: see [`crate::bow::VocabularyArrays`] |
+//! | `vocabulary.centres` | u8 or f32 (R, W) | BoW only: the tree's cluster centres |
+//! | `vocabulary.children` | i64 (R) | BoW only: child node index, or −word − 1 |
+//!
+//! The header ([`MapHeader`], JSON) holds the camera, the descriptor kind and width, the
+//! retrieval method and its parameters, and `frontend`: a JSON object the caller owns (the
+//! Python package records its feature extractor and descriptor model there; `geoloc-rs info`
+//! prints it). The BoW database is rebuilt from the stored vocabulary and the keyframes'
+//! descriptors on load (deterministic, and cheaper than storing the inverted file); the
+//! vocabulary itself is stored, never retrained.
+
+use std::path::Path;
+
+use nalgebra::{Matrix4, Matrix6, Vector2};
+use serde::{Deserialize, Serialize};
+
+use super::file::{self, MapFile, Tensor, TensorData};
+use super::{Keyframe, Map, Retrieval};
+use crate::bow::{BowDatabase, Vocabulary, VocabularyArrays};
+use crate::camera::Camera;
+use crate::error::{GeolocError, Result};
+use crate::lie::SE3;
+use crate::matching::DescriptorSet;
+use crate::retrieval::DescriptorIndex;
+
+/// The intrinsics as stored.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CameraHeader {
+    /// Focal length x (px).
+    pub fx: f64,
+    /// Focal length y (px).
+    pub fy: f64,
+    /// Principal point x (px).
+    pub cx: f64,
+    /// Principal point y (px).
+    pub cy: f64,
+}
+
+/// How the map retrieves keyframes, as stored.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "method", rename_all = "lowercase")]
+pub enum RetrievalHeader {
+    /// Bag of words with a stored vocabulary.
+    Bow {
+        /// Number of words.
+        words: usize,
+    },
+    /// Nearest global descriptor.
+    Global {
+        /// Descriptor length.
+        dim: usize,
+    },
+}
+
+/// The JSON header of a map file.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct MapHeader {
+    /// The intrinsics shared by keyframes and queries.
+    pub camera: CameraHeader,
+    /// Number of keyframes.
+    pub keyframes: usize,
+    /// Total number of keypoints.
+    pub keypoints: usize,
+    /// `"binary"` (u8, Hamming) or `"float"` (f32, L2).
+    pub descriptor_kind: String,
+    /// Bytes (binary) or values (float) per descriptor.
+    pub descriptor_width: usize,
+    /// The retrieval method and its size.
+    pub retrieval: RetrievalHeader,
+    /// Whether pose-label covariances are stored.
+    pub pose_covariances: bool,
+    /// The caller's own settings (a JSON object), e.g. the feature extractor.
+    pub frontend: serde_json::Value,
+}
+
+fn format_error(reason: impl Into<String>) -> GeolocError {
+    GeolocError::Format { reason: reason.into() }
+}
+
+fn tensor(name: &str, shape: Vec<usize>, data: TensorData) -> Result<(String, Tensor)> {
+    Ok((name.to_owned(), Tensor::new(name, shape, data)?))
+}
+
+impl Map {
+    /// The map as a [`MapFile`]; `frontend` must be a JSON object (the caller's settings).
+    ///
+    /// # Errors
+    /// `InvalidInput` naming `frontend` when it is not a JSON object.
+    pub fn to_map_file(&self, frontend: &str) -> Result<MapFile> {
+        let frontend: serde_json::Value = serde_json::from_str(frontend)
+            .map_err(|e| GeolocError::invalid("frontend", format!("not valid JSON: {e}")))?;
+        if !frontend.is_object() {
+            return Err(GeolocError::invalid("frontend", "must be a JSON object"));
+        }
+        let k = self.keyframes.len();
+        let (binary, width) = kind_and_width(&self.keyframes[0].descriptors);
+        let mut tensors = vec![
+            tensor(
+                "keyframes.world_from_cam",
+                vec![k, 4, 4],
+                TensorData::F64(self.keyframes.iter().flat_map(|kf| row_major(&kf.world_from_cam.matrix())).collect()),
+            )?,
+            tensor("keyframes.keypoint_offsets", vec![k + 1], TensorData::I64(self.keypoint_offsets()))?,
+            tensor(
+                "keypoints",
+                vec![self.keypoint_count(), 2],
+                TensorData::F64(
+                    self.keyframes.iter().flat_map(|kf| kf.keypoints.iter().flat_map(|p| [p.x, p.y])).collect(),
+                ),
+            )?,
+            descriptor_tensor("descriptors", &DescriptorSet::stack(self.keyframes.iter().map(|kf| &kf.descriptors)))?,
+        ];
+        if let Some(covs) = &self.pose_covariances {
+            let data = covs.iter().flat_map(|c| c.transpose().iter().copied().collect::<Vec<_>>()).collect();
+            tensors.push(tensor("keyframes.pose_covariances", vec![k, 6, 6], TensorData::F64(data))?);
+        }
+        let retrieval = match &self.retrieval {
+            Retrieval::Global(index) => {
+                let data = self.keyframes.iter().flat_map(|kf| kf.global.clone().unwrap_or_default()).collect();
+                tensors.push(tensor("keyframes.global_descriptors", vec![k, index.dim()], TensorData::F32(data))?);
+                RetrievalHeader::Global { dim: index.dim() }
+            }
+            Retrieval::Bow { vocabulary, .. } => {
+                tensors.extend(vocabulary_tensors(&vocabulary.to_arrays())?);
+                RetrievalHeader::Bow { words: vocabulary.len() }
+            }
+        };
+        let header = MapHeader {
+            camera: CameraHeader { fx: self.camera.fx, fy: self.camera.fy, cx: self.camera.cx, cy: self.camera.cy },
+            keyframes: k,
+            keypoints: self.keypoint_count(),
+            descriptor_kind: if binary { "binary" } else { "float" }.to_owned(),
+            descriptor_width: width,
+            retrieval,
+            pose_covariances: self.pose_covariances.is_some(),
+            frontend,
+        };
+        let header = serde_json::to_string(&header).map_err(|e| format_error(e.to_string()))?;
+        Ok(MapFile { header, tensors: tensors.into_iter().collect() })
+    }
+
+    /// Rebuilds a map from a [`MapFile`]; returns it with its header.
+    ///
+    /// # Errors
+    /// `Format` naming the array or field that is missing, of the wrong shape or dtype, or
+    /// holds values a map cannot have (non-finite numbers, non-rigid poses, offsets that do
+    /// not partition the keypoints, a malformed vocabulary).
+    pub fn from_map_file(file: &MapFile) -> Result<(Self, MapHeader)> {
+        let header: MapHeader =
+            serde_json::from_str(&file.header).map_err(|e| format_error(format!("map header: {e}")))?;
+        let c = header.camera;
+        let camera =
+            Camera::new(c.fx, c.fy, c.cx, c.cy).map_err(|e| format_error(format!("map header camera: {e}")))?;
+        let k = header.keyframes;
+        if k == 0 {
+            return Err(format_error("the map has no keyframes"));
+        }
+        let poses = read_poses(file, k)?;
+        let offsets = read_offsets(file, k, header.keypoints)?;
+        let keypoints = f64_array(file, "keypoints", &[header.keypoints, 2])?;
+        let descriptors = read_descriptors(file, &header)?;
+        let globals = match header.retrieval {
+            RetrievalHeader::Global { dim } if dim > 0 => {
+                Some((f32_array(file, "keyframes.global_descriptors", &[k, dim])?, dim))
+            }
+            RetrievalHeader::Global { .. } => return Err(format_error("global descriptor length 0")),
+            RetrievalHeader::Bow { .. } => None,
+        };
+        let mut keyframes = Vec::with_capacity(k);
+        for (i, pose) in poses.into_iter().enumerate() {
+            let (a, b) = (offsets[i], offsets[i + 1]);
+            keyframes.push(Keyframe {
+                world_from_cam: pose,
+                keypoints: keypoints[2 * a..2 * b].chunks_exact(2).map(|p| Vector2::new(p[0], p[1])).collect(),
+                descriptors: descriptors.select(&(a..b).collect::<Vec<_>>()),
+                global: globals.as_ref().map(|(g, dim)| g[i * dim..(i + 1) * dim].to_vec()),
+            });
+        }
+        super::check_keyframes(&keyframes).map_err(as_format)?;
+        let pose_covariances = if header.pose_covariances { Some(read_pose_covariances(file, k)?) } else { None };
+        if let Some(c) = &pose_covariances {
+            super::check_pose_covariances(c, k).map_err(as_format)?;
+        }
+        let retrieval = match header.retrieval {
+            RetrievalHeader::Global { dim } => {
+                let data = globals.map(|(g, _)| g).unwrap_or_default();
+                Retrieval::Global(DescriptorIndex::new(data, dim).map_err(as_format)?)
+            }
+            RetrievalHeader::Bow { words } => {
+                let vocabulary = Vocabulary::from_arrays(read_vocabulary(file)?).map_err(as_format)?;
+                if vocabulary.len() != words {
+                    return Err(format_error(format!(
+                        "vocabulary has {} words, header says {words}",
+                        vocabulary.len()
+                    )));
+                }
+                let database = bow_database(&vocabulary, &keyframes)?;
+                Retrieval::Bow { vocabulary, database }
+            }
+        };
+        Ok((Self { camera, keyframes, pose_covariances, retrieval }, header))
+    }
+
+    /// Saves the map to `path` atomically (see [`file::write`]).
+    ///
+    /// # Errors
+    /// As [`Map::to_map_file`] and [`file::write`].
+    pub fn save(&self, path: &Path, frontend: &str) -> Result<()> {
+        file::write(path, &self.to_map_file(frontend)?)
+    }
+
+    /// Loads a map saved by [`Map::save`], checking everything first.
+    ///
+    /// # Errors
+    /// As [`file::read`] and [`Map::from_map_file`].
+    pub fn load(path: &Path) -> Result<(Self, MapHeader)> {
+        let file = file::read(path)?;
+        Self::from_map_file(&file).map_err(|e| match e {
+            GeolocError::Format { reason } => format_error(format!("{}: {reason}", path.display())),
+            other => other,
+        })
+    }
+
+    fn keypoint_count(&self) -> usize {
+        self.keyframes.iter().map(|kf| kf.keypoints.len()).sum()
+    }
+
+    fn keypoint_offsets(&self) -> Vec<i64> {
+        let mut offsets = vec![0i64];
+        let mut total = 0i64;
+        for kf in &self.keyframes {
+            total += kf.keypoints.len() as i64;
+            offsets.push(total);
+        }
+        offsets
+    }
+}
+
+/// Errors of the core constructors, reported as a corrupt file.
+fn as_format(e: GeolocError) -> GeolocError {
+    format_error(format!("invalid map content: {e}"))
+}
+
+fn row_major(m: &Matrix4<f64>) -> Vec<f64> {
+    m.transpose().iter().copied().collect()
+}
+
+fn expect_shape(name: &str, t: &Tensor, shape: &[usize]) -> Result<()> {
+    if t.shape != shape {
+        return Err(format_error(format!("array {name:?} has shape {:?}, expected {shape:?}", t.shape)));
+    }
+    Ok(())
+}
+
+fn f64_array<'a>(file: &'a MapFile, name: &str, shape: &[usize]) -> Result<&'a [f64]> {
+    let t = file.tensor(name)?;
+    expect_shape(name, t, shape)?;
+    match &t.data {
+        TensorData::F64(v) if v.iter().all(|x| x.is_finite()) => Ok(v),
+        TensorData::F64(_) => Err(format_error(format!("array {name:?} holds non-finite values"))),
+        _ => Err(format_error(format!("array {name:?} must be float64"))),
+    }
+}
+
+fn f32_array(file: &MapFile, name: &str, shape: &[usize]) -> Result<Vec<f32>> {
+    let t = file.tensor(name)?;
+    expect_shape(name, t, shape)?;
+    match &t.data {
+        TensorData::F32(v) if v.iter().all(|x| x.is_finite()) => Ok(v.clone()),
+        TensorData::F32(_) => Err(format_error(format!("array {name:?} holds non-finite values"))),
+        _ => Err(format_error(format!("array {name:?} must be float32"))),
+    }
+}
+
+fn read_poses(file: &MapFile, k: usize) -> Result<Vec<SE3>> {
+    let values = f64_array(file, "keyframes.world_from_cam", &[k, 4, 4])?;
+    values
+        .chunks_exact(16)
+        .enumerate()
+        .map(|(i, m)| {
+            SE3::from_matrix(&Matrix4::from_row_slice(m))
+                .map_err(|e| format_error(format!("keyframes.world_from_cam[{i}] is not a rigid transform: {e}")))
+        })
+        .collect()
+}
+
+fn read_offsets(file: &MapFile, k: usize, n: usize) -> Result<Vec<usize>> {
+    let name = "keyframes.keypoint_offsets";
+    let t = file.tensor(name)?;
+    expect_shape(name, t, &[k + 1])?;
+    let TensorData::I64(v) = &t.data else { return Err(format_error(format!("array {name:?} must be int64"))) };
+    let offsets: Vec<usize> = v.iter().map(|&o| usize::try_from(o).unwrap_or(usize::MAX)).collect();
+    let monotone = offsets.windows(2).all(|w| w[0] <= w[1]);
+    if offsets[0] != 0 || offsets[k] != n || !monotone {
+        return Err(format_error(format!("array {name:?} does not partition the {n} keypoints")));
+    }
+    Ok(offsets)
+}
+
+fn read_descriptors(file: &MapFile, header: &MapHeader) -> Result<DescriptorSet> {
+    let t = file.tensor("descriptors")?;
+    let width = header.descriptor_width;
+    expect_shape("descriptors", t, &[header.keypoints, width])?;
+    if width == 0 {
+        return Err(format_error("descriptor width 0"));
+    }
+    match (header.descriptor_kind.as_str(), &t.data) {
+        ("binary", TensorData::U8(data)) => Ok(DescriptorSet::Binary { data: data.clone(), width }),
+        ("float", TensorData::F32(data)) if data.iter().all(|x| x.is_finite()) => {
+            Ok(DescriptorSet::Float { data: data.clone(), width })
+        }
+        (kind, _) => Err(format_error(format!("array \"descriptors\" does not hold {kind:?} descriptors"))),
+    }
+}
+
+fn read_pose_covariances(file: &MapFile, k: usize) -> Result<Vec<Matrix6<f64>>> {
+    let values = f64_array(file, "keyframes.pose_covariances", &[k, 6, 6])?;
+    Ok(values.chunks_exact(36).map(Matrix6::from_row_slice).collect())
+}
+
+fn bow_database(vocabulary: &Vocabulary, keyframes: &[Keyframe]) -> Result<BowDatabase> {
+    let words: Vec<Vec<u32>> = keyframes
+        .iter()
+        .map(|kf| vocabulary.words_of(&kf.descriptors.view()))
+        .collect::<Result<_>>()
+        .map_err(as_format)?;
+    BowDatabase::new(vocabulary.len(), &words).map_err(as_format)
+}
+
+fn kind_and_width(d: &DescriptorSet) -> (bool, usize) {
+    match d {
+        DescriptorSet::Binary { width, .. } => (true, *width),
+        DescriptorSet::Float { width, .. } => (false, *width),
+    }
+}
+
+fn descriptor_tensor(name: &str, set: &DescriptorSet) -> Result<(String, Tensor)> {
+    let (_, width) = kind_and_width(set);
+    let data = match set {
+        DescriptorSet::Binary { data, .. } => TensorData::U8(data.clone()),
+        DescriptorSet::Float { data, .. } => TensorData::F32(data.clone()),
+    };
+    tensor(name, vec![set.len(), width], data)
+}
+
+fn vocabulary_tensors(v: &VocabularyArrays) -> Result<Vec<(String, Tensor)>> {
+    Ok(vec![
+        tensor("vocabulary.node_offsets", vec![v.node_offsets.len()], TensorData::I64(v.node_offsets.clone()))?,
+        descriptor_tensor("vocabulary.centres", &v.centres)?,
+        tensor("vocabulary.children", vec![v.children.len()], TensorData::I64(v.children.clone()))?,
+    ])
+}
+
+fn i64_vector(file: &MapFile, name: &str) -> Result<Vec<i64>> {
+    let t = file.tensor(name)?;
+    match (&t.data, t.shape.as_slice()) {
+        (TensorData::I64(v), [_]) => Ok(v.clone()),
+        _ => Err(format_error(format!("array {name:?} must be a 1-D int64 array"))),
+    }
+}
+
+fn read_vocabulary(file: &MapFile) -> Result<VocabularyArrays> {
+    let name = "vocabulary.centres";
+    let t = file.tensor(name)?;
+    let centres = match (&t.data, t.shape.as_slice()) {
+        (TensorData::U8(data), &[_, width]) if width > 0 => DescriptorSet::Binary { data: data.clone(), width },
+        (TensorData::F32(data), &[_, width]) if width > 0 => DescriptorSet::Float { data: data.clone(), width },
+        _ => return Err(format_error(format!("array {name:?} must be a 2-D uint8 or float32 array"))),
+    };
+    Ok(VocabularyArrays {
+        node_offsets: i64_vector(file, "vocabulary.node_offsets")?,
+        centres,
+        children: i64_vector(file, "vocabulary.children")?,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::map::RetrievalKind;
+    use crate::rng::SplitMix64;
+    use crate::testing::isotropic_pose_covariance;
+
+    fn keyframes(rng: &mut SplitMix64, binary: bool, global: bool) -> Vec<Keyframe> {
+        (0..6)
+            .map(|k| {
+                let n = 40 + 3 * k;
+                let descriptors = if binary {
+                    DescriptorSet::Binary {
+                        data: (0..n * 32).map(|_| (rng.next_u64() & 0xff) as u8).collect(),
+                        width: 32,
+                    }
+                } else {
+                    DescriptorSet::Float {
+                        data: (0..n * 16).map(|_| rng.uniform_in(-1.0, 1.0) as f32).collect(),
+                        width: 16,
+                    }
+                };
+                Keyframe {
+                    world_from_cam: rng.pose(3.0),
+                    keypoints: (0..n)
+                        .map(|_| Vector2::new(rng.uniform_in(0.0, 640.0), rng.uniform_in(0.0, 480.0)))
+                        .collect(),
+                    descriptors,
+                    global: global.then(|| (0..8).map(|_| rng.uniform_in(-1.0, 1.0) as f32).collect()),
+                }
+            })
+            .collect()
+    }
+
+    fn map(binary: bool, kind: RetrievalKind, covariances: bool) -> Map {
+        let mut rng = SplitMix64::new(21);
+        let kfs = keyframes(&mut rng, binary, kind == RetrievalKind::Global);
+        let covs = covariances.then(|| vec![isotropic_pose_covariance(0.01, 0.005); kfs.len()]);
+        let camera = Camera::new(525.0, 526.0, 320.5, 239.5).expect("valid camera");
+        Map::build(camera, kfs, covs, kind, 3).expect("valid map")
+    }
+
+    fn assert_same(a: &Map, b: &Map) {
+        assert_eq!(a.camera, b.camera);
+        assert_eq!(a.keyframes, b.keyframes);
+        assert_eq!(a.pose_covariances, b.pose_covariances);
+        for kf in &a.keyframes {
+            let (ra, rb) = (
+                a.retrieve(&kf.descriptors.view(), kf.global.as_deref()),
+                b.retrieve(&kf.descriptors.view(), kf.global.as_deref()),
+            );
+            assert_eq!(ra.expect("retrieves"), rb.expect("retrieves"));
+        }
+    }
+
+    #[test]
+    fn every_kind_of_map_round_trips_exactly() {
+        let bow = RetrievalKind::Bow { branching: 4, depth: 2 };
+        for (binary, kind, covariances) in [
+            (true, bow, false),
+            (false, bow, true),
+            (true, RetrievalKind::Global, true),
+            (false, RetrievalKind::Global, false),
+        ] {
+            let original = map(binary, kind, covariances);
+            let file = original.to_map_file(r#"{"features":"orb"}"#).expect("serializes");
+            let bytes = file.to_bytes().expect("bytes");
+            let (back, header) = Map::from_map_file(&MapFile::from_bytes(&bytes).expect("reads")).expect("valid map");
+            assert_same(&original, &back);
+            assert_eq!(header.frontend["features"], "orb");
+            assert_eq!(header.keyframes, 6);
+            // The stored vocabulary is used as stored (same words), not retrained.
+            if let (Retrieval::Bow { vocabulary: a, .. }, Retrieval::Bow { vocabulary: b, .. }) =
+                (&original.retrieval, &back.retrieval)
+            {
+                assert_eq!(a, b);
+            }
+            assert_eq!(
+                back.to_map_file(r#"{"features":"orb"}"#).expect("serializes").to_bytes().expect("bytes"),
+                bytes
+            );
+        }
+    }
+
+    #[test]
+    fn bad_content_is_refused_with_the_array_named() {
+        let original = map(true, RetrievalKind::Bow { branching: 4, depth: 2 }, false);
+        let good = original.to_map_file("{}").expect("serializes");
+        let mut sheared = good.clone();
+        if let Some(Tensor { data: TensorData::F64(v), .. }) = sheared.tensors.get_mut("keyframes.world_from_cam") {
+            v[1] += 0.5; // R no longer a rotation
+        }
+        let err = Map::from_map_file(&sheared).expect_err("not rigid");
+        assert!(err.to_string().contains("keyframes.world_from_cam[0] is not a rigid transform"), "{err}");
+        let mut offsets = good.clone();
+        if let Some(Tensor { data: TensorData::I64(v), .. }) = offsets.tensors.get_mut("keyframes.keypoint_offsets") {
+            v[2] = v[1] - 1;
+        }
+        let err = Map::from_map_file(&offsets).expect_err("offsets");
+        assert!(err.to_string().contains("keypoint_offsets"), "{err}");
+        let mut missing = good.clone();
+        missing.tensors.remove("vocabulary.children");
+        let err = Map::from_map_file(&missing).expect_err("missing array");
+        assert!(err.to_string().contains("vocabulary.children"), "{err}");
+        let err = original.to_map_file("[1, 2]").expect_err("frontend must be an object");
+        assert!(matches!(err, GeolocError::InvalidInput { ref name, .. } if name == "frontend"), "{err:?}");
+    }
+
+    #[test]
+    fn save_and_load_through_a_file() {
+        let dir = std::env::temp_dir().join(format!("geoloc-persist-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("temp dir");
+        let path = dir.join("scene.geoloc");
+        let original = map(false, RetrievalKind::Bow { branching: 3, depth: 2 }, true);
+        original.save(&path, "{}").expect("saves");
+        let (back, _) = Map::load(&path).expect("loads");
+        assert_same(&original, &back);
+        let bytes = std::fs::read(&path).expect("read");
+        std::fs::write(&path, &bytes[..bytes.len() / 2]).expect("truncate");
+        let err = Map::load(&path).expect_err("truncated");
+        assert!(err.to_string().contains("scene.geoloc"), "{err}");
+        std::fs::remove_dir_all(&dir).expect("cleanup");
+    }
+}

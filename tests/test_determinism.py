@@ -1,0 +1,90 @@
+"""Same input, same bytes (issue 8 item 3): the feature-level map and localizer on a seeded
+synthetic scene — with a stopped camera, i.e. a run of identical keyframes and of identical
+query frames, where BoW scores tie exactly — give byte-identical poses, covariances and
+sources in separate processes, with GEOLOC_NUM_THREADS=1 and 2, and with parallelism off.
+
+Before the fix, BoW vectors lived in a per-process randomly seeded HashMap and their sums ran
+in f32 in its iteration order, so near-ties flipped between processes.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+SCRIPT = r"""
+import hashlib, sys
+import numpy as np
+from geoloc.localizer import FeatureLocalizer, FeatureMap
+
+from test_localizer import CAM as cam, _observe, _walk
+
+rng = np.random.default_rng(0)
+pts = rng.uniform([-8, -1.5, 3], [8, 1.5, 6], (1500, 3))
+desc = rng.integers(0, 256, (1500, 32), dtype=np.uint8)
+
+def walk(t, offset):
+    return _walk(min(t, 1.2), offset)  # the camera stops at t = 1.2 s
+
+def observe(rng, pose):
+    return _observe(rng, pose, pts, desc)
+
+poses, kps, descs = [], [], []
+for i in range(30):
+    pose = walk(0.1 * i, 0.0)
+    if i > 14 and poses:
+        k, d = kps[-1], descs[-1]  # the stopped camera: identical keyframes
+    else:
+        k, d = observe(rng, pose)
+    poses.append(pose); kps.append(k); descs.append(d)
+m = FeatureMap(cam, np.stack(poses), kps, descs, branching=8, depth=3, seed=1)
+loc = FeatureLocalizer(m)
+h = hashlib.sha256()
+frame = None
+for f in range(40):
+    t = 0.3 + f / 30
+    if t < 1.2 or frame is None:
+        frame = observe(rng, walk(t, 0.1))  # after 1.2 s: identical query frames
+    r = loc.localize(t, *frame)
+    h.update(r.source.encode() + r.reason.encode() + np.int64(r.keyframe).tobytes())
+    if r.pose is not None:
+        h.update(np.ascontiguousarray(r.pose).tobytes() + np.ascontiguousarray(r.covariance).tobytes())
+print(h.hexdigest())
+"""
+
+
+def _digest(env_extra: dict[str, str]) -> str:
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("GEOLOC_", "RAYON_"))}
+    env.update(env_extra)
+    paths = [str(ROOT / "python"), str(ROOT / "tests"), env.get("PYTHONPATH", "")]
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, paths))
+    env.setdefault("PYTHONHASHSEED", "random")
+    out = subprocess.run([sys.executable, "-c", SCRIPT], env=env, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    return out.stdout.strip()
+
+
+@pytest.fixture(scope="module")
+def reference() -> str:
+    return _digest({})
+
+
+def test_two_processes_give_the_same_bytes(reference: str) -> None:
+    assert len(reference) == len(hashlib.sha256().hexdigest())
+    assert _digest({}) == reference
+
+
+@pytest.mark.parametrize(
+    "env",
+    [{"GEOLOC_NUM_THREADS": "1"}, {"GEOLOC_NUM_THREADS": "2"}, {"GEOLOC_PARALLELISM": "false"}, {"RAYON_NUM_THREADS": "2"}],
+    ids=["1-thread", "2-threads", "parallelism-off", "rayon-2"],
+)
+def test_thread_settings_give_the_same_bytes(reference: str, env: dict[str, str]) -> None:
+    assert _digest(env) == reference
