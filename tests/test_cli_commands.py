@@ -160,22 +160,11 @@ def test_outputs_in_missing_or_unwritable_folders_are_refused_before_any_work(tm
         _one_line_error(_run(*command, option, str(locked / "x.out")), option, "not writable")
 
 
-# ---------------------------------------------------------------- map files (need Map.save/load)
-
-
-def _has_map_files() -> bool:
-    from geoloc.localizer import FeatureMap
-
-    return hasattr(FeatureMap, "_load") or hasattr(getattr(geoloc, "_core").FeatureMap, "_load")
-
-
-needs_map_files = pytest.mark.skipif(not _has_map_files(), reason="Map.save/Map.load need the core map-file bindings (not in this build)")
+# ---------------------------------------------------------------- map files
 
 
 @pytest.fixture(scope="module")
 def room_map(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    if not _has_map_files():
-        pytest.skip("Map.save/Map.load need the core map-file bindings (not in this build)")
     path = tmp_path_factory.mktemp("map") / "room.geoloc"
     result = _run("build-map", "--format", "synthetic", "--synthetic-frames", str(ROOM_FRAMES), "--frames", f"0:{ROOM_FRAMES // 2}", "--out", str(path))
     assert result.returncode == 0, result.stdout + result.stderr
@@ -183,7 +172,6 @@ def room_map(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return path
 
 
-@needs_map_files
 @pytest.mark.parametrize("mode", ["single", "sequential"])
 def test_build_map_then_localize_writes_a_tum_trajectory_evo_reads(room_map: Path, tmp_path: Path, mode: str) -> None:
     from evo.tools import file_interface
@@ -204,7 +192,6 @@ def test_build_map_then_localize_writes_a_tum_trajectory_evo_reads(room_map: Pat
         assert np.median(trans) <= SYNTHETIC_MEDIAN_M and np.median(rot) <= SYNTHETIC_MEDIAN_DEG
 
 
-@needs_map_files
 def test_localize_a_folder_of_images(room_map: Path, tmp_path: Path) -> None:
     import cv2
 
@@ -222,7 +209,6 @@ def test_localize_a_folder_of_images(room_map: Path, tmp_path: Path) -> None:
     assert np.allclose([[float(v) for v in r[1:4]] for r in rows], room.poses[[33, 36, 39], :3, 3], atol=SYNTHETIC_MEDIAN_M)
 
 
-@needs_map_files
 def test_images_of_another_size_are_refused(room_map: Path, tmp_path: Path) -> None:
     import cv2
 
@@ -234,7 +220,6 @@ def test_images_of_another_size_are_refused(room_map: Path, tmp_path: Path) -> N
     assert not (tmp_path / "p.txt").exists()
 
 
-@needs_map_files
 @pytest.mark.parametrize("damage", ["truncated", "flipped", "empty", "not a map"])
 def test_a_corrupt_map_is_refused(room_map: Path, tmp_path: Path, damage: str) -> None:
     data = bytearray(room_map.read_bytes())

@@ -33,13 +33,6 @@ def room_map(room: datasets.Sequence) -> Map:
     return Map.build(room[MAP_FRAMES])
 
 
-def _has_map_files() -> bool:
-    return hasattr(geoloc._core.FeatureMap, "_load")  # type: ignore[attr-defined]
-
-
-needs_map_files = pytest.mark.skipif(not _has_map_files(), reason="Map.save/Map.load need the core map-file bindings (not in this build)")
-
-
 def _localize_queries(m: Map, room: datasets.Sequence) -> list[object]:
     loc = Localizer(m)
     out = []
@@ -143,7 +136,6 @@ def test_localizer_refuses_bad_inputs(room_map: Map, tmp_path: Path) -> None:
 # ---------------------------------------------------------------------------- files
 
 
-@needs_map_files
 def test_a_saved_map_gives_bit_identical_results_in_a_new_process(room_map: Map, room: datasets.Sequence, tmp_path: Path) -> None:
     path = tmp_path / "room.geoloc"
     room_map.save(path)
@@ -162,7 +154,6 @@ def test_a_saved_map_gives_bit_identical_results_in_a_new_process(room_map: Map,
     assert loaded.camera.intrinsics == room_map.camera.intrinsics
 
 
-@needs_map_files
 def test_damaged_map_files_are_refused(room_map: Map, tmp_path: Path) -> None:
     path = tmp_path / "room.geoloc"
     room_map.save(path)
@@ -184,7 +175,6 @@ def test_damaged_map_files_are_refused(room_map: Map, tmp_path: Path) -> None:
         Map.load(tmp_path / "missing.geoloc")
 
 
-@needs_map_files
 def test_save_refuses_a_missing_folder_and_keeps_the_old_file(room_map: Map, tmp_path: Path) -> None:
     with pytest.raises(geoloc.InvalidInputError, match="does not exist"):
         room_map.save(tmp_path / "no" / "room.geoloc")
