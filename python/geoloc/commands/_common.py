@@ -7,14 +7,12 @@ with the option's name (``--test: …``); :func:`geoloc.cli.main` prints it as o
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
-import numpy as np
 
 from ..exceptions import DatasetError, InvalidInputError
 
@@ -197,11 +195,6 @@ def localize_sequence(
     return results
 
 
-def finite_or_none(x: float | None) -> float | None:
-    """``x`` if it is a finite number, else None (JSON has no NaN)."""
-    return None if x is None or not math.isfinite(x) else float(x)
-
-
 def stage_table(summaries: dict[str, dict[str, Any]]) -> str:
     """Per-stage median milliseconds, one column per row of ``summaries``."""
     names = list(summaries)
@@ -226,7 +219,3 @@ def stage_table(summaries: dict[str, dict[str, Any]]) -> str:
     lines.insert(1, "  ".join("-" * w for w in widths))
     return "\n".join(lines)
 
-
-def median_ms(values: list[float]) -> float:
-    """Median of a list of milliseconds (0 when empty)."""
-    return float(np.median(values)) if values else 0.0

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from ..exceptions import InvalidInputError
-from ._common import MODES, FrameRange, Progress, load_dataset, localize_sequence, select, stage_table
+from ._common import MODES, FrameRange, Progress, load_dataset, localize_sequence, stage_table
 
 __all__ = ["PAPER_7SCENES", "evaluate_split", "report", "run"]
 
