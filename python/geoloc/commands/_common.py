@@ -31,6 +31,8 @@ FORMATS = ("7scenes", "tum", "folder", "synthetic")
 #: Localization modes: ``single`` forgets the motion history before every frame (the
 #: paper's single-image row); ``sequential`` keeps it (motion model + fusion).
 MODES = ("single", "sequential")
+#: What the map's progress bar says once every keyframe's features are extracted.
+MAP_DONE = "features done; training the vocabulary and indexing the keyframes"
 #: Frames of the built-in room when ``--format synthetic`` (two laps).
 SYNTHETIC_FRAMES = 300
 
@@ -149,12 +151,14 @@ def _load_files(args: argparse.Namespace, fmt: str, root: Path, given: Any) -> A
 
 
 class Progress:
-    """A one-line progress bar on stderr (only when stderr is a terminal), redrawn at each percent."""
+    """A one-line progress bar on stderr (only when stderr is a terminal), redrawn at each
+    percent; ``then`` is a line printed when the bar is full (what comes next, unbarred)."""
 
     WIDTH = 30
 
-    def __init__(self, label: str, enabled: bool | None = None) -> None:
+    def __init__(self, label: str, enabled: bool | None = None, then: str | None = None) -> None:
         self.label = label
+        self.then = then
         self.enabled = sys.stderr.isatty() if enabled is None else enabled
         self._start = time.perf_counter()
 
@@ -165,7 +169,7 @@ class Progress:
         elapsed = time.perf_counter() - self._start
         sys.stderr.write(f"\r{self.label} [{'#' * filled}{'.' * (self.WIDTH - filled)}] {done}/{total} {elapsed:.0f}s")
         if done == total:
-            sys.stderr.write("\n")
+            sys.stderr.write("\n" if self.then is None else f"\n{self.label}: {self.then}\n")
         sys.stderr.flush()
 
 

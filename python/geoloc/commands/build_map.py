@@ -6,7 +6,7 @@ import argparse
 import time
 
 from ..exceptions import InvalidInputError
-from ._common import Progress, load_dataset, select
+from ._common import MAP_DONE, Progress, load_dataset, select
 
 __all__ = ["run"]
 
@@ -26,7 +26,7 @@ def run(args: argparse.Namespace) -> int:
         features=args.features,
         n_features=args.n_features,
         keyframe_step=args.step,
-        progress=Progress("map"),
+        progress=Progress("map", then=MAP_DONE),
     )
     built = time.perf_counter() - start
     the_map.save(args.out)

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from ..exceptions import InvalidInputError
-from ._common import MODES, FrameRange, Progress, load_dataset, localize_sequence, stage_table
+from ._common import MAP_DONE, MODES, FrameRange, Progress, load_dataset, localize_sequence, stage_table
 
 __all__ = ["PAPER_7SCENES", "evaluate_split", "report", "run"]
 
@@ -86,7 +86,7 @@ def evaluate_split(
         )
     train_seq, test_seq = sequence[train_slice], sequence[test_slice]
     start = time.perf_counter()
-    the_map = Map.build(train_seq, retrieval=retrieval, features=features, n_features=n_features, progress=Progress("map"))
+    the_map = Map.build(train_seq, retrieval=retrieval, features=features, n_features=n_features, progress=Progress("map", then=MAP_DONE))
     build_s = time.perf_counter() - start
     summaries: dict[str, Any] = {}
     for mode in modes:
