@@ -29,4 +29,4 @@ def test_ci_runs_the_readme_test_command() -> None:
 
 def test_install_command_runs_the_main_job() -> None:
     commands = [b.strip() for b in _blocks("bash")]
-    assert commands[0] == "python -m pip install . && geoloc selfcheck"
+    assert commands[0] == "python -m pip install . && geoloc demo"

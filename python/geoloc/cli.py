@@ -10,11 +10,16 @@ are written atomically and missing folders are never created.
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import traceback
-from typing import Callable, Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Callable, Sequence
 
-from .exceptions import GeolocError
+from .exceptions import GeolocError, InvalidInputError
+
+if TYPE_CHECKING:
+    from .commands._common import FrameRange
 
 #: Exit status of a usage or input error (argparse uses 2 too).
 EXIT_USAGE = 2
@@ -26,8 +31,26 @@ MAX_TRIALS = 1_000_000
 MAX_SELFCHECK_SAMPLES = 100_000
 #: Seeds are stored in 64-bit unsigned integers by the core.
 MAX_SEED = 2**63 - 1
+#: The largest synthetic room (frames) and feature count the commands accept.
+MAX_SYNTHETIC_FRAMES = 100_000
+MAX_FEATURES = 100_000
 
 Handler = Callable[[argparse.Namespace], int]
+
+
+class _HelpFormatter(argparse.HelpFormatter):
+    """Wraps descriptions as usual but prints an ``example:`` epilog verbatim, so the
+    example's command lines can be copied as they are."""
+
+    def _fill_text(self, text: str, width: int, indent: str) -> str:
+        if text.startswith("example"):
+            return text
+        return super()._fill_text(text, width, indent)
+
+
+def _example(*lines: str) -> str:
+    """An epilog: ``example:`` then the command, continuation lines ending in a backslash."""
+    return "example:\n  " + " \\\n      ".join(lines)
 
 
 def bounded_int(low: int, high: int) -> Callable[[str], int]:
@@ -55,6 +78,239 @@ def output_file(text: str) -> str:
     except GeolocError as e:
         raise argparse.ArgumentTypeError(str(e).removeprefix("path: ")) from None
     return text
+
+
+def frame_range(text: str) -> "FrameRange":
+    """An argparse ``type`` for ``A:B`` or ``A:B:K`` (checked against the sequence later)."""
+    from .commands._common import FrameRange
+
+    try:
+        return FrameRange.parse(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
+frame_range.__name__ = "frame range"
+
+
+def intrinsics(text: str) -> tuple[float, float, float, float]:
+    """An argparse ``type`` for ``fx,fy,cx,cy``: four finite numbers, fx and fy > 0."""
+    parts = text.replace(" ", "").split(",")
+    try:
+        values = tuple(float(p) for p in parts)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected fx,fy,cx,cy (four numbers), got {text!r}") from None
+    if len(values) != 4 or not all(math.isfinite(v) for v in values) or values[0] <= 0 or values[1] <= 0:
+        raise argparse.ArgumentTypeError(f"expected fx,fy,cx,cy: four finite numbers with fx, fy > 0, got {text!r}")
+    return values
+
+
+intrinsics.__name__ = "intrinsics"
+
+
+def existing_file(text: str) -> str:
+    """An argparse ``type`` for a file to read: it must exist."""
+    path = Path(text)
+    if path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text!r} is a folder, expected a file")
+    if not path.is_file():
+        raise argparse.ArgumentTypeError(f"file {text!r} does not exist")
+    return text
+
+
+def new_folder(text: str) -> str:
+    """An argparse ``type`` for a folder to write into: an existing folder, or a new one
+    whose parent exists (it is created then; nothing above it ever is)."""
+    path = Path(text)
+    if path.exists() and not path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text!r} is a file, expected a folder")
+    if not path.exists() and not path.parent.is_dir():
+        raise argparse.ArgumentTypeError(f"folder {str(path.parent)!r} does not exist (create it first)")
+    return text
+
+
+def retrieval(text: str) -> str:
+    """An argparse ``type`` for ``--retrieval``: ``bow`` (a network: not in this build yet)."""
+    if text == "bow":
+        return text
+    if text.endswith(".onnx"):
+        raise argparse.ArgumentTypeError(
+            f"network retrieval ({text!r}) needs geoloc.descriptor, which this build does not have yet; use bow"
+        )
+    raise argparse.ArgumentTypeError(f"expected bow, got {text!r}")
+
+
+def _dataset_options(
+    parser: argparse.ArgumentParser, trajectory: bool = False, required: bool = True, intrinsics_default: str | None = None
+) -> None:
+    from .commands._common import FORMATS
+
+    parser.add_argument(
+        "--dataset", metavar="P",
+        help="dataset folder (not needed with --format synthetic, the built-in room)",
+    )
+    parser.add_argument(
+        "--format", choices=FORMATS, required=required,
+        help="7scenes (frame-XXXXXX.color.{jpg,png} + .pose.txt), tum (rgb.txt + groundtruth.txt), "
+        "folder (images + a TUM trajectory), synthetic (the built-in room)",
+    )
+    parser.add_argument(
+        "--intrinsics", type=intrinsics, metavar="fx,fy,cx,cy",
+        help="pinhole intrinsics in pixels (default: "
+        + (intrinsics_default or "7scenes 525,525,320,240; tum from the folder name or camera.txt; folder: required")
+        + ")",
+    )
+    if trajectory:
+        parser.add_argument(
+            "--trajectory", metavar="FILE",
+            help="--format folder: the TUM trajectory, relative to the dataset folder (default: traj.txt)",
+        )
+    parser.add_argument(
+        "--synthetic-frames", type=bounded_int(20, MAX_SYNTHETIC_FRAMES), default=300, metavar="N",
+        help="--format synthetic: frames of the room, two laps (default: 300)",
+    )
+
+
+def _feature_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--features", choices=("orb", "sift"), default="orb", help="local features (default: orb)")
+    parser.add_argument(
+        "--n-features", type=bounded_int(50, MAX_FEATURES), default=1000, metavar="N",
+        help="features per image (default: 1000)",
+    )
+    parser.add_argument(
+        "--retrieval", type=retrieval, default="bow", metavar="bow",
+        help="image retrieval: bow, a bag of words trained on the map's features (default: bow)",
+    )
+
+
+def _add_demo(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> Handler:
+    demo = commands.add_parser(
+        "demo",
+        formatter_class=_HelpFormatter,
+        help="the synthetic room end to end; writes ./geoloc-demo/results.json + plots",
+        description="Render the built-in synthetic room (two laps around it), build a map from the "
+        "first lap, localize frames of the second lap in single mode (history forgotten before each "
+        "frame) and sequential mode (motion model + fusion), print the paper-style table and the "
+        "per-stage times, and write results.json and the plots. About half a minute on 2 cores.",
+        epilog=_example("geoloc demo --out geoloc-demo"),
+    )
+    demo.add_argument(
+        "--out", type=new_folder, default="geoloc-demo", metavar="DIR",
+        help="output folder, created if missing (its parent must exist; default: ./geoloc-demo)",
+    )
+    demo.add_argument(
+        "--frames", type=bounded_int(20, MAX_SYNTHETIC_FRAMES), default=300, metavar="N",
+        help="frames of the room, two laps: the map from lap 1, the test from lap 2 (default: 300)",
+    )
+    demo.add_argument("--no-plots", action="store_true", help="write results.json only")
+
+    def run(args: argparse.Namespace) -> int:
+        from .commands import demo
+
+        return demo.run(args)
+
+    return run
+
+
+def _add_build_map(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> Handler:
+    build = commands.add_parser(
+        "build-map",
+        formatter_class=_HelpFormatter,
+        help="build a map file from a dataset with poses",
+        description="Extract local features of the dataset's frames, train the retrieval vocabulary "
+        "and write everything to one .geoloc map file (safetensors; written atomically). "
+        "A progress bar goes to stderr when it is a terminal.",
+        epilog=_example(
+            "geoloc build-map --dataset ../shared/data/7scenes-redkitchen --format 7scenes",
+            "--intrinsics 525,525,320,240 --frames 0:600 --out redkitchen.geoloc",
+        ),
+    )
+    _dataset_options(build, trajectory=True)
+    build.add_argument("--frames", type=frame_range, metavar="A:B", help="frame positions A..B-1 (A:B:K every K-th; default: all)")
+    build.add_argument(
+        "--step", type=bounded_int(1, 10_000), default=1, metavar="K", help="every K-th selected frame becomes a keyframe (default: 1)"
+    )
+    _feature_options(build)
+    build.add_argument("--out", type=output_file, required=True, metavar="scene.geoloc", help="map file to write (its folder must exist)")
+
+    def run(args: argparse.Namespace) -> int:
+        from .commands import build_map
+
+        return build_map.run(args)
+
+    return run
+
+
+def _add_localize(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> Handler:
+    loc = commands.add_parser(
+        "localize",
+        formatter_class=_HelpFormatter,
+        help="localize images against a map; writes a TUM trajectory",
+        description="Localize every image of a folder (sorted by name; timestamps from numeric "
+        "names, else index/30 s) or of a dataset against a map built by build-map, and write the "
+        "poses (world_from_cam) as a TUM trajectory (timestamp tx ty tz qx qy qz qw), atomically. "
+        "Lost frames are left out of the file and counted in the summary line on stderr.",
+        epilog=_example(
+            "geoloc localize --map redkitchen.geoloc --dataset ../shared/data/7scenes-redkitchen",
+            "--format 7scenes --frames 600:700 --mode sequential --out poses.txt",
+        ),
+    )
+    loc.add_argument("--map", type=existing_file, required=True, metavar="scene.geoloc", help="map file (from build-map)")
+    loc.add_argument("--images", metavar="DIR", help="a folder of images of the map camera's size")
+    _dataset_options(loc, required=False, intrinsics_default="the map's camera")
+    loc.add_argument("--frames", type=frame_range, metavar="A:B", help="frame positions A..B-1 (A:B:K every K-th; default: all)")
+    loc.add_argument(
+        "--mode", choices=("single", "sequential"), default="sequential",
+        help="single: every frame on its own; sequential: motion model + fusion (default: sequential)",
+    )
+    loc.add_argument("--out", type=output_file, required=True, metavar="poses.txt", help="TUM trajectory to write (its folder must exist)")
+
+    def run(args: argparse.Namespace) -> int:
+        from .commands import localize
+
+        if (args.images is None) == (args.dataset is None and args.format != "synthetic"):
+            raise InvalidInputError("--images/--dataset: give exactly one (a folder of images, or a dataset with --format)")
+        return localize.run(args)
+
+    return run
+
+
+def _add_evaluate(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> Handler:
+    ev = commands.add_parser(
+        "evaluate",
+        formatter_class=_HelpFormatter,
+        help="build a map from a train range, localize a test range, print errors and calibration",
+        description="Build a map from the --train frames, localize the --test frames in single "
+        "and/or sequential mode, and print the paper-style table: median translation/rotation "
+        "error, recall (5 cm/5°, 25 cm/2°, 10 cm/1°), sources, NEES calibration and time per "
+        "frame, with the paper's figures as a reference on 7-Scenes. Default split: the "
+        "synthetic room's two laps; otherwise the last 100 frames are the test set.",
+        epilog=_example(
+            "geoloc evaluate --dataset ../shared/data/7scenes-redkitchen --format 7scenes",
+            "--intrinsics 525,525,320,240 --train 0:600 --test 600:700 --json r.json --timings --plots out/",
+        ),
+    )
+    _dataset_options(ev, trajectory=True)
+    ev.add_argument("--train", type=frame_range, metavar="A:B", help="map frames (A:B:K every K-th)")
+    ev.add_argument("--test", type=frame_range, metavar="C:D", help="test frames (C:D:K every K-th)")
+    ev.add_argument(
+        "--mode", choices=("single", "sequential", "both"), default="both",
+        help="single: history forgotten before every frame; sequential: motion model + fusion (default: both)",
+    )
+    _feature_options(ev)
+    ev.add_argument("--json", type=output_file, metavar="FILE", help="write the result dict (DESIGN.md §7 keys) as JSON")
+    ev.add_argument("--timings", action="store_true", help="print the median time of every stage")
+    ev.add_argument(
+        "--plots", type=new_folder, metavar="DIR",
+        help="write DIR/<mode>/{trajectory,errors,error_cdf,calibration}.png (DIR is created if its parent exists)",
+    )
+
+    def run(args: argparse.Namespace) -> int:
+        from .commands import evaluate
+
+        return evaluate.run(args)
+
+    return run
 
 
 def _add_selfcheck(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> Handler:
@@ -112,6 +368,10 @@ def _add_montecarlo(commands: argparse._SubParsersAction[argparse.ArgumentParser
 
 #: The commands, in the order ``--help`` lists them.
 COMMANDS: tuple[Callable[[argparse._SubParsersAction[argparse.ArgumentParser]], Handler], ...] = (
+    _add_demo,
+    _add_build_map,
+    _add_localize,
+    _add_evaluate,
     _add_selfcheck,
     _add_montecarlo,
 )

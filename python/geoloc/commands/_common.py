@@ -1,0 +1,225 @@
+"""What several commands share: datasets from options, frame ranges, progress, localization runs.
+
+Errors a user can cause are raised as :class:`geoloc.InvalidInputError` whose message starts
+with the option's name (``--test: …``); :func:`geoloc.cli.main` prints it as one line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+
+from ..exceptions import DatasetError, InvalidInputError
+
+__all__ = [
+    "FORMATS",
+    "MODES",
+    "FrameRange",
+    "Progress",
+    "load_dataset",
+    "localize_sequence",
+    "select",
+]
+
+#: The dataset formats ``--format`` accepts.
+FORMATS = ("7scenes", "tum", "folder", "synthetic")
+#: Localization modes: ``single`` forgets the motion history before every frame (the
+#: paper's single-image row); ``sequential`` keeps it (motion model + fusion).
+MODES = ("single", "sequential")
+#: What the map's progress bar says once every keyframe's features are extracted.
+MAP_DONE = "features done; training the vocabulary and indexing the keyframes"
+#: Frames of the built-in room when ``--format synthetic`` (two laps).
+SYNTHETIC_FRAMES = 300
+
+
+@dataclass(frozen=True)
+class FrameRange:
+    """``A:B`` or ``A:B:K`` (half-open, 0-based positions in the sequence as loaded, every
+    K-th frame); ``A`` or ``B`` may be left out (``600:`` = from 600 to the end)."""
+
+    start: int | None
+    stop: int | None
+    step: int = 1
+
+    @classmethod
+    def parse(cls, text: str) -> FrameRange:
+        parts = text.split(":")
+        if len(parts) not in (2, 3):
+            raise ValueError(f"expected A:B or A:B:K (frame positions), got {text!r}")
+        try:
+            values = [None if p.strip() == "" else int(p, 10) for p in parts]
+        except ValueError:
+            raise ValueError(f"expected integers in A:B or A:B:K, got {text!r}") from None
+        start, stop = values[0], values[1]
+        step = values[2] if len(values) == 3 and values[2] is not None else 1
+        if (start is not None and start < 0) or (stop is not None and stop < 0):
+            raise ValueError(f"frame positions must be ≥ 0, got {text!r}")
+        if step < 1:
+            raise ValueError(f"the step K must be ≥ 1, got {text!r}")
+        if start is not None and stop is not None and stop <= start:
+            raise ValueError(f"expected A < B, got {text!r}")
+        return cls(start, stop, step)
+
+    def __str__(self) -> str:
+        a = "" if self.start is None else str(self.start)
+        b = "" if self.stop is None else str(self.stop)
+        return f"{a}:{b}" + (f":{self.step}" if self.step != 1 else "")
+
+    def resolve(self, n: int, option: str, name: str) -> slice:
+        """The slice into a sequence of ``n`` frames; InvalidInputError naming ``option`` when
+        the range is not inside it."""
+        start = 0 if self.start is None else self.start
+        stop = n if self.stop is None else self.stop
+        if start >= n or stop > n or stop <= start:
+            raise InvalidInputError(
+                f"{option}: {self} is outside the sequence {name!r}, which has {n} frames (positions 0:{n})"
+            )
+        return slice(start, stop, self.step)
+
+
+def select(sequence: Any, frames: FrameRange | None, option: str) -> Any:
+    """``sequence[frames]`` checked against its length (the whole sequence when None)."""
+    if frames is None:
+        return sequence
+    return sequence[frames.resolve(len(sequence), option, sequence.name)]
+
+
+def load_dataset(args: argparse.Namespace, camera: Any = None) -> Any:
+    """The :class:`~geoloc.datasets.Sequence` named by ``--dataset``/``--format`` (and
+    ``--intrinsics``, ``--trajectory``, ``--synthetic-frames`` where the command has them).
+
+    ``camera`` (a :class:`geoloc.Camera`) is used when ``--intrinsics`` is not given and the
+    format needs intrinsics (a map's camera, for ``localize``).
+    """
+    from .. import datasets
+
+    fmt = args.format
+    intrinsics = getattr(args, "intrinsics", None)
+    if fmt == "synthetic":
+        if args.dataset not in (None, "synthetic"):
+            raise InvalidInputError(
+                f"--dataset: not used with --format synthetic (the room is built in), got {args.dataset!r}"
+            )
+        if intrinsics is not None:
+            raise InvalidInputError("--intrinsics: the synthetic room has its own camera (525, 525, 319.5, 239.5)")
+        return datasets.synthetic_room(n_frames=getattr(args, "synthetic_frames", SYNTHETIC_FRAMES))
+    if args.dataset is None:
+        raise InvalidInputError(f"--dataset: required with --format {fmt} (a dataset folder)")
+    root = Path(args.dataset)
+    if not root.is_dir():
+        what = "is a file, expected a folder" if root.exists() else "does not exist"
+        raise InvalidInputError(f"--dataset: folder {str(root)!r} {what}")
+    try:
+        return _load_files(args, fmt, root, intrinsics if intrinsics is not None else camera)
+    except DatasetError as e:
+        raise InvalidInputError(option_message(str(e), "--dataset")) from None
+
+
+#: Loader argument names → the command-line options that set them.
+_OPTION_OF = {"path": None, "intrinsics": "--intrinsics", "trajectory": "--trajectory", "match": "--trajectory"}
+
+
+def option_message(message: str, option: str) -> str:
+    """A loader's message (``"path: …"``, ``"intrinsics: …"``) re-headed with the option
+    that set that argument (``option`` for the dataset path itself, and by default)."""
+    head, sep, rest = message.partition(": ")
+    if sep and head in _OPTION_OF:
+        return f"{_OPTION_OF[head] or option}: {rest}"
+    return f"{option}: {message}"
+
+
+def _load_files(args: argparse.Namespace, fmt: str, root: Path, given: Any) -> Any:
+    from .. import datasets
+
+    trajectory = getattr(args, "trajectory", None)
+    if trajectory is not None and fmt != "folder":
+        raise InvalidInputError(f"--trajectory: only used with --format folder (a {fmt} dataset has its own poses)")
+    if fmt == "7scenes":
+        return datasets.load_7scenes(root, intrinsics=given if given is not None else (525.0, 525.0, 320.0, 240.0))
+    if fmt == "tum":
+        return datasets.load_tum(root, intrinsics=given)
+    if given is None:
+        raise InvalidInputError("--intrinsics: a plain image folder has no calibration; pass --intrinsics fx,fy,cx,cy")
+    if trajectory is not None and not (root / trajectory).is_file():
+        raise InvalidInputError(f"--trajectory: file {str(root / trajectory)!r} does not exist")
+    return datasets.load_folder(root, trajectory=trajectory if trajectory is not None else "traj.txt", intrinsics=given)
+
+
+class Progress:
+    """A one-line progress bar on stderr (only when stderr is a terminal), redrawn at each
+    percent; ``then`` is a line printed when the bar is full (what comes next, unbarred)."""
+
+    WIDTH = 30
+
+    def __init__(self, label: str, enabled: bool | None = None, then: str | None = None) -> None:
+        self.label = label
+        self.then = then
+        self.enabled = sys.stderr.isatty() if enabled is None else enabled
+        self._start = time.perf_counter()
+
+    def __call__(self, done: int, total: int) -> None:
+        if not self.enabled or total <= 0 or (done != total and done % max(1, total // 100)):
+            return
+        filled = int(self.WIDTH * done / total)
+        elapsed = time.perf_counter() - self._start
+        sys.stderr.write(f"\r{self.label} [{'#' * filled}{'.' * (self.WIDTH - filled)}] {done}/{total} {elapsed:.0f}s")
+        if done == total:
+            sys.stderr.write("\n" if self.then is None else f"\n{self.label}: {self.then}\n")
+        sys.stderr.flush()
+
+
+def localize_sequence(
+    localizer: Any, sequence: Any, mode: str, progress: Callable[[int, int], None] | None = None
+) -> list[Any]:
+    """Localize every frame of ``sequence`` in order; ``single`` resets the motion history
+    before each frame. Each result's ``timings`` gets ``decode`` (reading the image as grey —
+    rendering it, for the synthetic room) and its ``total`` includes it."""
+    if mode not in MODES:
+        raise InvalidInputError(f"--mode: expected one of {', '.join(MODES)}, got {mode!r}")
+    localizer.reset()
+    results = []
+    n = len(sequence)
+    for i in range(n):
+        if mode == "single":
+            localizer.reset()
+        start = time.perf_counter()
+        gray = sequence.gray(i)
+        decode_ms = 1e3 * (time.perf_counter() - start)
+        r = localizer.localize(gray, float(sequence.timestamps[i]))
+        r.timings["total"] = r.timings.get("total", 0.0) - r.timings.get("decode", 0.0) + decode_ms
+        r.timings["decode"] = decode_ms
+        results.append(r)
+        if progress is not None:
+            progress(i + 1, n)
+    return results
+
+
+def stage_table(summaries: dict[str, dict[str, Any]]) -> str:
+    """Per-stage median milliseconds, one column per row of ``summaries``."""
+    names = list(summaries)
+    stages: list[str] = []
+    for s in summaries.values():
+        for key in s.get("timing_ms", {}):
+            stage = key.removeprefix("median_")
+            if stage not in stages:
+                stages.append(stage)
+    order = ["decode", "features", "retrieval", "keyframes", "map_points", "matching", "pnp", "motion_fusion"]
+    stages = [s for s in order if s in stages] + sorted(s for s in stages if s not in order and s != "total")
+    stages.append("total")
+    rows = [["stage (median ms)", *names]]
+    for stage in stages:
+        cells = []
+        for name in names:
+            v = summaries[name].get("timing_ms", {}).get(f"median_{stage}")
+            cells.append("—" if v is None else f"{v:.2f}")
+        rows.append([stage, *cells])
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    lines = ["  ".join(c.rjust(w) if i else c.ljust(w) for i, (c, w) in enumerate(zip(r, widths))) for r in rows]
+    lines.insert(1, "  ".join("-" * w for w in widths))
+    return "\n".join(lines)
+

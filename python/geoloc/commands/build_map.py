@@ -1,0 +1,38 @@
+"""``geoloc build-map``: a dataset with poses → one ``.geoloc`` map file."""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+from ..exceptions import InvalidInputError
+from ._common import MAP_DONE, Progress, load_dataset, select
+
+__all__ = ["run"]
+
+
+def run(args: argparse.Namespace) -> int:
+    """The ``build-map`` command."""
+    from ..mapping import Map
+
+    sequence = select(load_dataset(args), args.frames, "--frames")
+    if sequence.poses is None:
+        hint = " (give --trajectory FILE)" if args.format == "folder" else ""
+        raise InvalidInputError(f"--dataset: {sequence.name!r} has no poses; a map needs world_from_cam poses{hint}")
+    start = time.perf_counter()
+    the_map = Map.build(
+        sequence,
+        retrieval=args.retrieval,
+        features=args.features,
+        n_features=args.n_features,
+        keyframe_step=args.step,
+        progress=Progress("map", then=MAP_DONE),
+    )
+    built = time.perf_counter() - start
+    the_map.save(args.out)
+    cam = the_map.camera
+    print(
+        f"wrote {args.out}: {len(the_map)} keyframes of {sequence.name!r} ({args.features}, {args.n_features} features, "
+        f"{args.retrieval} retrieval; camera {cam.width}×{cam.height}, fx={cam.intrinsics[0]:g}) in {built:.1f} s"
+    )
+    return 0

@@ -1,0 +1,206 @@
+"""``geoloc evaluate``: build a map from a train range, localize a test range, report.
+
+The report is the paper's kind of table (median translation / rotation error, recall,
+sources, NEES calibration, time per frame), one row per mode; on 7-Scenes it shows the
+paper's own figures for the scene as a reference column. ``--json`` writes the result dict
+of DESIGN.md §7 (:func:`geoloc.evaluation.summarize`), ``--plots`` the four PNGs per mode.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from ..exceptions import InvalidInputError
+from ._common import MAP_DONE, MODES, FrameRange, Progress, load_dataset, localize_sequence, stage_table
+
+__all__ = ["PAPER_7SCENES", "evaluate_split", "report", "run"]
+
+#: The paper's Table III (7-Scenes), median (m, deg): "Our method (Single image)" and
+#: "(Multiple model)", by scene name as it appears in the dataset's path.
+PAPER_7SCENES: dict[str, dict[str, tuple[float, float]]] = {
+    "chess": {"single": (0.12, 4.06), "sequential": (0.13, 3.87)},
+    "fire": {"single": (0.08, 4.11), "sequential": (0.08, 4.04)},
+    "heads": {"single": (0.08, 4.42), "sequential": (0.05, 4.50)},
+    "office": {"single": (0.23, 9.64), "sequential": (0.14, 7.31)},
+    "pumpkin": {"single": (0.25, 8.79), "sequential": (0.16, 6.30)},
+    "redkitchen": {"single": (0.02, 1.10), "sequential": (0.02, 1.40)},
+    "stairs": {"single": (0.11, 5.22), "sequential": (0.08, 5.40)},
+}
+#: When both modes run, the top-level keys of the JSON are this mode's (the full system).
+PRIMARY_MODE = "sequential"
+
+
+def _modes(mode: str) -> tuple[str, ...]:
+    return MODES if mode == "both" else (mode,)
+
+
+def default_split(n: int, fmt: str) -> tuple[FrameRange, FrameRange]:
+    """Train/test when not given: the synthetic room's two laps (first half / second half);
+    otherwise the paper's protocol, the last 100 frames are the test set (the last half of a
+    sequence shorter than 200 frames) and everything before them the training set."""
+    if fmt == "synthetic":
+        cut = n // 2
+    else:
+        cut = n - min(100, n // 2)
+    return FrameRange(0, cut), FrameRange(cut, n)
+
+
+def _positions(r: slice) -> set[int]:
+    return set(range(r.start, r.stop, r.step))
+
+
+def evaluate_split(
+    sequence: Any,
+    train: FrameRange,
+    test: FrameRange,
+    modes: tuple[str, ...],
+    *,
+    features: str = "orb",
+    n_features: int = 1000,
+    retrieval: str = "bow",
+    options: tuple[str, str] = ("--train", "--test"),
+) -> dict[str, Any]:
+    """Build the map from ``sequence[train]``, localize ``sequence[test]`` in each mode.
+
+    Returns ``{"map": Map, "build_s": float, "test": Sequence, "summaries": {mode: dict}}``,
+    each summary :func:`geoloc.evaluation.summarize_results` plus per-frame ``frame`` (the
+    dataset's frame index) and ``reason``.
+    """
+    from ..evaluation import summarize_results
+    from ..mapping import Localizer, Map
+
+    train_slice = train.resolve(len(sequence), options[0], sequence.name)
+    test_slice = test.resolve(len(sequence), options[1], sequence.name)
+    if sequence.poses is None:
+        raise InvalidInputError(f"--dataset: {sequence.name!r} has no ground-truth poses (evaluate needs them)")
+    overlap = _positions(train_slice) & _positions(test_slice)
+    if overlap:
+        print(
+            f"geoloc: warning: {options[0]} {train} and {options[1]} {test} share {len(overlap)} frames "
+            "(those test frames are in the map)",
+            file=sys.stderr,
+        )
+    train_seq, test_seq = sequence[train_slice], sequence[test_slice]
+    start = time.perf_counter()
+    the_map = Map.build(train_seq, retrieval=retrieval, features=features, n_features=n_features, progress=Progress("map", then=MAP_DONE))
+    build_s = time.perf_counter() - start
+    summaries: dict[str, Any] = {}
+    for mode in modes:
+        results = localize_sequence(Localizer(the_map), test_seq, mode, Progress(f"{mode:>10}"))
+        summary = summarize_results(results, test_seq.poses, test_seq.timestamps)
+        for entry, r, frame in zip(summary["per_frame"], results, test_seq.indices):
+            entry["frame"] = int(frame)
+            entry["reason"] = r.reason
+        summary["mode"] = mode
+        summaries[mode] = summary
+    return {"map": the_map, "build_s": build_s, "test": test_seq, "summaries": summaries, "train_slice": train_slice, "test_slice": test_slice}
+
+
+def reference_for(dataset: str | None, fmt: str) -> tuple[str, dict[str, tuple[float, float]]] | None:
+    """The paper's 7-Scenes row for the scene named in the dataset's path, if any."""
+    if fmt != "7scenes" or dataset is None:
+        return None
+    text = str(Path(dataset).resolve()).lower().replace("-", "").replace("_", "")
+    for scene, row in PAPER_7SCENES.items():
+        if scene in text:
+            return scene, row
+    return None
+
+
+def report(
+    sequence: Any,
+    run: dict[str, Any],
+    *,
+    dataset: str | None,
+    fmt: str,
+    train: FrameRange,
+    test: FrameRange,
+    timings: bool,
+    out: Any = None,
+) -> dict[str, Any]:
+    """Print the table (and per-stage times) to ``out``; return the JSON-ready result."""
+    from ..evaluation import format_table
+
+    out = out or sys.stdout
+    summaries: dict[str, dict[str, Any]] = run["summaries"]
+    rows = {f"{sequence.name} ({mode})": s for mode, s in summaries.items()}
+    ref = reference_for(dataset, fmt)
+    reference = None
+    if ref is not None:
+        reference = {f"{sequence.name} ({mode})": ref[1][mode] for mode in summaries}
+    cam = sequence.camera
+    print(
+        f"{sequence.name}: map of {len(run['map'])} keyframes (frames {train}) built in {run['build_s']:.1f} s; "
+        f"{len(run['test'])} test frames ({test}); camera fx={cam.intrinsics[0]:g} fy={cam.intrinsics[1]:g} "
+        f"cx={cam.intrinsics[2]:g} cy={cam.intrinsics[3]:g}",
+        file=out,
+    )
+    print(format_table(rows, reference), file=out)
+    if ref is not None:
+        single, multi = ref[1]["single"], ref[1]["sequential"]
+        print(
+            f"Reference: the paper's 7-Scenes {ref[0]} row (Table III): single image {single[0]:.2f} m, {single[1]:.2f}°; "
+            f"multiple images {multi[0]:.2f} m, {multi[1]:.2f}°",
+            file=out,
+        )
+    if timings:
+        print(file=out)
+        print(stage_table(rows), file=out)
+    primary = summaries[PRIMARY_MODE] if PRIMARY_MODE in summaries else next(iter(summaries.values()))
+    result: dict[str, Any] = dict(primary)
+    result.update(
+        {
+            "dataset": sequence.name,
+            "format": fmt,
+            "camera": {"intrinsics": list(cam.intrinsics), "width": cam.width, "height": cam.height},
+            "train": str(train),
+            "test": str(test),
+            "map": {"keyframes": len(run["map"]), "build_s": run["build_s"]},
+            "modes": summaries,
+        }
+    )
+    if ref is not None:
+        result["reference"] = {"paper_7scenes_scene": ref[0], **{m: list(v) for m, v in ref[1].items()}}
+    return result
+
+
+def write_plots(directory: str, summaries: dict[str, dict[str, Any]]) -> list[Path]:
+    """The four PNGs of each mode into ``directory/<mode>/`` (``directory`` is created if its
+    parent exists)."""
+    from ..plots import write_all
+
+    root = Path(directory)
+    if not root.exists():
+        try:
+            root.mkdir()
+        except OSError as e:
+            raise InvalidInputError(f"--plots: cannot create {str(root)!r} ({e.strerror})") from None
+    written: list[Path] = []
+    for mode, summary in summaries.items():
+        written.extend(write_all(summary, root / mode).values())
+    return written
+
+
+def run(args: argparse.Namespace) -> int:
+    """The ``evaluate`` command."""
+    from .._io import write_json_atomic
+
+    sequence = load_dataset(args)
+    default_train, default_test = default_split(len(sequence), args.format)
+    train = args.train or default_train
+    test = args.test or default_test
+    result = evaluate_split(
+        sequence, train, test, _modes(args.mode), features=args.features, n_features=args.n_features, retrieval=args.retrieval
+    )
+    data = report(sequence, result, dataset=args.dataset, fmt=args.format, train=train, test=test, timings=args.timings)
+    if args.json:
+        write_json_atomic(args.json, data, "--json")
+        print(f"wrote {args.json}")
+    if args.plots:
+        write_plots(args.plots, result["summaries"])
+        print(f"wrote plots to {Path(args.plots) / ('{' + ','.join(result['summaries']) + '}')}/")
+    return 0

@@ -1,0 +1,95 @@
+"""``geoloc localize``: images (a folder or a dataset) + a map → a TUM trajectory.
+
+Frames the localizer loses are left out of the trajectory file (TUM has no "unknown pose")
+and counted in the one-line summary on stderr.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections import Counter
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..exceptions import DatasetError, InvalidInputError
+from ._common import Progress, load_dataset, localize_sequence, option_message, select
+
+__all__ = ["run"]
+
+
+def _load_map(path: str) -> Any:
+    from ..mapping import Map
+
+    try:
+        return Map.load(path)
+    except (ValueError, OSError) as e:  # the core names the problem (truncated, checksum, version)
+        message = " ".join(str(e).split())
+        raise InvalidInputError(f"--map: {message}") from None
+
+
+def _images(args: argparse.Namespace, camera: Any) -> Any:
+    from ..datasets import load_folder
+
+    root = Path(args.images)
+    if not root.is_dir():
+        what = "is a file, expected a folder" if root.exists() else "does not exist"
+        raise InvalidInputError(f"--images: folder {str(root)!r} {what}")
+    # The folder's own size first (from its first image), so a size mismatch is one clear error.
+    try:
+        sequence = load_folder(root, trajectory=None, intrinsics=camera.intrinsics)
+    except DatasetError as e:
+        raise InvalidInputError(option_message(str(e), "--images")) from None
+    size = (sequence.camera.width, sequence.camera.height)
+    if size != (camera.width, camera.height):
+        raise InvalidInputError(
+            f"--images: the images in {str(root)!r} are {size[0]}×{size[1]}, the map's camera is {camera.width}×{camera.height}"
+        )
+    return load_folder(root, trajectory=None, intrinsics=camera)  # the map's camera, distortion included
+
+
+def run(args: argparse.Namespace) -> int:
+    """The ``localize`` command."""
+    from ..evaluation import write_tum_trajectory
+    from ..mapping import Localizer
+
+    the_map = _load_map(args.map)
+    if the_map.settings["retrieval"] != "bow":
+        raise InvalidInputError(f"--map: {args.map!r} retrieves with a network; localize supports bag-of-words maps only for now")
+    camera = the_map.camera
+    if args.images is not None:
+        if args.format is not None or args.intrinsics is not None:
+            raise InvalidInputError("--images: a folder of images takes the map's camera (no --format / --intrinsics)")
+        sequence = _images(args, camera)
+    else:
+        if args.format is None:
+            raise InvalidInputError("--format: required with --dataset (7scenes, tum, folder or synthetic)")
+        sequence = load_dataset(args, camera=camera)
+        if (sequence.camera.width, sequence.camera.height) != (camera.width, camera.height):
+            raise InvalidInputError(
+                f"--dataset: its images are {sequence.camera.width}×{sequence.camera.height}, "
+                f"the map's camera is {camera.width}×{camera.height}"
+            )
+        if sequence.camera.intrinsics != camera.intrinsics:
+            raise InvalidInputError(
+                f"--intrinsics: {sequence.camera.intrinsics} differ from the map's {camera.intrinsics} "
+                "(queries must use the map's camera)"
+            )
+    sequence = select(sequence, args.frames, "--frames")
+    results = localize_sequence(Localizer(the_map), sequence, args.mode, Progress("localize"))
+    kept = [k for k, r in enumerate(results) if r.pose is not None]
+    if not kept:
+        raise InvalidInputError(f"--out: every one of the {len(results)} frames was lost; nothing written to {args.out!r}")
+    write_tum_trajectory(args.out, sequence.timestamps[kept], np.stack([results[k].pose for k in kept]))
+    sources = Counter(r.source for r in results)
+    lost = len(results) - len(kept)
+    counts = ", ".join(f"{k} {v}" for k, v in sorted(sources.items()))
+    total_ms = float(np.median([r.timings["total"] for r in results]))
+    print(
+        f"geoloc localize: {len(kept)}/{len(results)} frames localized, {lost} lost ({counts}; "
+        f"{args.mode} mode, median {total_ms:.1f} ms/frame) -> {args.out}",
+        file=sys.stderr,
+    )
+    return 0

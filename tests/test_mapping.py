@@ -1,0 +1,187 @@
+"""geoloc.mapping: Map.build / save / load and the image-level Localizer, on a small room."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import geoloc
+from geoloc import datasets, evaluation
+from geoloc.mapping import Localizer, Map
+
+#: Two laps of 40 frames (9° apart): lap 1 is the map, lap 2 the queries.
+ROOM_FRAMES = 40
+MAP_FRAMES = slice(0, ROOM_FRAMES // 2)
+QUERIES = (21, 27, 33)
+#: Lap-2 frames localize against a lap-1 map to a few mm (DESIGN §6: ≤ 1 cm / 0.3° median).
+MEDIAN_M = 0.01
+MEDIAN_DEG = 0.3
+
+
+@pytest.fixture(scope="module")
+def room() -> datasets.Sequence:
+    return datasets.synthetic_room(n_frames=ROOM_FRAMES)
+
+
+@pytest.fixture(scope="module")
+def room_map(room: datasets.Sequence) -> Map:
+    return Map.build(room[MAP_FRAMES])
+
+
+def _localize_queries(m: Map, room: datasets.Sequence) -> list[object]:
+    loc = Localizer(m)
+    out = []
+    for i in QUERIES:
+        loc.reset()
+        out.append(loc.localize(room.gray(i), float(room.timestamps[i])))
+    return out
+
+
+# ---------------------------------------------------------------------------- build
+
+
+def test_build_records_what_it_was_built_from(room_map: Map) -> None:
+    assert len(room_map) == ROOM_FRAMES // 2
+    s = room_map.settings
+    assert s["features"] == {"kind": "orb", "n_features": 1000, "root_sift": False}
+    assert s["retrieval"] == "bow"
+    assert s["source"]["frames"] == list(range(ROOM_FRAMES // 2))
+    assert room_map.camera.intrinsics == datasets.synthetic.SYNTHETIC_CAMERA.intrinsics
+    assert "20 keyframes" in repr(room_map)
+
+
+def test_build_reports_progress_and_keyframe_step(room: datasets.Sequence) -> None:
+    calls: list[tuple[int, int]] = []
+    m = Map.build(room[0:10], keyframe_step=3, progress=lambda done, total: calls.append((done, total)))
+    assert len(m) == 4 and calls == [(1, 4), (2, 4), (3, 4), (4, 4)]
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "name"),
+    [({"retrieval": "vlad"}, "retrieval"), ({"retrieval": 3}, "retrieval"), ({"features": "akaze"}, "kind|features"),
+     ({"keyframe_step": 0}, "keyframe_step"), ({"n_features": 0}, "n_features")],
+)
+def test_build_refuses_bad_options(room: datasets.Sequence, kwargs: dict[str, object], name: str) -> None:
+    with pytest.raises(geoloc.InvalidInputError, match=name):
+        Map.build(room[0:4], **kwargs)  # type: ignore[arg-type]
+
+
+def test_build_needs_a_sequence_with_poses(room: datasets.Sequence) -> None:
+    with pytest.raises(geoloc.InvalidInputError, match="sequence"):
+        Map.build([room[0]])  # type: ignore[arg-type]
+    blind = datasets.Sequence("blind", room.camera, room.timestamps[:3], None, lambda i, gray: room.gray(i) if gray else room[i].image)
+    with pytest.raises(geoloc.InvalidInputError, match="no poses"):
+        Map.build(blind)
+
+
+# ---------------------------------------------------------------------------- localize
+
+
+def test_held_out_frames_localize_to_a_centimetre(room_map: Map, room: datasets.Sequence) -> None:
+    results = _localize_queries(room_map, room)
+    assert all(r.source == "geometric" and r.pose is not None for r in results)  # type: ignore[attr-defined]
+    trans, rot = evaluation.pose_errors(np.stack([r.pose for r in results]), room.poses[list(QUERIES)])  # type: ignore[attr-defined, index]
+    assert np.median(trans) <= MEDIAN_M and np.median(rot) <= MEDIAN_DEG
+    r = results[0]
+    assert r.covariance.shape == (6, 6)  # type: ignore[attr-defined]
+    assert {"decode", "features", "retrieval", "pnp", "total"} <= set(r.timings)  # type: ignore[attr-defined]
+
+
+def test_grey_bgr_and_path_inputs_agree_bit_for_bit(room_map: Map, room: datasets.Sequence, tmp_path: Path) -> None:
+    """BGR is converted as cv2.cvtColor does; a path is decoded as grey by cv2.imread, whose
+    luma rounding differs (by one level) from cvtColor's, so each pair is compared with its own."""
+    import cv2
+
+    i = QUERIES[0]
+    bgr = room[i].image
+    path = tmp_path / "q.png"
+    cv2.imwrite(str(path), bgr)
+
+    def pose(image: object) -> bytes:
+        return Localizer(room_map).localize(image, float(room.timestamps[i])).pose.tobytes()  # type: ignore[union-attr]
+
+    assert pose(bgr) == pose(cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY))
+    assert pose(str(path)) == pose(cv2.imread(str(path), cv2.IMREAD_GRAYSCALE))
+
+
+def test_reset_forgets_the_history(room_map: Map, room: datasets.Sequence) -> None:
+    loc = Localizer(room_map)
+    for i in (21, 22, 23):
+        last = loc.localize(room.gray(i), float(room.timestamps[i]))
+    assert last.source != "geometric" or "no motion history" not in last.reason
+    loc.reset()
+    again = loc.localize(room.gray(24), float(room.timestamps[24]))
+    assert again.source == "geometric" and "no motion history" in again.reason
+
+
+def test_localizer_refuses_bad_inputs(room_map: Map, tmp_path: Path) -> None:
+    with pytest.raises(geoloc.InvalidInputError, match="map"):
+        Localizer("scene.geoloc")  # type: ignore[arg-type]
+    with pytest.raises(geoloc.InvalidInputError, match="camera"):
+        Localizer(room_map, geoloc.Camera(500.0, 500.0, 320.0, 240.0, 640, 480))
+    loc = Localizer(room_map)
+    with pytest.raises(geoloc.InvalidInputError, match="image.*320×240"):
+        loc.localize(np.zeros((240, 320), np.uint8), 0.0)
+    with pytest.raises(geoloc.InvalidInputError, match="image"):
+        loc.localize(str(tmp_path / "missing.png"), 0.0)
+    with pytest.raises(geoloc.InvalidInputError, match="dtype"):
+        loc.localize(np.zeros((480, 640), np.float32), 0.0)
+
+
+# ---------------------------------------------------------------------------- files
+
+
+def test_a_saved_map_gives_bit_identical_results_in_a_new_process(room_map: Map, room: datasets.Sequence, tmp_path: Path) -> None:
+    path = tmp_path / "room.geoloc"
+    room_map.save(path)
+    expected = [r.pose.tobytes().hex() for r in _localize_queries(room_map, room)]  # type: ignore[attr-defined]
+    script = (
+        "import sys; from geoloc import datasets; from geoloc.mapping import Map, Localizer\n"
+        f"room = datasets.synthetic_room(n_frames={ROOM_FRAMES}); m = Map.load(sys.argv[1]); loc = Localizer(m)\n"
+        f"for i in {QUERIES!r}:\n"
+        "    loc.reset(); print(loc.localize(room.gray(i), float(room.timestamps[i])).pose.tobytes().hex())\n"
+    )
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(Path(geoloc.__file__).parents[1]), os.environ.get("PYTHONPATH", "")]))
+    out = subprocess.run([sys.executable, "-c", script, str(path)], capture_output=True, text=True, env=env, check=True)
+    assert out.stdout.split() == expected
+    loaded = Map.load(path)
+    assert loaded.settings == room_map.settings and len(loaded) == len(room_map)
+    assert loaded.camera.intrinsics == room_map.camera.intrinsics
+
+
+def test_damaged_map_files_are_refused(room_map: Map, tmp_path: Path) -> None:
+    path = tmp_path / "room.geoloc"
+    room_map.save(path)
+    data = path.read_bytes()
+    bad = tmp_path / "bad.geoloc"
+    cuts = sorted({0, 1, 7, 8, 9, 64, len(data) // 2, len(data) - 1})
+    for cut in cuts:
+        bad.write_bytes(data[:cut])
+        with pytest.raises(geoloc.GeolocError):
+            Map.load(bad)
+    header_len = int.from_bytes(data[:8], "little") if len(data) > 8 else 0
+    for offset in sorted({8, 8 + header_len // 2, 8 + max(header_len - 1, 0)}):
+        flipped = bytearray(data)
+        flipped[offset] ^= 0x01
+        bad.write_bytes(bytes(flipped))
+        with pytest.raises(geoloc.GeolocError):
+            Map.load(bad)
+    with pytest.raises(geoloc.GeolocError):
+        Map.load(tmp_path / "missing.geoloc")
+
+
+def test_save_refuses_a_missing_folder_and_keeps_the_old_file(room_map: Map, tmp_path: Path) -> None:
+    with pytest.raises(geoloc.InvalidInputError, match="does not exist"):
+        room_map.save(tmp_path / "no" / "room.geoloc")
+    assert not (tmp_path / "no").exists()
+    path = tmp_path / "room.geoloc"
+    room_map.save(path)
+    before = path.read_bytes()
+    room_map.save(path)
+    assert path.read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["room.geoloc"]  # no temp files left
