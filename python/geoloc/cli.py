@@ -130,14 +130,16 @@ def new_folder(text: str) -> str:
 
 
 def retrieval(text: str) -> str:
-    """An argparse ``type`` for ``--retrieval``: ``bow`` (a network: not in this build yet)."""
+    """An argparse ``type`` for ``--retrieval``: ``bow`` or an existing ``MODEL.onnx`` file
+    (a descriptor network exported by ``geoloc train``)."""
     if text == "bow":
         return text
     if text.endswith(".onnx"):
-        raise argparse.ArgumentTypeError(
-            f"network retrieval ({text!r}) needs geoloc.descriptor, which this build does not have yet; use bow"
-        )
-    raise argparse.ArgumentTypeError(f"expected bow, got {text!r}")
+        path = Path(text)
+        if not path.is_file():
+            raise argparse.ArgumentTypeError(f"model file {text!r} does not exist")
+        return text
+    raise argparse.ArgumentTypeError(f"expected bow or a MODEL.onnx file, got {text!r}")
 
 
 def _dataset_options(
@@ -178,8 +180,9 @@ def _feature_options(parser: argparse.ArgumentParser) -> None:
         help="features per image (default: 1000)",
     )
     parser.add_argument(
-        "--retrieval", type=retrieval, default="bow", metavar="bow",
-        help="image retrieval: bow, a bag of words trained on the map's features (default: bow)",
+        "--retrieval", type=retrieval, default="bow", metavar="bow|MODEL.onnx",
+        help="image retrieval: bow, a bag of words trained on the map's features, or a descriptor "
+        "network exported by 'geoloc train' (default: bow)",
     )
 
 
@@ -262,6 +265,10 @@ def _add_localize(commands: argparse._SubParsersAction[argparse.ArgumentParser])
     loc.add_argument(
         "--mode", choices=("single", "sequential"), default="sequential",
         help="single: every frame on its own; sequential: motion model + fusion (default: sequential)",
+    )
+    loc.add_argument(
+        "--retrieval", type=retrieval, default=None, metavar="MODEL.onnx",
+        help="the descriptor network the map was built with (maps that retrieve by a network only)",
     )
     loc.add_argument("--out", type=output_file, required=True, metavar="poses.txt", help="TUM trajectory to write (its folder must exist)")
 
@@ -366,6 +373,12 @@ def _add_montecarlo(commands: argparse._SubParsersAction[argparse.ArgumentParser
     return run
 
 
+def _add_train(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> Handler:
+    from .training.command import add_train_command
+
+    return add_train_command(commands)
+
+
 #: The commands, in the order ``--help`` lists them.
 COMMANDS: tuple[Callable[[argparse._SubParsersAction[argparse.ArgumentParser]], Handler], ...] = (
     _add_demo,
@@ -374,6 +387,7 @@ COMMANDS: tuple[Callable[[argparse._SubParsersAction[argparse.ArgumentParser]], 
     _add_evaluate,
     _add_selfcheck,
     _add_montecarlo,
+    _add_train,
 )
 
 

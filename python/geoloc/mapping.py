@@ -224,8 +224,15 @@ class Localizer:
                 f"camera: intrinsics {camera.intrinsics} differ from the map's {map.camera.intrinsics}; "
                 "queries must be described with the map's camera"
             )
-        if map.settings["retrieval"] != "bow" and global_descriptor is None:
+        recorded = map.settings["retrieval"]
+        if recorded != "bow" and global_descriptor is None:
             raise InvalidInputError("global_descriptor: this map retrieves by a network; pass the same network here")
+        if recorded != "bow" and isinstance(recorded, dict) and "sha256" in recorded:
+            if getattr(global_descriptor, "sha256", None) != recorded["sha256"]:
+                raise InvalidInputError(
+                    f"global_descriptor: the map was built with network {recorded.get('name', '?')!r} "
+                    f"(sha256 {str(recorded['sha256'])[:12]}…); this is another model"
+                )
         self.map = map
         self.camera = camera or map.camera
         self._global = global_descriptor

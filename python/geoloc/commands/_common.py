@@ -223,3 +223,15 @@ def stage_table(summaries: dict[str, dict[str, Any]]) -> str:
     lines.insert(1, "  ".join("-" * w for w in widths))
     return "\n".join(lines)
 
+
+
+def open_retrieval(text: str) -> Any:
+    """``--retrieval``: ``"bow"``, or the :class:`geoloc.descriptor.OnnxDescriptor` of MODEL.onnx."""
+    if text == "bow":
+        return text
+    from ..descriptor import OnnxDescriptor
+
+    try:
+        return OnnxDescriptor(text)
+    except InvalidInputError as e:
+        raise InvalidInputError(option_message(str(e), "--retrieval")) from None

@@ -6,7 +6,7 @@ import argparse
 import time
 
 from ..exceptions import InvalidInputError
-from ._common import MAP_DONE, Progress, load_dataset, select
+from ._common import MAP_DONE, Progress, load_dataset, open_retrieval, select
 
 __all__ = ["run"]
 
@@ -22,7 +22,7 @@ def run(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     the_map = Map.build(
         sequence,
-        retrieval=args.retrieval,
+        retrieval=open_retrieval(args.retrieval),
         features=args.features,
         n_features=args.n_features,
         keyframe_step=args.step,

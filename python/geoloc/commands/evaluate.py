@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from ..exceptions import InvalidInputError
-from ._common import MAP_DONE, MODES, FrameRange, Progress, load_dataset, localize_sequence, stage_table
+from ._common import FrameRange, MAP_DONE, MODES, Progress, load_dataset, localize_sequence, open_retrieval, stage_table
 
 __all__ = ["PAPER_7SCENES", "evaluate_split", "report", "run"]
 
@@ -86,11 +86,13 @@ def evaluate_split(
         )
     train_seq, test_seq = sequence[train_slice], sequence[test_slice]
     start = time.perf_counter()
-    the_map = Map.build(train_seq, retrieval=retrieval, features=features, n_features=n_features, progress=Progress("map", then=MAP_DONE))
+    network = open_retrieval(retrieval)
+    the_map = Map.build(train_seq, retrieval=network, features=features, n_features=n_features, progress=Progress("map", then=MAP_DONE))
     build_s = time.perf_counter() - start
     summaries: dict[str, Any] = {}
     for mode in modes:
-        results = localize_sequence(Localizer(the_map), test_seq, mode, Progress(f"{mode:>10}"))
+        localizer = Localizer(the_map, global_descriptor=None if network == "bow" else network)
+        results = localize_sequence(localizer, test_seq, mode, Progress(f"{mode:>10}"))
         summary = summarize_results(results, test_seq.poses, test_seq.timestamps)
         for entry, r, frame in zip(summary["per_frame"], results, test_seq.indices):
             entry["frame"] = int(frame)

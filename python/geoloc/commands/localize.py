@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from ..exceptions import DatasetError, InvalidInputError
-from ._common import Progress, load_dataset, localize_sequence, option_message, select
+from ._common import Progress, load_dataset, localize_sequence, open_retrieval, option_message, select
 
 __all__ = ["run"]
 
@@ -56,8 +56,11 @@ def run(args: argparse.Namespace) -> int:
     from ..mapping import Localizer
 
     the_map = _load_map(args.map)
+    network = None
     if the_map.settings["retrieval"] != "bow":
-        raise InvalidInputError(f"--map: {args.map!r} retrieves with a network; localize supports bag-of-words maps only for now")
+        if args.retrieval in (None, "bow"):
+            raise InvalidInputError(f"--retrieval: {args.map!r} retrieves with a network; give its MODEL.onnx")
+        network = open_retrieval(args.retrieval)
     camera = the_map.camera
     if args.images is not None:
         if args.format is not None or args.intrinsics is not None:
@@ -78,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
                 "(queries must use the map's camera)"
             )
     sequence = select(sequence, args.frames, "--frames")
-    results = localize_sequence(Localizer(the_map), sequence, args.mode, Progress("localize"))
+    results = localize_sequence(Localizer(the_map, global_descriptor=network), sequence, args.mode, Progress("localize"))
     kept = [k for k, r in enumerate(results) if r.pose is not None]
     if not kept:
         raise InvalidInputError(f"--out: every one of the {len(results)} frames was lost; nothing written to {args.out!r}")
