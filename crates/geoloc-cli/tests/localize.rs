@@ -313,3 +313,69 @@ fn mutated_streams_never_panic_or_hang() {
     }
     eprintln!("{FUZZ_CASES} mutated streams: {ok} read to a clean end, {refused} refused; no panic, no hang");
 }
+
+/// Flips 1–3 bytes inside one record's payload and re-seals its checksum, so the mutation
+/// gets past the checksum to the reader's structural checks and the localizer's.
+fn resealed(bytes: &[u8], rng: &mut SplitMix64) -> Vec<u8> {
+    let mut bad = bytes.to_vec();
+    let mut starts = Vec::new();
+    let mut at = 16;
+    while at < bad.len() {
+        starts.push(at);
+        at += 4 + u32::from_le_bytes(bad[at..at + 4].try_into().expect("4 bytes")) as usize;
+    }
+    let start = starts[(rng.next_u64() % starts.len() as u64) as usize];
+    let len = u32::from_le_bytes(bad[start..start + 4].try_into().expect("4 bytes")) as usize;
+    let body = start + 4..start + 4 + len - 8;
+    for _ in 0..1 + rng.next_u64() % 3 {
+        let i = body.start + (rng.next_u64() % (len as u64 - 8)) as usize;
+        bad[i] = (rng.next_u64() & 0xff) as u8;
+    }
+    let mut h = geoloc_core::checksum::Fnv1a::new();
+    h.update(&bad[body.clone()]);
+    bad[body.end..body.end + 8].copy_from_slice(&h.finish().to_le_bytes());
+    bad
+}
+
+/// In-process cases of re-sealed mutations (the binary's read → check → localize loop).
+const RESEALED_CASES: usize = 1000;
+/// Of which every this-many-th also runs through the real binary.
+const RESEALED_BINARY_EVERY: usize = 50;
+
+#[test]
+fn resealed_mutations_reach_the_localizer_and_never_panic_or_hang() {
+    let d = dir("reseal");
+    let (map_path, records) = scene(&d, 2);
+    let map_s = map_path.to_str().expect("utf-8");
+    let (map, _) = Map::load(&map_path).expect("loads");
+    let map = Arc::new(map);
+    let bytes = stream(&records);
+    let mut rng = SplitMix64::new(77);
+    let (mut read_ok, mut localized) = (0, 0);
+    // one localizer, its history reset per case: the triangulated groups stay cached
+    let mut loc = Localizer::new(Arc::clone(&map), LocalizerOptions::default()).expect("options");
+    for case in 0..RESEALED_CASES {
+        let bad = resealed(&bytes, &mut rng);
+        loc.reset();
+        let reader = geoloc_core::frames::FrameReader::new(bad.as_slice()).expect("header intact");
+        for record in reader {
+            let Ok(r) = record else { break };
+            read_ok += 1;
+            let frame = Frame {
+                timestamp: r.timestamp,
+                keypoints: &r.keypoints,
+                descriptors: r.descriptors.view(),
+                global: None,
+            };
+            if loc.localize(&frame).is_ok() {
+                localized += 1;
+            }
+        }
+        if case % RESEALED_BINARY_EVERY == 0 {
+            let (out, hung) = run(&["localize", "--map", map_s, "--input", "-"], &bad);
+            assert!(!hung, "case {case} hung");
+            assert!(out.status.code().is_some_and(|c| c != PANIC_STATUS), "case {case}: {:?}", out.status);
+        }
+    }
+    eprintln!("{RESEALED_CASES} re-sealed mutations: {read_ok} records read, {localized} localized; no panic, no hang");
+}
