@@ -11,6 +11,7 @@ from ._core import __version__
 from .camera import Camera
 from .descriptor import OnnxDescriptor
 from .evaluation import format_tum_line
+from .export import export_frames
 from .exceptions import DatasetError, FileAccessError, FileFormatError, GeolocError, InvalidInputError, NotARotationError
 from .fusion import FusionResult, fuse
 from .mapping import Localizer, Map
@@ -33,6 +34,7 @@ __all__ = [
     "datasets",
     "descriptor",
     "evaluation",
+    "export_frames",
     "features",
     "format_tum_line",
     "fuse",

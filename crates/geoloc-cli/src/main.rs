@@ -1,14 +1,23 @@
 //! `geoloc-rs`: geoloc for robots, without Python.
 //!
-//! Reads a map and per-frame features and writes poses (TUM format) — those commands arrive
-//! with the localizer. For now it can verify the Lie-group core on the target machine.
+//! `geoloc-rs info MAP` says what a `.geoloc` map holds; `geoloc-rs localize --map MAP --input
+//! FRAMES` reads per-frame features (the stream of [`geoloc_core::frames`], written by
+//! `geoloc.export_frames`) and writes one pose line per frame, flushed as it goes; `geoloc-rs
+//! selfcheck` verifies the Lie-group core on the target machine.
+//!
+//! Errors go to stderr as one line `geoloc-rs: error: …` (naming the frame index for bad
+//! frames) with exit status 1; usage errors exit with 2 (clap).
 
+mod info;
+mod localize;
+mod output;
+mod selfcheck;
+mod stats;
+
+use std::path::PathBuf;
 use std::process::ExitCode;
 
-use clap::{Parser, Subcommand};
-use geoloc_core::lie::{SE3, se3};
-use geoloc_core::testing::{ANGLE_REGIMES_RAD, SplitMix64};
-use nalgebra::Matrix6;
+use clap::{Parser, Subcommand, ValueEnum};
 
 /// Camera localization (6-DoF pose + calibrated covariance) on a robot, without Python.
 #[derive(Parser, Debug)]
@@ -18,8 +27,26 @@ struct Cli {
     command: Command,
 }
 
+/// The encoding of the frame stream.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum InputFormat {
+    /// Decide from the first byte (`{` is JSON lines, anything else binary).
+    Auto,
+    /// The versioned, length-prefixed, checksummed binary stream.
+    Binary,
+    /// JSON lines (for debugging).
+    Jsonl,
+}
+
 #[derive(Subcommand, Debug)]
 enum Command {
+    /// Say what a map holds (format, camera, keyframes, features, retrieval, file size).
+    Info {
+        /// The `.geoloc` map file.
+        map: PathBuf,
+    },
+    /// Localize a stream of per-frame features; one line per frame (TUM columns, source, covariance).
+    Localize(localize::Args),
     /// Check SE(3) exp/log round trips and Jacobian inverses on this machine.
     Selfcheck {
         /// Random twists per angle regime.
@@ -28,38 +55,17 @@ enum Command {
     },
 }
 
-/// Largest accepted round-trip error, relative to max(1, |ξ|).
-const ROUND_TRIP_TOL: f64 = 1e-9;
-/// Largest accepted entry of 𝒥_r 𝒥_r⁻¹ − I, relative to (1 + |ξ|)².
-const JACOBIAN_TOL: f64 = 1e-10;
-
-fn selfcheck(samples: u32) -> ExitCode {
-    let mut rng = SplitMix64::new(0);
-    let (mut worst_log, mut worst_jac) = (0.0_f64, 0.0_f64);
-    for &angle in &ANGLE_REGIMES_RAD {
-        for _ in 0..samples {
-            let xi = rng.twist(angle, 30.0);
-            let scale = 1.0 + xi.norm();
-            worst_log = worst_log.max((SE3::exp(&xi).log() - xi).norm() / scale);
-            let product = se3::right_jacobian(&xi) * se3::right_jacobian_inverse(&xi);
-            worst_jac = worst_jac.max((product - Matrix6::identity()).abs().max() / (scale * scale));
-        }
-    }
-    let n = samples as usize * ANGLE_REGIMES_RAD.len();
-    println!("geoloc-rs {} self-check on {n} twists", env!("CARGO_PKG_VERSION"));
-    println!("  log(exp ξ) = ξ      max rel. error {worst_log:.2e} (tolerance {ROUND_TRIP_TOL:.0e})");
-    println!("  𝒥_r(ξ) 𝒥_r⁻¹(ξ) = I  max rel. error {worst_jac:.2e} (tolerance {JACOBIAN_TOL:.0e})");
-    if worst_log <= ROUND_TRIP_TOL && worst_jac <= JACOBIAN_TOL {
-        println!("all checks passed");
-        ExitCode::SUCCESS
-    } else {
-        println!("FAILED");
-        ExitCode::FAILURE
-    }
-}
-
 fn main() -> ExitCode {
-    match Cli::parse().command {
-        Command::Selfcheck { samples } => selfcheck(samples),
+    let result = match Cli::parse().command {
+        Command::Info { map } => info::run(&map),
+        Command::Localize(args) => localize::run(&args),
+        Command::Selfcheck { samples } => return selfcheck::run(samples),
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(message) => {
+            eprintln!("geoloc-rs: error: {message}");
+            ExitCode::FAILURE
+        }
     }
 }

@@ -6,6 +6,7 @@
 mod bow;
 mod convert;
 mod errors;
+mod frames;
 mod geometry;
 mod lie;
 mod localizer;
@@ -27,5 +28,6 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     matching::register(m)?;
     bow::register(m)?;
     localizer::register(m)?;
+    frames::register(m)?;
     Ok(())
 }

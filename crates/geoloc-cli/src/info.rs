@@ -1,0 +1,103 @@
+//! `geoloc-rs info MAP`: what a map holds, after checking all of it (`Map::load` refuses a
+//! corrupt, truncated or other-version file with the reason).
+
+use std::fmt::Write as _;
+use std::path::Path;
+
+use geoloc_core::map::file::{FORMAT_NAME, FORMAT_VERSION};
+use geoloc_core::map::{Map, MapHeader, RetrievalHeader};
+use serde_json::Value;
+
+/// Prints the summary of the map at `path` on stdout.
+pub fn run(path: &Path) -> Result<(), String> {
+    let bytes = std::fs::metadata(path).map_err(|e| format!("{}: {e}", path.display()))?.len();
+    let (map, header) = Map::load(path).map_err(|e| e.to_string())?;
+    print!("{}", summary(path, bytes, &map, &header));
+    Ok(())
+}
+
+fn summary(path: &Path, bytes: u64, map: &Map, h: &MapHeader) -> String {
+    let f = &h.frontend;
+    let mut s = String::new();
+    let _ = writeln!(s, "map               {}", path.display());
+    let _ = writeln!(s, "file size         {bytes} bytes ({:.2} MiB)", bytes as f64 / (1024.0 * 1024.0));
+    let _ = writeln!(s, "format            {FORMAT_NAME} version {FORMAT_VERSION}");
+    let c = h.camera;
+    let _ = writeln!(s, "camera            fx {} fy {} cx {} cy {}{}", c.fx, c.fy, c.cx, c.cy, image_size(f));
+    let per = h.keypoints as f64 / h.keyframes.max(1) as f64;
+    let _ = writeln!(s, "keyframes         {}", h.keyframes);
+    let _ = writeln!(s, "keypoints         {} ({per:.1} per keyframe)", h.keypoints);
+    let metric = if h.descriptor_kind == "binary" { "bytes, Hamming" } else { "floats, L2" };
+    let _ = writeln!(s, "descriptors       {} ({} {metric})", h.descriptor_kind, h.descriptor_width);
+    let _ = writeln!(s, "features          {}", features(f));
+    let _ = writeln!(s, "retrieval         {}", retrieval(h));
+    let _ = writeln!(s, "pose covariances  {}", pose_covariances(map));
+    if let Some(src) = f.get("source") {
+        let frames = src.get("frames").and_then(Value::as_array).map_or(0, Vec::len);
+        let name = src.get("sequence").and_then(Value::as_str).unwrap_or("?");
+        let _ = writeln!(s, "built from        {name:?} ({frames} frames)");
+    }
+    let _ = writeln!(s, "frontend          {}", compact_frontend(f));
+    s
+}
+
+fn image_size(f: &Value) -> String {
+    let cam = f.get("camera");
+    let dim = |k: &str| cam.and_then(|c| c.get(k)).and_then(Value::as_u64);
+    let dist = cam.and_then(|c| c.get("dist")).and_then(Value::as_array).filter(|d| !d.is_empty());
+    match (dim("width"), dim("height")) {
+        (Some(w), Some(h)) => {
+            let d = dist.map_or("none".to_string(), |d| format!("{} coefficients", d.len()));
+            format!(", {w}×{h} px, distortion {d} (keypoints are stored undistorted)")
+        }
+        _ => String::new(),
+    }
+}
+
+fn features(f: &Value) -> String {
+    match f.get("features") {
+        Some(feat) => {
+            let kind = feat.get("kind").and_then(Value::as_str).unwrap_or("?");
+            let n = feat.get("n_features").map_or("?".to_string(), Value::to_string);
+            let root = feat.get("root_sift").and_then(Value::as_bool).unwrap_or(false);
+            format!("{kind}, {n} per image{}", if root { ", RootSIFT" } else { "" })
+        }
+        None => "not recorded (the map was not built by geoloc.Map.build)".to_string(),
+    }
+}
+
+fn retrieval(h: &MapHeader) -> String {
+    match &h.retrieval {
+        RetrievalHeader::Bow { words } => format!("bag of words, {words} words (no network needed)"),
+        RetrievalHeader::Global { dim } => {
+            let net = h.frontend.get("retrieval");
+            let name = net.and_then(|n| n.get("name")).and_then(Value::as_str).unwrap_or("?");
+            let sha = net.and_then(|n| n.get("sha256")).and_then(Value::as_str).map_or("?", |s| &s[..s.len().min(12)]);
+            format!("global descriptor, {dim} values (network {name:?}, sha256 {sha}…): frames must carry one")
+        }
+    }
+}
+
+/// "no", or "yes" with the median position σ (m) and rotation σ (°) of the keyframes: the
+/// root-mean diagonal of each 3×3 block (rotation σ is small, so its angle is σ itself).
+fn pose_covariances(map: &Map) -> String {
+    let Some(covs) = &map.pose_covariances else { return "no".to_string() };
+    let median = |mut v: Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
+    };
+    let sigma_p = median(covs.iter().map(|c| ((c[(0, 0)] + c[(1, 1)] + c[(2, 2)]) / 3.0).sqrt()).collect());
+    let sigma_r = median(covs.iter().map(|c| ((c[(3, 3)] + c[(4, 4)] + c[(5, 5)]) / 3.0).sqrt()).collect());
+    format!("yes (median σ position {:.4} m, rotation {:.3}°)", sigma_p, sigma_r.to_degrees())
+}
+
+/// The frontend JSON, with the list of source frames replaced by its length.
+fn compact_frontend(f: &Value) -> String {
+    let mut f = f.clone();
+    if let Some(frames) = f.pointer_mut("/source/frames")
+        && let Some(n) = frames.as_array().map(Vec::len)
+    {
+        *frames = Value::String(format!("<{n} frame indices>"));
+    }
+    f.to_string()
+}

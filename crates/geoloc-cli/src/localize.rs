@@ -1,0 +1,187 @@
+//! `geoloc-rs localize`: frame records in, one pose line per frame out, flushed as it goes.
+//!
+//! The localizer is built exactly as `geoloc.Localizer` builds it through the bindings
+//! (same options, same defaults), so the same map and the same features give the same bits.
+//! Records are read one at a time (a stdin stream works: each line is written as soon as
+//! its frame arrives). A frame the localizer cannot place is a `lost` line; a frame that is
+//! *invalid* — truncated or corrupt record, non-finite values, descriptors of another kind
+//! or width than the map's, a missing global descriptor, a timestamp not after the previous
+//! frame's — stops the run with an error naming the frame index; what was written before
+//! stays in the output, flushed.
+
+use std::fs::File;
+use std::io::{BufRead, BufReader, BufWriter, Write};
+use std::num::NonZero;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Instant;
+
+use geoloc_core::GeolocError;
+use geoloc_core::frames::{FrameReader, FrameRecord, read_json_records};
+use geoloc_core::localizer::{Frame, Localizer, LocalizerOptions};
+use geoloc_core::map::{Map, MapHeader, RetrievalHeader};
+use geoloc_core::matching::DescriptorSet;
+use geoloc_core::parallel::{Parallelism, with_parallelism};
+
+use crate::InputFormat;
+use crate::output;
+use crate::stats::Stats;
+
+/// Options of `geoloc-rs localize` (the localizer's defaults are `geoloc.Localizer`'s).
+#[derive(clap::Args, Debug)]
+pub struct Args {
+    /// The `.geoloc` map (written by `geoloc.Map.save` / `geoloc build-map`).
+    #[arg(long)]
+    map: PathBuf,
+    /// The frame stream (from `geoloc.export_frames`), or `-` for stdin.
+    #[arg(long)]
+    input: String,
+    /// Encoding of the frame stream.
+    #[arg(long, value_enum, default_value_t = InputFormat::Auto)]
+    format: InputFormat,
+    /// Where the pose lines go (`-`: stdout); an existing file is replaced.
+    #[arg(long, default_value = "-")]
+    output: String,
+    /// Threads of the core's parallel loops (1: sequential). Default: the environment's
+    /// GEOLOC_NUM_THREADS / GEOLOC_PARALLELISM, else all cores. Results are identical either way.
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
+    threads: Option<u32>,
+    /// Print a summary on stderr at the end: frames, frames/s, median ms per stage, peak RSS.
+    #[arg(long)]
+    stats: bool,
+    /// Positional σ of a keypoint (px), for PnP and triangulation.
+    #[arg(long, default_value_t = 1.0)]
+    pixel_sigma: f64,
+    /// Largest reprojection residual kept (px).
+    #[arg(long, default_value_t = 5.0)]
+    max_residual: f64,
+    /// Gate of the geometric pose against the motion prediction (σ).
+    #[arg(long, default_value_t = 3.0)]
+    gate_sigma: f64,
+    /// Fused poses the constant-velocity model is fitted to.
+    #[arg(long, default_value_t = 4)]
+    history: usize,
+}
+
+type Records = Box<dyn Iterator<Item = geoloc_core::Result<FrameRecord>>>;
+
+/// Runs the command; the error is the one line to print.
+pub fn run(args: &Args) -> Result<(), String> {
+    let parallelism = match args.threads {
+        None => geoloc_core::parallel::configured(),
+        Some(1) => Parallelism::Off,
+        Some(n) => Parallelism::Threads(NonZero::new(n as usize).ok_or("--threads: must be ≥ 1")?),
+    };
+    with_parallelism(&parallelism, || localize(args))
+}
+
+fn localize(args: &Args) -> Result<(), String> {
+    let start = Instant::now();
+    let (map, header) = Map::load(&args.map).map_err(|e| format!("--map: {e}"))?;
+    let mut localizer = Localizer::new(Arc::new(map), options(args)).map_err(|e| e.to_string())?;
+    let records = open_input(&args.input, args.format)?;
+    let mut out = open_output(&args.output)?;
+    let write_err = |e: std::io::Error| format!("--output {}: {e}", args.output);
+    writeln!(out, "{}", output::HEADER).and_then(|()| out.flush()).map_err(write_err)?;
+    let loaded = start.elapsed();
+    let loop_start = Instant::now();
+    let mut stats = Stats::default();
+    let mut previous: Option<f64> = None;
+    for (index, record) in records.enumerate() {
+        let record = record.map_err(|e| input_error(&args.input, e))?;
+        check_record(&record, &header, previous, index).map_err(|e| format!("{}: {e}", args.input))?;
+        previous = Some(record.timestamp);
+        let frame = Frame {
+            timestamp: record.timestamp,
+            keypoints: &record.keypoints,
+            descriptors: record.descriptors.view(),
+            global: record.global.as_deref(),
+        };
+        let result = localizer.localize(&frame).map_err(|e| format!("{}: frame {index}: {e}", args.input))?;
+        writeln!(out, "{}", output::line(record.timestamp, &result)).and_then(|()| out.flush()).map_err(write_err)?;
+        stats.push(result.timings, result.source);
+    }
+    if args.stats {
+        eprintln!("{}", stats.report(loaded, loop_start.elapsed()));
+    }
+    Ok(())
+}
+
+/// The options `geoloc.Localizer` passes (crates/geoloc-py/src/localizer.rs).
+fn options(args: &Args) -> LocalizerOptions {
+    let mut options =
+        LocalizerOptions { gate_sigma: args.gate_sigma, history: args.history, ..LocalizerOptions::default() };
+    options.pnp.pixel_sigma = args.pixel_sigma;
+    options.pnp.max_residual_px = args.max_residual;
+    options.triangulation.pixel_sigma = args.pixel_sigma;
+    options.triangulation.max_residual_px = args.max_residual;
+    options
+}
+
+/// A reader error, prefixed with the input (the reader names the frame: `frame N: …`, or the
+/// stream header).
+fn input_error(input: &str, e: GeolocError) -> String {
+    format!("{input}: {e}")
+}
+
+/// What the map needs of a frame that the reader cannot know: the descriptor kind and width,
+/// the global descriptor's length, and a timestamp after the previous frame's.
+fn check_record(record: &FrameRecord, header: &MapHeader, previous: Option<f64>, index: usize) -> Result<(), String> {
+    let (kind, width) = match &record.descriptors {
+        DescriptorSet::Binary { width, .. } => ("binary", *width),
+        DescriptorSet::Float { width, .. } => ("float", *width),
+    };
+    if kind != header.descriptor_kind || width != header.descriptor_width {
+        return Err(format!(
+            "frame {index}: {kind} descriptors of width {width}, but the map holds {} descriptors of width {}",
+            header.descriptor_kind, header.descriptor_width
+        ));
+    }
+    if let RetrievalHeader::Global { dim } = header.retrieval {
+        match &record.global {
+            None => {
+                return Err(format!(
+                    "frame {index}: the map retrieves by a {dim}-value global descriptor; the frame has none"
+                ));
+            }
+            Some(g) if g.len() != dim => {
+                return Err(format!("frame {index}: global descriptor of {} values, the map's have {dim}", g.len()));
+            }
+            Some(_) => {}
+        }
+    }
+    if let Some(t0) = previous
+        && record.timestamp <= t0
+    {
+        return Err(format!("frame {index}: timestamp {} is not after the previous frame's ({t0})", record.timestamp));
+    }
+    Ok(())
+}
+
+fn open_input(input: &str, format: InputFormat) -> Result<Records, String> {
+    let mut reader: Box<dyn BufRead> = if input == "-" {
+        Box::new(BufReader::new(std::io::stdin()))
+    } else {
+        let file = File::open(input).map_err(|e| format!("--input {input}: {e}"))?;
+        Box::new(BufReader::new(file))
+    };
+    let format = match format {
+        InputFormat::Auto => {
+            let first = reader.fill_buf().map_err(|e| format!("--input {input}: {e}"))?;
+            if first.first() == Some(&b'{') { InputFormat::Jsonl } else { InputFormat::Binary }
+        }
+        other => other,
+    };
+    Ok(match format {
+        InputFormat::Jsonl => Box::new(read_json_records(reader)),
+        _ => Box::new(FrameReader::new(reader).map_err(|e| format!("{input}: {e}"))?),
+    })
+}
+
+fn open_output(output: &str) -> Result<Box<dyn Write>, String> {
+    if output == "-" {
+        return Ok(Box::new(std::io::stdout()));
+    }
+    let file = File::create(Path::new(output)).map_err(|e| format!("--output {output}: {e}"))?;
+    Ok(Box::new(BufWriter::new(file)))
+}

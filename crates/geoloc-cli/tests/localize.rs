@@ -1,0 +1,381 @@
+//! `geoloc-rs info` and `geoloc-rs localize` as a robot runs them, on a simulated scene built
+//! in Rust: the same poses and covariances as the core localizer in-process (bit for bit),
+//! bad input refused with the frame named, and 200 mutated streams that never panic or hang.
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output, Stdio};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use geoloc_core::camera::{Camera, project};
+use geoloc_core::frames::{FrameRecord, write_json_header, write_json_record, write_record, write_stream_header};
+use geoloc_core::lie::SE3;
+use geoloc_core::localizer::{Frame, Localizer, LocalizerOptions};
+use geoloc_core::map::{DescriptorSet, Keyframe, Map, RetrievalKind};
+use geoloc_core::testing::{SplitMix64, look_at};
+use nalgebra::{Vector2, Vector3};
+
+const WIDTH: usize = 32;
+const LANDMARKS: usize = 1200;
+/// Mutated streams run through the real binary.
+const FUZZ_CASES: usize = 200;
+/// A run longer than this is a hang.
+const HANG: Duration = Duration::from_secs(30);
+/// Exit status of a Rust panic.
+const PANIC_STATUS: i32 = 101;
+
+struct Scene {
+    landmarks: Vec<Vector3<f64>>,
+    descriptors: Vec<[u8; WIDTH]>,
+    camera: Camera,
+}
+
+impl Scene {
+    fn new(rng: &mut SplitMix64) -> Self {
+        let landmarks = (0..LANDMARKS)
+            .map(|_| Vector3::new(rng.uniform_in(-6.0, 6.0), rng.uniform_in(-1.5, 1.5), rng.uniform_in(3.0, 6.0)))
+            .collect();
+        let descriptors = (0..LANDMARKS).map(|_| std::array::from_fn(|_| (rng.next_u64() & 0xff) as u8)).collect();
+        Self { landmarks, descriptors, camera: Camera::new(525.0, 525.0, 320.0, 240.0).expect("valid") }
+    }
+
+    fn observe(&self, rng: &mut SplitMix64, pose: &SE3) -> (Vec<Vector2<f64>>, Vec<u8>) {
+        let (mut kps, mut desc) = (Vec::new(), Vec::new());
+        for (x, d) in self.landmarks.iter().zip(&self.descriptors) {
+            let p = project(&self.camera, pose, x);
+            if p.p_cam.z > 0.5 && (0.0..640.0).contains(&p.uv.x) && (0.0..480.0).contains(&p.uv.y) {
+                kps.push(p.uv + Vector2::new(rng.normal(), rng.normal()) * 0.5);
+                let mut d = *d;
+                let bit = (rng.next_u64() % (8 * WIDTH as u64)) as usize;
+                d[bit / 8] ^= 1 << (bit % 8);
+                desc.extend_from_slice(&d);
+            }
+        }
+        (kps, desc)
+    }
+}
+
+fn walk(t: f64, offset: f64) -> SE3 {
+    let c = Vector3::new(-1.0 + 0.6 * t, offset + 0.05 * (2.0 * t).sin(), 0.0);
+    look_at(&c, &(c + Vector3::new(0.1 * (1.3 * t).sin(), 0.0, 5.0)))
+}
+
+/// The map (saved to `dir/scene.geoloc`) and `frames` query records along a parallel path.
+fn scene(dir: &Path, frames: usize) -> (PathBuf, Vec<FrameRecord>) {
+    let mut rng = SplitMix64::new(7);
+    let scene = Scene::new(&mut rng);
+    let keyframes = (0..30)
+        .map(|i| {
+            let pose = walk(i as f64 * 0.1, 0.0);
+            let (keypoints, data) = scene.observe(&mut rng, &pose);
+            Keyframe {
+                world_from_cam: pose,
+                keypoints,
+                descriptors: DescriptorSet::Binary { data, width: WIDTH },
+                global: None,
+            }
+        })
+        .collect();
+    let map =
+        Map::build(scene.camera, keyframes, None, RetrievalKind::Bow { branching: 8, depth: 3 }, 0).expect("valid");
+    let path = dir.join("scene.geoloc");
+    map.save(&path, r#"{"features":{"kind":"synthetic","n_features":0,"root_sift":false}}"#).expect("saves");
+    let records = (0..frames)
+        .map(|f| {
+            let t = 0.3 + f as f64 / 30.0;
+            let (keypoints, data) = scene.observe(&mut rng, &walk(t, 0.1));
+            let n = keypoints.len();
+            FrameRecord {
+                timestamp: t,
+                keypoints,
+                pixel_sigmas: (0..n).map(|i| 1.2f64.powi((i % 3) as i32)).collect(),
+                descriptors: DescriptorSet::Binary { data, width: WIDTH },
+                global: None,
+            }
+        })
+        .collect();
+    (path, records)
+}
+
+fn stream(records: &[FrameRecord]) -> Vec<u8> {
+    let mut out = Vec::new();
+    write_stream_header(&mut out).expect("in memory");
+    for (i, r) in records.iter().enumerate() {
+        write_record(&mut out, r, i).expect("valid");
+    }
+    out
+}
+
+fn dir(name: &str) -> PathBuf {
+    let d = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join(format!("geoloc-rs-{name}-{}", std::process::id()));
+    std::fs::create_dir_all(&d).expect("temp dir");
+    d
+}
+
+/// Runs `geoloc-rs args…` with `stdin` piped in, killed (and reported) after [`HANG`].
+fn run(args: &[&str], stdin: &[u8]) -> (Output, bool) {
+    let mut child = Command::new(env!("CARGO_BIN_EXE_geoloc-rs"))
+        .args(args)
+        .env("GEOLOC_NUM_THREADS", "1")
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("binary runs");
+    let mut pipe = child.stdin.take().expect("piped");
+    let data = stdin.to_vec();
+    let feeder = std::thread::spawn(move || {
+        let _ = pipe.write_all(&data); // the binary may stop reading early (an error): fine
+    });
+    let start = Instant::now();
+    let mut hung = false;
+    while child.try_wait().expect("waits").is_none() {
+        if start.elapsed() > HANG {
+            let _ = child.kill();
+            hung = true;
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(2));
+    }
+    let out = child.wait_with_output().expect("output");
+    let _ = feeder.join();
+    (out, hung)
+}
+
+fn lines(out: &Output) -> Vec<String> {
+    String::from_utf8_lossy(&out.stdout).lines().map(str::to_owned).collect()
+}
+
+/// The core localizer in-process, formatted as the binary formats it.
+fn expected(map_path: &Path, records: &[FrameRecord]) -> Vec<Vec<u64>> {
+    let (map, _) = Map::load(map_path).expect("loads");
+    let mut loc = Localizer::new(Arc::new(map), LocalizerOptions::default()).expect("options");
+    records
+        .iter()
+        .map(|r| {
+            let frame = Frame {
+                timestamp: r.timestamp,
+                keypoints: &r.keypoints,
+                descriptors: r.descriptors.view(),
+                global: None,
+            };
+            let res = loc.localize(&frame).expect("valid frame");
+            let e = res.estimate.expect("this scene localizes");
+            let mut bits: Vec<u64> = e.world_from_cam.translation.iter().map(|v| v.to_bits()).collect();
+            for i in 0..6 {
+                for j in i..6 {
+                    bits.push(e.covariance[(i, j)].to_bits());
+                }
+            }
+            bits
+        })
+        .collect()
+}
+
+fn parsed_bits(line: &str) -> Vec<u64> {
+    let cols: Vec<&str> = line.split(' ').collect();
+    assert_eq!(cols.len(), 30, "{line}");
+    cols[1..4].iter().chain(&cols[9..]).map(|c| c.parse::<f64>().expect("a number").to_bits()).collect()
+}
+
+#[test]
+fn localize_matches_the_core_in_process_bit_for_bit_from_a_file_and_from_stdin() {
+    let d = dir("e2e");
+    let (map, records) = scene(&d, 12);
+    let want = expected(&map, &records);
+    let input = d.join("frames.bin");
+    std::fs::write(&input, stream(&records)).expect("writes");
+    let map_s = map.to_str().expect("utf-8");
+    for (args, stdin) in [
+        (vec!["localize", "--map", map_s, "--input", input.to_str().expect("utf-8"), "--threads", "2"], Vec::new()),
+        (vec!["localize", "--map", map_s, "--input", "-", "--format", "binary"], stream(&records)),
+    ] {
+        let (out, hung) = run(&args, &stdin);
+        assert!(!hung && out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        let got = lines(&out);
+        assert!(got[0].starts_with("# timestamp tx ty tz qx qy qz qw source cov_upper_21"));
+        assert_eq!(got.len(), 1 + records.len());
+        for (line, want) in got[1..].iter().zip(&want) {
+            assert_eq!(&parsed_bits(line), want, "{line}");
+        }
+    }
+    // JSON lines give the same output
+    let mut json = Vec::new();
+    write_json_header(&mut json).expect("in memory");
+    for (i, r) in records.iter().enumerate() {
+        write_json_record(&mut json, r, i).expect("valid");
+    }
+    let (out, _) = run(&["localize", "--map", map_s, "--input", "-", "--stats"], &json);
+    assert!(out.status.success());
+    let got = lines(&out);
+    assert_eq!(got[1..].iter().map(|l| parsed_bits(l)).collect::<Vec<_>>(), want);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains("12 frames") && stderr.contains("frames/s") && stderr.contains("peak RSS"), "{stderr}");
+    assert!(stderr.contains("median ms per stage: retrieval"), "{stderr}");
+}
+
+#[test]
+fn info_describes_the_map_and_refuses_a_corrupt_one() {
+    let d = dir("info");
+    let (map, _) = scene(&d, 0);
+    let (out, _) = run(&["info", map.to_str().expect("utf-8")], b"");
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    for want in [
+        "format            geoloc-map version 1",
+        "keyframes         30",
+        "binary (32 bytes, Hamming)",
+        "bag of words",
+        "pose covariances  no",
+        "fx 525 fy 525 cx 320 cy 240",
+        "synthetic",
+    ] {
+        assert!(text.contains(want), "{want:?} not in\n{text}");
+    }
+    let mut bytes = std::fs::read(&map).expect("reads");
+    let bad = d.join("bad.geoloc");
+    let n = bytes.len();
+    bytes[n - 100] ^= 0x10;
+    std::fs::write(&bad, &bytes).expect("writes");
+    let (out, _) = run(&["info", bad.to_str().expect("utf-8")], b"");
+    assert_eq!(out.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.starts_with("geoloc-rs: error: ") && err.contains("checksum"), "{err}");
+    std::fs::write(&bad, &bytes[..n / 2]).expect("writes");
+    let (out, _) = run(&["localize", "--map", bad.to_str().expect("utf-8"), "--input", "-"], b"");
+    assert_eq!(out.status.code(), Some(1));
+    assert!(out.stdout.is_empty(), "nothing written for a refused map");
+}
+
+#[test]
+fn bad_frames_stop_with_the_frame_named_and_earlier_lines_kept() {
+    let d = dir("bad");
+    let (map, records) = scene(&d, 4);
+    let map_s = map.to_str().expect("utf-8");
+    let full = stream(&records);
+    let mut backwards = records.clone();
+    backwards[2].timestamp = backwards[1].timestamp;
+    let mut wide = records.clone();
+    wide[3].descriptors = DescriptorSet::Binary { data: vec![0; 64 * wide[3].keypoints.len()], width: 64 };
+    let cases: Vec<(Vec<u8>, usize, &str)> = vec![
+        (full[..full.len() - 7].to_vec(), 3, "frame 3: truncated record"),
+        (stream(&backwards), 2, "frame 2: timestamp"),
+        (stream(&wide), 3, "frame 3: binary descriptors of width 64, but the map holds binary descriptors of width 32"),
+    ];
+    for (bytes, good, message) in cases {
+        let out_path = d.join("poses.txt");
+        let (out, hung) =
+            run(&["localize", "--map", map_s, "--input", "-", "--output", out_path.to_str().expect("utf-8")], &bytes);
+        assert!(!hung);
+        assert_eq!(out.status.code(), Some(1));
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(err.contains(message) && err.lines().count() == 1, "{err}");
+        let written = std::fs::read_to_string(&out_path).expect("output kept");
+        assert_eq!(written.lines().count(), 1 + good, "{written}");
+    }
+}
+
+#[test]
+fn mutated_streams_never_panic_or_hang() {
+    let d = dir("fuzz");
+    let (map, records) = scene(&d, 3);
+    let map_s = map.to_str().expect("utf-8");
+    let bytes = stream(&records);
+    let mut rng = SplitMix64::new(2024);
+    let (mut ok, mut refused) = (0, 0);
+    for case in 0..FUZZ_CASES {
+        let mut bad = bytes.clone();
+        for _ in 0..1 + rng.next_u64() % 3 {
+            let i = (rng.next_u64() % bad.len() as u64) as usize;
+            bad[i] ^= 1 << (rng.next_u64() % 8);
+        }
+        if case % 2 == 0 {
+            bad.truncate((rng.next_u64() % bad.len() as u64) as usize);
+        }
+        let (out, hung) = run(&["localize", "--map", map_s, "--input", "-"], &bad);
+        assert!(!hung, "case {case} hung");
+        let code = out.status.code();
+        assert!(
+            code.is_some() && code != Some(PANIC_STATUS),
+            "case {case}: {:?}\n{}",
+            out.status,
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let written = lines(&out);
+        assert!(written.iter().skip(1).all(|l| l.split(' ').count() == 30), "case {case}");
+        if code == Some(0) {
+            ok += 1;
+        } else {
+            refused += 1;
+            assert!(String::from_utf8_lossy(&out.stderr).starts_with("geoloc-rs: error: "), "case {case}");
+        }
+    }
+    eprintln!("{FUZZ_CASES} mutated streams: {ok} read to a clean end, {refused} refused; no panic, no hang");
+}
+
+/// Flips 1–3 bytes inside one record's payload and re-seals its checksum, so the mutation
+/// gets past the checksum to the reader's structural checks and the localizer's.
+fn resealed(bytes: &[u8], rng: &mut SplitMix64) -> Vec<u8> {
+    let mut bad = bytes.to_vec();
+    let mut starts = Vec::new();
+    let mut at = 16;
+    while at < bad.len() {
+        starts.push(at);
+        at += 4 + u32::from_le_bytes(bad[at..at + 4].try_into().expect("4 bytes")) as usize;
+    }
+    let start = starts[(rng.next_u64() % starts.len() as u64) as usize];
+    let len = u32::from_le_bytes(bad[start..start + 4].try_into().expect("4 bytes")) as usize;
+    let body = start + 4..start + 4 + len - 8;
+    for _ in 0..1 + rng.next_u64() % 3 {
+        let i = body.start + (rng.next_u64() % (len as u64 - 8)) as usize;
+        bad[i] = (rng.next_u64() & 0xff) as u8;
+    }
+    let mut h = geoloc_core::checksum::Fnv1a::new();
+    h.update(&bad[body.clone()]);
+    bad[body.end..body.end + 8].copy_from_slice(&h.finish().to_le_bytes());
+    bad
+}
+
+/// In-process cases of re-sealed mutations (the binary's read → check → localize loop).
+const RESEALED_CASES: usize = 1000;
+/// Of which every this-many-th also runs through the real binary.
+const RESEALED_BINARY_EVERY: usize = 50;
+
+#[test]
+fn resealed_mutations_reach_the_localizer_and_never_panic_or_hang() {
+    let d = dir("reseal");
+    let (map_path, records) = scene(&d, 2);
+    let map_s = map_path.to_str().expect("utf-8");
+    let (map, _) = Map::load(&map_path).expect("loads");
+    let map = Arc::new(map);
+    let bytes = stream(&records);
+    let mut rng = SplitMix64::new(77);
+    let (mut read_ok, mut localized) = (0, 0);
+    // one localizer, its history reset per case: the triangulated groups stay cached
+    let mut loc = Localizer::new(Arc::clone(&map), LocalizerOptions::default()).expect("options");
+    for case in 0..RESEALED_CASES {
+        let bad = resealed(&bytes, &mut rng);
+        loc.reset();
+        let reader = geoloc_core::frames::FrameReader::new(bad.as_slice()).expect("header intact");
+        for record in reader {
+            let Ok(r) = record else { break };
+            read_ok += 1;
+            let frame = Frame {
+                timestamp: r.timestamp,
+                keypoints: &r.keypoints,
+                descriptors: r.descriptors.view(),
+                global: None,
+            };
+            if loc.localize(&frame).is_ok() {
+                localized += 1;
+            }
+        }
+        if case % RESEALED_BINARY_EVERY == 0 {
+            let (out, hung) = run(&["localize", "--map", map_s, "--input", "-"], &bad);
+            assert!(!hung, "case {case} hung");
+            assert!(out.status.code().is_some_and(|c| c != PANIC_STATUS), "case {case}: {:?}", out.status);
+        }
+    }
+    eprintln!("{RESEALED_CASES} re-sealed mutations: {read_ok} records read, {localized} localized; no panic, no hang");
+}

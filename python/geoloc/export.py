@@ -1,0 +1,87 @@
+"""Per-frame features for the robot binary ``geoloc-rs``: :func:`export_frames`.
+
+A robot without Python localizes with ``geoloc-rs localize --map MAP --input FRAMES``. This
+module writes FRAMES: for each image, what :meth:`geoloc.Localizer.localize` computes before
+it calls the core — the keypoints (undistorted pixels) with their positional σ and local
+descriptors from ``map.features`` with the map's camera, and the global descriptor when the
+map retrieves by a network — as the versioned, length-prefixed, checksummed binary stream of
+``geoloc_core::frames`` (or its JSON-lines variant, for debugging). The stream is written by
+the same Rust code ``geoloc-rs`` reads it with (:class:`geoloc._core.FrameWriter`), to a temp
+file renamed onto ``path`` at the end, so an interrupted export leaves no half-written file.
+
+Fed the same frames, ``geoloc-rs localize`` and :class:`geoloc.Localizer` give bit-identical
+poses and covariances (tests/test_robot.py checks it).
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Any, Callable, Iterable, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ._core import FrameWriter
+from .exceptions import InvalidInputError
+from .mapping import GlobalDescriptor, Localizer, Map
+
+__all__ = ["export_frames"]
+
+
+def _frames(frames: Any) -> Iterable[tuple[float, Any]]:
+    """(timestamp, image) pairs: a Sequence's grey frames (``Sequence.gray``, as the CLI's
+    localize uses), or the caller's own pairs."""
+    from .datasets import Sequence
+
+    if isinstance(frames, Sequence):
+        return ((float(frames.timestamps[i]), frames.gray(i)) for i in range(len(frames)))
+    if isinstance(frames, (str, bytes, os.PathLike)) or not isinstance(frames, Iterable):
+        raise InvalidInputError(
+            f"frames: expected a geoloc.datasets.Sequence or an iterable of (timestamp, image), got {type(frames).__name__}"
+        )
+    return ((float(t), image) for t, image in frames)
+
+
+def export_frames(
+    map: Map,
+    frames: Any,
+    path: str | os.PathLike[str],
+    *,
+    format: Literal["binary", "jsonl"] = "binary",
+    global_descriptor: GlobalDescriptor | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> int:
+    """Write the features of ``frames`` for ``geoloc-rs localize`` to ``path``; returns the
+    number of frames written.
+
+    ``frames`` is a :class:`geoloc.datasets.Sequence` or an iterable of ``(timestamp, image)``
+    with images as :meth:`geoloc.Localizer.localize` takes them (a path, (H, W) grey or
+    (H, W, 3) BGR uint8). ``global_descriptor`` is the map's network, needed (and checked, by
+    its sha256) exactly when :class:`geoloc.Localizer` needs it. ``format`` is ``"binary"``
+    (the robot's) or ``"jsonl"`` (one JSON object per line). ``progress(done)`` is called
+    after each frame. The file appears at ``path`` only once complete.
+    """
+    if not isinstance(map, Map):
+        raise InvalidInputError(f"map: expected a geoloc.Map, got {type(map).__name__}")
+    if format not in ("binary", "jsonl"):
+        raise InvalidInputError(f"format: expected 'binary' or 'jsonl', got {format!r}")
+    from ._io import check_output_path
+
+    target = check_output_path(path, "path")
+    # The Localizer checks the network against the map and decodes images as localize does.
+    localizer = Localizer(map, global_descriptor=global_descriptor)
+    writer = FrameWriter(os.fspath(target), format=format)
+    try:
+        for done, (timestamp, image) in enumerate(_frames(frames), start=1):
+            pixels = localizer._decode(image)
+            f = map.features(pixels, map.camera)
+            g: NDArray[np.float32] | None = None
+            if global_descriptor is not None:
+                g = np.ascontiguousarray(np.asarray(global_descriptor([pixels]), dtype=np.float32)[0])
+            writer.write(timestamp, f.keypoints, f.pixel_sigmas, f.descriptors, g)
+            if progress is not None:
+                progress(done)
+        return writer.close()
+    except BaseException:
+        writer.abort()
+        raise
