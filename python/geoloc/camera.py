@@ -69,11 +69,18 @@ class Camera:
         pts = as_float64(pixels, "pixels")
         if pts.ndim != 2 or pts.shape[1] != 2:
             raise InvalidInputError(f"pixels: expected shape (N, 2), got {pts.shape}")
-        if self.dist is None:
+        if self.dist is None or len(pts) == 0:
             return pts.copy()
+        if np.abs(pts).max() > _MAX_PIXEL:
+            raise InvalidInputError(f"pixels: |value| {np.abs(pts).max():.3g} exceeds {_MAX_PIXEL:.0e} px")
         cv2 = _import_cv2()
         out = cv2.undistortPoints(pts.reshape(-1, 1, 2), self.K, np.asarray(self.dist), P=self.K)
         return np.asarray(out, dtype=np.float64).reshape(-1, 2)
+
+
+#: Largest |pixel| undistort_points accepts: OpenCV's iterative undistortion overflows to NaN
+#: far below float64's range (1e302 px returned NaN), and no image is a billion pixels wide.
+_MAX_PIXEL = 1e9
 
 
 def _import_cv2() -> Any:

@@ -163,7 +163,7 @@ def cases(draw: st.DrawFn, spec: Spec) -> dict[str, Any]:
     args = [values[n] for n in spec.positional]
     kwargs = {n: v for n, v in values.items() if n not in spec.positional}
     target = spec.target
-    names = sorted({a for n in chosen for a in [n, *spec.aliases.get(n, [])]})
+    names = sorted({a for n in chosen for a in [n, *spec.aliases.get(n, [])]} | set(spec.extra.get("names", [])))
     case: dict[str, Any] = {
         "module": spec.module,
         "expr": call(target, *args, **kwargs),
@@ -171,7 +171,7 @@ def cases(draw: st.DrawFn, spec: Spec) -> dict[str, Any]:
         "names": names or ["<no argument was mutated: a valid call must not be refused>"],
         "timeout": spec.timeout,
     }
-    case.update({k: v for k, v in spec.extra.items() if k != "mutated_check" and not chosen})
+    case.update({k: v for k, v in spec.extra.items() if k not in ("mutated_check", "names") and not chosen})
     return case
 
 
@@ -350,7 +350,7 @@ def scaled_index_case(draw: st.DrawFn) -> dict[str, Any]:
     q = x[[7, 42]]
     idx = call("geoloc.retrieval.DescriptorIndex", x, backend=backend)
     return {"module": "retrieval", "expr": call(attr(idx, "query"), q, k=3), "check": "knn",
-            "names": ["descriptors", "queries"], "n_database": 60, "exact": [7, 42]}
+            "names": ["descriptors", "queries", "backend"], "n_database": 60, "exact": [7, 42]}
 
 
 @st.composite
@@ -484,7 +484,7 @@ def evaluation_specs() -> list[Spec]:
         Spec(m, "geoloc.evaluation.summarize",
              {"estimates": a(EST), "ground_truth": a(GT), "covariances": a(COVS), "timestamps": a(np.arange(5.0))},
              ("estimates", "ground_truth"), "any",
-             aliases={"estimates": ["ground_truth"], "ground_truth": ["estimates"], "covariances": ["estimates"],
+             aliases={"estimates": ["ground_truth"], "ground_truth": ["estimates", "covariances", "timestamps"], "covariances": ["estimates"],
                       "timestamps": ["estimates"]}),
     ]
 

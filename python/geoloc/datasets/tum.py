@@ -155,7 +155,12 @@ def load_tum(
     number in ``rgb.txt`` (dropped images leave gaps). Intrinsics: see the module doc.
     """
     root = existing_folder(path)
-    if not np.isfinite(max_time_difference) or max_time_difference < 0:
+    if (
+        isinstance(max_time_difference, bool)
+        or not isinstance(max_time_difference, (int, float, np.integer, np.floating))
+        or not np.isfinite(max_time_difference)
+        or max_time_difference < 0
+    ):
         raise InvalidInputError(f"max_time_difference: expected seconds ≥ 0, got {max_time_difference!r}")
     rgb = root / "rgb.txt"
     rows = data_rows(rgb)
