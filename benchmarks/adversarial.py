@@ -27,7 +27,7 @@ import cases  # noqa: E402  (tests/adversarial on sys.path)
 from harness import GOOD, Tally, Worker  # noqa: E402
 
 #: Share of the cases per module (the heavy modules, which build maps or plots, get fewer).
-WEIGHTS = {"mapping": 0.25, "plots": 0.1, "datasets": 0.3, "descriptor": 0.5, "features": 0.6, "localizer": 0.6}
+WEIGHTS = {"cli": 0.3, "mapping": 0.25, "plots": 0.1, "datasets": 0.3, "descriptor": 0.5, "features": 0.6, "localizer": 0.6}
 
 
 def main() -> int:
@@ -37,7 +37,7 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
     with_onnx = importlib.util.find_spec("torch") is not None
-    modules = list(cases.all_specs(with_onnx))
+    modules = [*cases.all_specs(with_onnx), "cli"]
     if args.modules:
         modules = [m for m in modules if m in args.modules.split(",")]
     tally = Tally()

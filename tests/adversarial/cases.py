@@ -577,6 +577,10 @@ def all_specs(with_onnx: bool = False) -> dict[str, list[Spec]]:
 
 
 def module_cases(module: str, with_onnx: bool = False) -> st.SearchStrategy[dict[str, Any]]:
+    if module == "cli":
+        return st.one_of([cli_cases(c) for c in CLI if with_onnx or c != "train"])
+    if module.startswith("cli:"):
+        return cli_cases(module[4:])
     specs = all_specs(with_onnx)[module]
     strategies = [cases(s) for s in specs]
     if module == "retrieval":
@@ -584,3 +588,62 @@ def module_cases(module: str, with_onnx: bool = False) -> st.SearchStrategy[dict
     if module == "matching":
         strategies.append(self_match_case())
     return st.one_of(strategies)
+
+
+# --- the CLI: one option at a time set to a bad value, the others valid and cheap
+MISSING = ("path", "missing")  # <tmp>/no-such-dir/x.geoloc: its folder must never be created
+BAD_VALUES = ["", "-1", "0", "abc", "1180591620717411303424", "nan", "inf", "-inf", "1e999", "1:0", "::", "a:b",
+              "3.5", "-0", "0x10", " 7", "1,2,3", "1,2,3,4,5", "nan,1,1,1", "é", "--", "/nonexistent/dir/x.out",
+              "1000000000"]
+BAD_FILES = [MISSING, ("path", "dir"), ("path", "unwritable"), ("file", b"", ".geoloc"),
+             ("file", b"\x00" * 40, ".geoloc"), ("file", b"PK\x03\x04garbage", ".onnx"),
+             ("file", b"\x08\x00\x00\x00\x00\x00\x00\x00{\"a\":1}", ".geoloc")]
+SYN = ["--format", "synthetic", "--synthetic-frames", "20"]
+
+#: command → (base argv, {option: "value"|"file"|"out"|"flag"})
+CLI: dict[str, tuple[list[Any], dict[str, str]]] = {
+    "demo": (["--out", ("path", "newdir"), "--frames", "20", "--no-plots"], {"--out": "out", "--frames": "value"}),
+    "build-map": ([*SYN, "--frames", "0:3", "--n-features", "100", "--out", ("path", "fresh")],
+                  {"--dataset": "file", "--format": "value", "--intrinsics": "value", "--trajectory": "file",
+                   "--synthetic-frames": "value", "--frames": "value", "--step": "value", "--features": "value",
+                   "--n-features": "value", "--retrieval": "file", "--out": "out"}),
+    "localize": (["--map", ("cached", "small_map_file"), *SYN, "--frames", "0:2", "--out", ("path", "fresh")],
+                 {"--map": "file", "--images": "file", "--frames": "value", "--mode": "value", "--retrieval": "file",
+                  "--out": "out", "--synthetic-frames": "value", "--intrinsics": "value"}),
+    "evaluate": ([*SYN, "--train", "0:3", "--test", "3:5", "--n-features", "100"],
+                 {"--json": "out", "--plots": "out", "--train": "value", "--test": "value", "--mode": "value",
+                  "--n-features": "value", "--retrieval": "file", "--dataset": "file", "--format": "value",
+                  "--synthetic-frames": "value", "--features": "value"}),
+    "selfcheck": (["--samples", "2"], {"--samples": "value"}),
+    "montecarlo": (["--trials", "2", "--no-progress"],
+                   {"--trials": "value", "--seed": "value", "--json": "out", "--covariance": "value", "--scene": "value"}),
+    "train": (["--dataset", "synthetic", "--tiny", "--epochs", "1", "--pairs", "2", "--batch-size", "2", "--dim", "8",
+               "--no-progress", "--out", ("path", "fresh")],
+              {"--dataset": "file", "--format": "value", "--train": "value", "--stride": "value", "--epochs": "value",
+               "--dim": "value", "--pairs": "value", "--batch-size": "value", "--lr": "value", "--seed": "value",
+               "--checkpoint": "out", "--init": "file", "--device": "value", "--threads": "value", "--out": "out"}),
+}
+
+
+@st.composite
+def cli_cases(draw: st.DrawFn, command: str) -> dict[str, Any]:
+    base, options = CLI[command]
+    option = draw(st.sampled_from(sorted(options)))
+    kind = options[option]
+    if kind == "value":
+        value: Any = draw(st.sampled_from(BAD_VALUES))
+    elif kind == "file":
+        value = draw(st.sampled_from(BAD_FILES))
+    else:
+        value = draw(st.sampled_from([MISSING, ("path", "dir"), ("path", "unwritable"), "/nonexistent/dir/x.json"]))
+    argv = list(base)
+    if option in argv:
+        i = argv.index(option)
+        argv[i + 1] = value
+    else:
+        argv += [option, value]
+    if draw(st.booleans()):  # the same option twice, or a stray positional / unknown option
+        argv += draw(st.sampled_from([[], ["--no-such-option"], ["stray"]]))
+    names = [option, "--no-such-option", "stray", "unrecognized"]
+    return {"module": "cli", "cli": [command, *argv], "names": names, "timeout": 90,
+            "watch": [("path", "missingdir"), "/nonexistent"]}

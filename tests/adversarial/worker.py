@@ -77,6 +77,8 @@ def evaluate(expr: Any) -> Any:
             return str(p)
         if tag == "path":
             kind = expr[1]
+            if kind == "missingdir":
+                return str(_TMP / "no-such-dir")
             if kind == "missing":
                 return str(_TMP / "no-such-dir" / "x.geoloc")
             if kind == "dir":
