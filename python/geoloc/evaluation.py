@@ -242,7 +242,7 @@ def summarize(
     gt = _poses(ground_truth, "ground_truth")
     n = len(gt)
     for name, seq in (("estimates", estimates), ("covariances", covariances), ("sources", sources), ("timings_ms", timings_ms)):
-        if seq is not None and (isinstance(seq, (str, bytes)) or not hasattr(seq, "__len__") or (isinstance(seq, np.ndarray) and seq.ndim == 0)):
+        if (seq is not None or name == "estimates") and (isinstance(seq, (str, bytes)) or not hasattr(seq, "__len__") or (isinstance(seq, np.ndarray) and seq.ndim == 0)):
             raise InvalidInputError(f"{name}: expected a sequence of {n} entries, got {type(seq).__name__}")
     if len(estimates) != n:
         raise InvalidInputError(f"estimates: expected {n} entries (one per ground-truth pose), got {len(estimates)}")

@@ -58,7 +58,11 @@ def strings_pool(choices: list[str]) -> st.SearchStrategy[Any]:
 
 @st.composite
 def array_pool(draw: st.DrawFn, base: np.ndarray, huge: int) -> Any:
-    b = np.array(base)
+    with np.errstate(all="ignore"):
+        return _array_variant(draw, np.array(base), huge)
+
+
+def _array_variant(draw: st.DrawFn, b: np.ndarray, huge: int) -> Any:
     how = draw(st.sampled_from(
         ["special", "scale", "empty", "one", "rank+", "rank-", "lastdim", "huge", "dtype", "layout",
          "python", "scalar", "duplicate"]))
@@ -131,6 +135,13 @@ class Spec:
     timeout: float | None = None
     extra: dict[str, Any] = field(default_factory=dict)
     frozen: tuple[str, ...] = ()
+
+    def __repr__(self) -> str:
+        target = self.target if isinstance(self.target, str) else "<expression>"
+        return f"Spec({target}, {list(self.args)})"
+
+    def _repr_pretty_(self, p: Any, cycle: bool) -> None:  # hypothesis' pretty printer
+        p.text(repr(self))
 
 
 def _value(draw: st.DrawFn, kind: str, value: Any, huge: int) -> Any:
@@ -344,7 +355,7 @@ def scaled_index_case(draw: st.DrawFn) -> dict[str, Any]:
     backend = draw(st.sampled_from([None, "flat", "kdtree"]))
     seed = draw(st.integers(0, 2**16))
     dim = draw(st.sampled_from([3, 8, 64]))
-    x = (np.random.default_rng(seed).normal(size=(60, dim)) * scale).astype(np.float32)
+    x = np.clip(np.random.default_rng(seed).normal(size=(60, dim)) * scale, -3e38, 3e38).astype(np.float32)
     if not np.all(np.isfinite(x)):
         x = np.clip(x, -3e38, 3e38).astype(np.float32)
     q = x[[7, 42]]
@@ -356,8 +367,8 @@ def scaled_index_case(draw: st.DrawFn) -> dict[str, Any]:
 @st.composite
 def self_match_case(draw: st.DrawFn) -> dict[str, Any]:
     scale = draw(st.sampled_from([1e20, 1e-25, 3e38, 1.0]))
-    x = (np.random.default_rng(draw(st.integers(0, 999))).normal(size=(50, 16)) * scale).astype(np.float32)
-    x = np.clip(x, -3e38, 3e38)
+    x = np.clip(np.random.default_rng(draw(st.integers(0, 999))).normal(size=(50, 16)) * scale, -3e38, 3e38)
+    x = x.astype(np.float32)
     return {"module": "matching", "expr": call("geoloc.matching.match_descriptors", x, x.copy()), "check": "match",
             "names": ["descriptors_a", "descriptors_b"], "min_matches": 50}
 

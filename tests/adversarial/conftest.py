@@ -5,8 +5,10 @@ is set), and the defects that are known and recorded (each has a strict-xfail re
 
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import re
+import warnings
 from collections.abc import Iterator
 from typing import Any
 
@@ -15,8 +17,16 @@ from hypothesis import HealthCheck, settings
 
 from .harness import GOOD, Worker, describe
 
-#: Cases per module: ~1/8 of the profile's max_examples (ci: 300 → 37), at least 12.
-EXAMPLES = max(12, settings.default.max_examples // 8)
+# Hypothesis imports hypothesis.extra._patching (→ libcst → mypy_extensions, which warns a
+# DeprecationWarning) only when it reports a failure; under filterwarnings=error that turned
+# every failing example into a pytest INTERNALERROR that hid the failure. Import it once here.
+with warnings.catch_warnings():
+    warnings.simplefilter("ignore", DeprecationWarning)
+    with contextlib.suppress(ImportError):
+        import hypothesis.extra._patching  # noqa: F401
+
+#: Cases per module: 1/4 of the profile's max_examples (ci: 300 → 75, fast: 50 → 12), at least 12.
+EXAMPLES = max(12, settings.default.max_examples // 4)
 HAS_TORCH = importlib.util.find_spec("torch") is not None and importlib.util.find_spec("onnxruntime") is not None
 
 #: Known defects in files other sessions own: (module, kind, regex on the failure detail).
@@ -25,12 +35,22 @@ KNOWN: list[tuple[str, str, str]] = [
     ("localizer", "wrong-type", r"TypeError: (float\(\) argument|object of type|'.*' object is not)"),
     ("localizer", "wrong-type", r"TypeError: int\(\) argument"),
     ("mapping", "wrong-type", r"TypeError: expected str, bytes or os.PathLike object"),
-    ("motion", "wrong-type", r"TypeError: '.*' object is not an instance of"),
+    ("motion", "invariant", r"(pose|covariance) is not finite"),  # denormal timestamps / covariances
+    ("localizer", "wrong-name", r"descriptors: \d+ descriptors cannot make \d+ clusters"),
+    ("fusion", "wrong-type", r"TypeError: float\(\) argument must be"),
+    ("mapping", "wrong-type", r"TypeError: float\(\) argument must be"),  # localize(image, timestamp=None)
 ]
 
 
 def is_known(module: str, out: dict[str, Any]) -> bool:
     return any(m == module and k == out["kind"] and re.search(rx, out["detail"]) for m, k, rx in KNOWN)
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    # The strategies carry the valid numpy arguments; hypothesis warns when their repr is long.
+    for item in items:
+        if "adversarial" in str(item.path):
+            item.add_marker(pytest.mark.filterwarnings("ignore:Generating overly large repr"))
 
 
 @pytest.fixture(scope="session")
