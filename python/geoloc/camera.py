@@ -47,7 +47,10 @@ class Camera:
             if not isinstance(value, (int, np.integer)) or value <= 0:
                 raise InvalidInputError(f"{name}: expected a positive integer, got {value!r}")
         if self.dist is not None:
-            dist = tuple(float(v) for v in np.asarray(self.dist, dtype=np.float64).ravel())
+            raw = np.asarray(self.dist) if not isinstance(self.dist, (str, bytes)) else np.asarray([])
+            if raw.dtype.kind not in "iuf":
+                raise InvalidInputError(f"dist: expected OpenCV coefficients (real numbers), got {self.dist!r:.60}")
+            dist = tuple(float(v) for v in raw.astype(np.float64).ravel())
             if len(dist) not in (4, 5, 8, 12, 14) or not all(math.isfinite(v) for v in dist):
                 raise InvalidInputError(
                     f"dist: expected 4, 5, 8, 12 or 14 finite OpenCV coefficients, got {self.dist!r}"

@@ -143,7 +143,10 @@ def pose_errors(est: ArrayLike, gt: ArrayLike) -> tuple[Array, Array]:
     """Translation error ‖t_est − t_gt‖ (m) and rotation error Θ(R_estᵀ R_gt) (degrees),
     each (N,), for (N, 4, 4) (or single (4, 4)) world_from_cam poses."""
     e, g = _pair(est, gt)
-    trans = np.linalg.norm(e[:, :3, 3] - g[:, :3, 3], axis=1)
+    diff = e[:, :3, 3] - g[:, :3, 3]
+    # ‖d‖ scaled by its largest component: the plain norm overflows to inf at 1e200 m
+    big = np.abs(diff).max(axis=1, initial=0.0)
+    trans = big * np.linalg.norm(diff / np.where(big > 0, big, 1.0)[:, None], axis=1)
     rel = np.einsum("nji,njk->nik", e[:, :3, :3], g[:, :3, :3])
     rot = np.degrees(lie.rotation_angle(rel))
     return trans, np.asarray(rot, dtype=np.float64).reshape(-1)
@@ -187,6 +190,7 @@ def axis_coverage(est: ArrayLike, cov: ArrayLike, gt: ArrayLike, z: float = COVE
     delta = tangent_errors(est, gt)
     c = _covariances(cov, len(delta))
     sigma = np.sqrt(np.maximum(np.diagonal(c, axis1=1, axis2=2), 0.0))
+    z = real_scalar(z, "z")
     return np.asarray((np.abs(delta) <= z * sigma).mean(axis=0), dtype=np.float64)
 
 

@@ -135,8 +135,8 @@ def _flag(value: Any, name: str) -> bool | None:
 
 
 def _check_positive(value: float, name: str) -> float:
-    real_scalar(value, name)
-    if not isinstance(value, (int, float, np.floating, np.integer)) or not np.isfinite(value) or value <= 0:
+    value = real_scalar(value, name)
+    if not np.isfinite(value) or value <= 0:
         raise InvalidInputError(f"{name}: expected a finite number > 0, got {value!r}")
     return float(value)
 
@@ -307,7 +307,8 @@ def keyframe_score(
     a, lead_a = as_batch(T1, "T1", (4, 4))
     b, lead_b = as_batch(T2, "T2", (4, 4))
     (a, b), lead = broadcast_batches([(a, lead_a, "T1"), (b, lead_b, "T2")])
-    if not np.isfinite(real_scalar(d_m, "d_m")) or d_m < 0:
+    d_m = real_scalar(d_m, "d_m")
+    if not np.isfinite(d_m) or d_m < 0:
         raise InvalidInputError(f"d_m: expected a finite number ≥ 0, got {d_m!r}")
     out = _core.keyframe_score(a, b, float(d_m), _check_positive(ell, "ell"), _check_positive(alpha_m, "alpha_m"))
     return np.asarray(out).reshape(lead)

@@ -36,7 +36,6 @@ KNOWN: list[tuple[str, str, str]] = [
     ("localizer", "wrong-type", r"TypeError: int\(\) argument"),
     ("mapping", "wrong-type", r"TypeError: expected str, bytes or os.PathLike object"),
     ("motion", "invariant", r"(pose|covariance) is not finite"),  # denormal timestamps / covariances
-    ("localizer", "wrong-name", r"descriptors: \d+ descriptors cannot make \d+ clusters"),
     ("fusion", "wrong-type", r"TypeError: float\(\) argument must be"),
     ("mapping", "wrong-type", r"TypeError: float\(\) argument must be"),  # localize(image, timestamp=None)
 ]

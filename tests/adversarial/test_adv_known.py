@@ -72,11 +72,6 @@ def test_feature_map_keypoints_not_a_sequence() -> None:
     _rejects(lambda: FeatureMap(CAM, TRACK[:3], 0, DESCS), "keypoints")
 
 
-@pytest.mark.xfail(strict=True, reason=f"the core names descriptors, not branching; {OWNED_ELSEWHERE}")
-def test_feature_map_branching_larger_than_descriptors() -> None:
-    _rejects(lambda: FeatureMap(CAM, TRACK[:3], KPS, DESCS, branching=178, depth=2), "branching")
-
-
 @pytest.mark.xfail(strict=True, raises=TypeError, reason=f"localizer.py: float(None); {OWNED_ELSEWHERE}")
 def test_feature_localizer_max_residual_none() -> None:
     fm = FeatureMap(CAM, TRACK[:3], KPS, DESCS, branching=3, depth=2)

@@ -177,3 +177,43 @@ def test_train_names_dataset_and_device_options(tmp_path: Path, capsys: pytest.C
     assert exit_info.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1].startswith("geoloc train: error: argument --device: ") and not any("frames" in e for e in err)
+
+
+def test_long_profile_findings() -> None:
+    """Found by the long profile (benchmarks/adversarial.py)."""
+    for dist in (object, "abc", [1 + 2j] * 4):
+        with pytest.raises(geoloc.InvalidInputError, match="^dist: "):
+            geoloc.Camera(525, 525, 320, 240, dist=dist)  # type: ignore[arg-type]
+    # 2**70 is a valid (huge) integer option: a score, not a TypeError from np.isfinite
+    assert np.isfinite(geometry.keyframe_score(T[0], T[1], d_m=2**70, ell=2**70, alpha_m=2**70))
+    with pytest.raises(geoloc.InvalidInputError, match="^z: "):
+        evaluation.axis_coverage(T, COV, T, z=None)  # type: ignore[arg-type]
+    far = T.copy()
+    far[:, 0, 3] = 1e300
+    trans, _ = evaluation.pose_errors(T, far)
+    assert np.all(np.isfinite(trans)) and np.allclose(trans, 1e300)
+
+
+def test_so3_project_of_denormal_matrices() -> None:
+    """2^1063 (the scale for entries near 6e-321) overflowed: so3_project returned NaN."""
+    r = geoloc.lie.so3_exp([0.3, -0.2, 0.1])
+    for scale in (1e-310, 1e-320):
+        p = geoloc.lie.so3_project(r * scale)
+        assert np.isfinite(p).all() and np.allclose(p.T @ p, np.eye(3), atol=1e-12)
+        assert np.abs(p - r).max() < 0.05
+
+
+def test_dataset_max_time_difference_huge_integer(tmp_path: Path) -> None:
+    folder = datasets.synthetic_room(n_frames=2).write_tum(tmp_path / "tum")
+    assert len(datasets.load_tum(folder, max_time_difference=2**70)) == 2
+    with pytest.raises(geoloc.InvalidInputError, match="^max_time_difference: "):
+        datasets.load_tum(folder, max_time_difference=2**1100)
+
+
+def test_train_refuses_a_foreign_init_before_printing(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    pytest.importorskip("torch")
+    bad = tmp_path / "init.pt"
+    bad.write_bytes(b"\x00" * 24)
+    code = cli_main(["train", "--dataset", "synthetic", "--tiny", "--init", str(bad), "--out", str(tmp_path / "m.onnx")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code != 0 and len(err) == 1 and err[0].startswith("geoloc train: error: --init: "), err

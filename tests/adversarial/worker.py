@@ -19,11 +19,13 @@ pickle, both ways, on a private copy of fd 1 (the case's own prints go to stderr
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import importlib
 import io
 import os
 import pickle
+import shutil
 import struct
 import sys
 import tempfile
@@ -35,6 +37,7 @@ import numpy as np
 
 _CACHE: dict[str, Any] = {}
 _TMP = Path(tempfile.mkdtemp(prefix="geoloc-adv-"))
+atexit.register(shutil.rmtree, _TMP, True)
 
 
 def _resolve(path: str) -> Any:
@@ -112,7 +115,8 @@ def run_case(case: dict[str, Any]) -> dict[str, Any]:
         result = evaluate(case["expr"])
     except geoloc.InvalidInputError as e:
         msg = str(e)
-        if not _names_argument(msg, case.get("names", [])):
+        # A FileFormatError names the file and the failed check (documented), not an argument.
+        if not isinstance(e, geoloc.FileFormatError) and not _names_argument(msg, case.get("names", [])):
             return {"kind": "wrong-name", "detail": f"{type(e).__name__}: {msg[:300]}"}
         return {"kind": "rejected", "detail": msg[:200]}
     except Exception as e:  # noqa: BLE001 — classifying is the point
@@ -133,6 +137,7 @@ def run_case(case: dict[str, Any]) -> dict[str, Any]:
 
 def main() -> None:
     sys.path.insert(0, str(Path(__file__).parent))
+    os.chdir(_TMP)  # relative paths a case writes ("3", "1.0") land in the worker's own folder
     proto = os.fdopen(os.dup(1), "wb")
     os.dup2(2, 1)
     sys.stdout = io.TextIOWrapper(os.fdopen(1, "wb", closefd=False), write_through=True)

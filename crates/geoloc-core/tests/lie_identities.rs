@@ -359,4 +359,13 @@ fn overflowing_and_non_rotation_inputs_are_refused() {
         let p = SO3::from_matrix_projected(&(r.matrix() * scale)).expect("scaled rotation");
         assert!((p.matrix() - r.matrix()).abs().max() < 1e-14, "scale {scale}");
     }
+    // denormal scales (found by tests/adversarial: 2^1063 overflowed to inf → NaN rotation);
+    // the entries keep only a few bits, so the projection is a rotation near R, not R
+    for scale in [1e-310, 1e-320] {
+        let p = SO3::from_matrix_projected(&(r.matrix() * scale)).expect("denormal rotation");
+        let m = p.matrix();
+        assert!(m.iter().all(|x| x.is_finite()), "scale {scale}");
+        assert!((m.transpose() * m - Matrix3::identity()).abs().max() < 1e-12, "scale {scale}");
+        assert!((m - r.matrix()).abs().max() < 0.05, "scale {scale}");
+    }
 }

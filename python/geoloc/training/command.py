@@ -202,8 +202,13 @@ def add_train_command(commands: argparse._SubParsersAction[argparse.ArgumentPars
             raise InvalidInputError("--resume: needs --checkpoint FILE")
         require_torch()
         from .export import export_onnx
-        from .train import TrainConfig, train
+        from .train import TrainConfig, load_checkpoint, train
 
+        if args.init is not None:  # refuse a foreign --init before loading frames or printing anything
+            try:
+                load_checkpoint(args.init)
+            except InvalidInputError as e:
+                raise InvalidInputError(f"--init: {str(e).removeprefix('checkpoint: ')}") from None
         frames = load_frames(args.dataset, args.format, args.train, args.seed, args.trajectory, args.stride)
         epochs = args.epochs or (TINY_EPOCHS if args.tiny else PAPER_EPOCHS)
         config = TrainConfig(
