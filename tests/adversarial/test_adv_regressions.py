@@ -217,3 +217,11 @@ def test_train_refuses_a_foreign_init_before_printing(tmp_path: Path, capsys: py
     code = cli_main(["train", "--dataset", "synthetic", "--tiny", "--init", str(bad), "--out", str(tmp_path / "m.onnx")])
     err = capsys.readouterr().err.strip().splitlines()
     assert code != 0 and len(err) == 1 and err[0].startswith("geoloc train: error: --init: "), err
+
+
+@pytest.mark.parametrize("alpha", [1e300, -1e200])
+def test_se3_interpolate_refuses_an_overflowing_alpha(alpha: float) -> None:
+    """se3_interpolate(T1, T2, 1e300) returned a NaN pose."""
+    with pytest.raises(geoloc.InvalidInputError, match="^alpha"):
+        geoloc.lie.se3_interpolate(T[0], T[1], alpha)
+    assert np.isfinite(geoloc.lie.se3_interpolate(T[0], T[1], 1e6)).all()

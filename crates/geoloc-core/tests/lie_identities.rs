@@ -193,6 +193,20 @@ fn distance_is_the_twist_norm_and_symmetric() {
 }
 
 #[test]
+fn checked_interpolation_refuses_an_overflowing_alpha() {
+    // found by tests/adversarial: se3_interpolate(T1, T2, 1e300) returned a NaN pose
+    let a = SE3::identity();
+    let b = SE3::exp(&Twist::new(0.1, 0.0, 0.0, 0.0, 0.2, 0.0));
+    for alpha in [1e300, -1e200, f64::INFINITY, f64::NAN] {
+        match a.checked_interpolate(&b, alpha) {
+            Err(geoloc_core::GeolocError::InvalidInput { name, .. }) => assert_eq!(name, "alpha"),
+            other => panic!("alpha {alpha}: expected InvalidInput naming alpha, got {other:?}"),
+        }
+    }
+    assert!(a.checked_interpolate(&b, 1e6).is_ok(), "a large but representable extrapolation");
+}
+
+#[test]
 fn interpolation_follows_the_geodesic() {
     let mut rng = SplitMix64::new(6);
     for _ in 0..200 {
@@ -202,6 +216,7 @@ fn interpolation_follows_the_geodesic() {
         let b = a * SE3::exp(&xi);
         assert!(relative_error(&a.interpolate(&b, 0.0).matrix(), &a.matrix()) < 1e-12);
         assert!(relative_error(&a.interpolate(&b, 1.0).matrix(), &b.matrix()) < 1e-11);
+        assert_eq!(a.checked_interpolate(&b, 0.3).expect("ordinary alpha").matrix(), a.interpolate(&b, 0.3).matrix());
         let mid = a.interpolate(&b, 0.3);
         assert!((a.distance(&mid) - 0.3 * xi.norm()).abs() < 1e-9);
         assert!((mid.distance(&b) - 0.7 * xi.norm()).abs() < 1e-9);
