@@ -165,7 +165,7 @@ def _matrix_stack(m: ArrayLike, name: str, shape: tuple[int, ...]) -> Array:
     arr = _real_array(m, name)
     if arr.shape != shape:
         raise InvalidInputError(f"{name}: expected shape {shape}, got {arr.shape}")
-    return np.ascontiguousarray(arr.reshape(shape[0], -1))
+    return np.ascontiguousarray(arr.reshape(shape[0], int(np.prod(shape[1:]))))  # -1 fails for 0 rows
 
 
 def triangulate(

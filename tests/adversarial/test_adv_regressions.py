@@ -225,3 +225,17 @@ def test_se3_interpolate_refuses_an_overflowing_alpha(alpha: float) -> None:
     with pytest.raises(geoloc.InvalidInputError, match="^alpha"):
         geoloc.lie.se3_interpolate(T[0], T[1], alpha)
     assert np.isfinite(geoloc.lie.se3_interpolate(T[0], T[1], 1e6)).all()
+
+
+def test_se3_interpolate_names_the_poses_when_their_relative_twist_overflows() -> None:
+    far = T[0].copy()
+    far[0, 3] = 1e300
+    with pytest.raises(geoloc.InvalidInputError, match="^T1, T2: "):
+        geoloc.lie.se3_interpolate(far, T[1], 0.3)
+
+
+def test_triangulate_with_no_poses() -> None:
+    """(0, 4, 4) poses with (0, 6, 6) pose covariances: a numpy reshape error, now named."""
+    with pytest.raises(geoloc.InvalidInputError, match="cam_ids|poses"):
+        geometry.triangulate(np.zeros((0, 4, 4)), geoloc.Camera(525, 525, 320, 240), [0, 1], [0, 0],
+                             np.full((2, 2), 300.0), pose_covariances=np.zeros((0, 6, 6)))

@@ -204,6 +204,12 @@ fn checked_interpolation_refuses_an_overflowing_alpha() {
         }
     }
     assert!(a.checked_interpolate(&b, 1e6).is_ok(), "a large but representable extrapolation");
+    let far = SE3::exp(&Twist::new(1e149, 0.0, 0.0, 0.0, 0.0, 0.0));
+    let far = far * far * far * far * far * far * far * far * far * far * far * far; // ρ ≈ 1.2e150
+    match far.checked_interpolate(&a, 0.5) {
+        Err(geoloc_core::GeolocError::InvalidInput { name, .. }) => assert_eq!(name, "T1, T2"),
+        other => panic!("expected InvalidInput naming T1, T2, got {other:?}"),
+    }
 }
 
 #[test]

@@ -212,7 +212,11 @@ impl SE3 {
         if !alpha.is_finite() {
             return Err(GeolocError::invalid("alpha", format!("{alpha} is not finite")));
         }
-        let xi = alpha * (self.inverse() * *other).log();
+        let relative = (self.inverse() * *other).log();
+        check_twist(&relative).map_err(|_| {
+            GeolocError::invalid("T1, T2", "T1⁻¹T2 is beyond the exponential map's finite range".to_string())
+        })?;
+        let xi = alpha * relative;
         check_twist(&xi).map_err(|e| match e {
             GeolocError::InvalidInput { reason, .. } => GeolocError::invalid("alpha", reason),
             _ => GeolocError::invalid("alpha", format!("{alpha:e} scales the twist beyond the finite range")),
