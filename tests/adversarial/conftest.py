@@ -37,7 +37,8 @@ KNOWN: list[tuple[str, str, str]] = [
     ("mapping", "wrong-type", r"TypeError: expected str, bytes or os.PathLike object"),
     ("motion", "invariant", r"(pose|covariance) is not finite"),  # denormal timestamps / covariances
     ("fusion", "wrong-type", r"TypeError: float\(\) argument must be"),
-    ("mapping", "wrong-type", r"TypeError: float\(\) argument must be"),  # localize(image, timestamp=None)
+    ("mapping", "wrong-type", r"TypeError: float\(\) argument must be"),
+    ("fusion", "wrong-name", r"information: holds non-finite values"),  # cov_m = 1e-310·C  # localize(image, timestamp=None)
 ]
 
 
