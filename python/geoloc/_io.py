@@ -18,9 +18,17 @@ from .exceptions import InvalidInputError
 __all__ = ["check_output_path", "write_json_atomic", "write_text_atomic"]
 
 
+def as_path(path: Any, name: str = "path") -> Path:
+    """``path`` (a str or os.PathLike) as a Path; anything else (a number, an array, None, a
+    string with a NUL byte) is an InvalidInputError naming ``name`` rather than a TypeError."""
+    if not isinstance(path, (str, os.PathLike)) or "\x00" in os.fspath(path):
+        raise InvalidInputError(f"{name}: expected a file path (str or os.PathLike), got {type(path).__name__}")
+    return Path(path)
+
+
 def check_output_path(path: str | os.PathLike[str], name: str = "path") -> Path:
     """``path`` as a Path whose parent folder exists and is writable; else InvalidInputError naming ``name``."""
-    target = Path(path)
+    target = as_path(path, name)
     parent = target.parent
     if target.is_dir():
         raise InvalidInputError(f"{name}: {str(target)!r} is a folder, expected a file path")

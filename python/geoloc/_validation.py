@@ -77,3 +77,23 @@ def broadcast_batches(
         full = np.broadcast_to(flat.reshape(*item_lead, width), (*lead, width))
         out.append(np.ascontiguousarray(full).reshape(-1, width))
     return out, lead
+
+
+def real_scalar(value: Any, name: str) -> float:
+    """A real number (Python or numpy int/float; bool is refused) as float, for the core to
+    range-check; anything else — None, a string, a complex, an array — is an InvalidInputError
+    naming ``name`` (the bindings would raise a bare TypeError). Integers too large for a
+    float (2**1100) are refused as well."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise InvalidInputError(f"{name}: expected a real number, got {type(value).__name__} {value!r:.40}")
+    try:
+        return float(value)
+    except OverflowError:
+        raise InvalidInputError(f"{name}: {value} does not fit a float64") from None
+
+
+def choice(value: Any, name: str, choices: tuple[str, ...]) -> str:
+    """``value`` when it is one of ``choices``; else an InvalidInputError naming ``name``."""
+    if not isinstance(value, str) or value not in choices:
+        raise InvalidInputError(f"{name}: expected one of {', '.join(map(repr, choices))}, got {value!r:.40}")
+    return value

@@ -47,7 +47,10 @@ class Camera:
             if not isinstance(value, (int, np.integer)) or value <= 0:
                 raise InvalidInputError(f"{name}: expected a positive integer, got {value!r}")
         if self.dist is not None:
-            dist = tuple(float(v) for v in np.asarray(self.dist, dtype=np.float64).ravel())
+            raw = np.asarray(self.dist) if not isinstance(self.dist, (str, bytes)) else np.asarray([])
+            if raw.dtype.kind not in "iuf":
+                raise InvalidInputError(f"dist: expected OpenCV coefficients (real numbers), got {self.dist!r:.60}")
+            dist = tuple(float(v) for v in raw.astype(np.float64).ravel())
             if len(dist) not in (4, 5, 8, 12, 14) or not all(math.isfinite(v) for v in dist):
                 raise InvalidInputError(
                     f"dist: expected 4, 5, 8, 12 or 14 finite OpenCV coefficients, got {self.dist!r}"
@@ -69,11 +72,18 @@ class Camera:
         pts = as_float64(pixels, "pixels")
         if pts.ndim != 2 or pts.shape[1] != 2:
             raise InvalidInputError(f"pixels: expected shape (N, 2), got {pts.shape}")
-        if self.dist is None:
+        if self.dist is None or len(pts) == 0:
             return pts.copy()
+        if np.abs(pts).max() > _MAX_PIXEL:
+            raise InvalidInputError(f"pixels: |value| {np.abs(pts).max():.3g} exceeds {_MAX_PIXEL:.0e} px")
         cv2 = _import_cv2()
         out = cv2.undistortPoints(pts.reshape(-1, 1, 2), self.K, np.asarray(self.dist), P=self.K)
         return np.asarray(out, dtype=np.float64).reshape(-1, 2)
+
+
+#: Largest |pixel| undistort_points accepts: OpenCV's iterative undistortion overflows to NaN
+#: far below float64's range (1e302 px returned NaN), and no image is a billion pixels wide.
+_MAX_PIXEL = 1e9
 
 
 def _import_cv2() -> Any:

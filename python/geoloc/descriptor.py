@@ -24,6 +24,7 @@ from typing import Any, Mapping, Sequence, Union
 import numpy as np
 from numpy.typing import NDArray
 
+from ._io import as_path
 from .exceptions import GeolocError, InvalidInputError
 
 __all__ = [
@@ -94,12 +95,24 @@ def _image_list(images: Any, name: str) -> list[NDArray[np.uint8]]:
     return out
 
 
+def _check_size(size: Any) -> tuple[int, int]:
+    """``size`` as (height, width), two integers in [1, 4096]; else InvalidInputError naming it."""
+    if (
+        not isinstance(size, (tuple, list))
+        or len(size) != 2
+        or not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) for v in size)
+        or not all(1 <= int(v) <= 4096 for v in size)
+    ):
+        raise InvalidInputError(f"size: expected (height, width), two integers in [1, 4096], got {size!r}")
+    return int(size[0]), int(size[1])
+
+
 def to_gray(images: Images, size: tuple[int, int] = INPUT_SIZE) -> NDArray[np.uint8]:
     """Grayscale images resized to ``size`` = (height, width): (N, height, width) uint8.
 
     The first, integer half of :func:`preprocess` (training caches this: 50 kB an image)."""
     cv2 = _cv2()
-    h, w = size
+    h, w = _check_size(size)
     frames = _image_list(images, "images")
     out = np.empty((len(frames), h, w), dtype=np.uint8)
     for i, img in enumerate(frames):
@@ -136,9 +149,7 @@ def tiny_image_descriptors(images: Images, size: tuple[int, int] = TINY_IMAGE_SI
     Nearest neighbours under L2 (:class:`geoloc.retrieval.DescriptorIndex`) then rank images
     by normalized cross-correlation. A constant image gives the zero vector.
     """
-    w, h = size
-    if not all(isinstance(v, (int, np.integer)) and v >= 1 for v in (w, h)):
-        raise InvalidInputError(f"size: expected two positive integers (width, height), got {size!r}")
+    h, w = _check_size(size)[::-1]  # size is (width, height) here
     small = to_gray(images, (int(h), int(w))).reshape(-1, int(w) * int(h)).astype(np.float32)
     small -= small.mean(axis=1, keepdims=True)
     norm = np.linalg.norm(small, axis=1, keepdims=True)
@@ -152,9 +163,15 @@ def _l2_normalize(x: NDArray[np.float32]) -> NDArray[np.float32]:
     return out
 
 
-def _positive_int(value: Any, name: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-        raise InvalidInputError(f"{name}: expected a positive integer, got {value!r}")
+#: Upper bounds of OnnxDescriptor's ``threads`` (4236 threads hung the session's creation) and
+#: ``batch_size`` (onnxruntime takes a C int; a batch is held in memory at once).
+MAX_THREADS = 256
+MAX_BATCH = 4096
+
+
+def _positive_int(value: Any, name: str, high: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not 1 <= value <= high:
+        raise InvalidInputError(f"{name}: expected an integer in [1, {high}], got {value!r}")
     return int(value)
 
 
@@ -173,9 +190,9 @@ class OnnxDescriptor:
     """
 
     def __init__(self, path: str | Path, threads: int = 2, batch_size: int = 16) -> None:
-        self.threads = _positive_int(threads, "threads")
-        self.batch_size = _positive_int(batch_size, "batch_size")
-        self.path = Path(path)
+        self.threads = _positive_int(threads, "threads", MAX_THREADS)
+        self.batch_size = _positive_int(batch_size, "batch_size", MAX_BATCH)
+        self.path = as_path(path, "path")
         try:
             data = self.path.read_bytes()
         except OSError as e:

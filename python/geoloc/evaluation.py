@@ -28,8 +28,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from . import lie
 from ._io import write_text_atomic
-from ._validation import as_float64
-from .exceptions import InvalidInputError
+from ._validation import as_float64, real_scalar
+from .exceptions import InvalidInputError, NotARotationError
 
 __all__ = [
     "CHI2_6_95",
@@ -63,15 +63,33 @@ TANGENT_AXES = ("tx", "ty", "tz", "rx", "ry", "rz")
 # ---------------------------------------------------------------------------- χ²₆
 
 
+def _real_values(x: ArrayLike, name: str) -> Array:
+    """``x`` as float64 (±inf and NaN kept); non-real input is an InvalidInputError."""
+    try:
+        raw = np.asarray(x)
+    except (TypeError, ValueError) as exc:
+        raise InvalidInputError(f"{name}: cannot be read as an array ({exc})") from None
+    if raw.dtype.kind not in "biuf":
+        raise InvalidInputError(f"{name}: expected real numbers, got an array of dtype {raw.dtype}")
+    return raw.astype(np.float64)
+
+
 def chi2_6_cdf(x: ArrayLike) -> Array:
-    """CDF of χ²₆ (closed form for even degrees of freedom): 1 − e^(−x/2)(1 + x/2 + x²/8)."""
-    h = np.maximum(np.asarray(x, dtype=np.float64), 0.0) / 2.0
-    return np.asarray(1.0 - np.exp(-h) * (1.0 + h + h * h / 2.0))
+    """CDF of χ²₆ (closed form for even degrees of freedom): 1 − e^(−x/2)(1 + x/2 + x²/8).
+
+    ``x`` may be +inf (CDF 1); NaN and non-real values are an InvalidInputError naming ``x``."""
+    arr = _real_values(x, "x")
+    if np.isnan(arr).any():
+        raise InvalidInputError("x: is NaN")
+    h = np.maximum(arr, 0.0) / 2.0
+    # Beyond h = 400 the tail e^(−h)·(…) is below 1e-170; computing it would overflow h² to inf.
+    hs = np.minimum(h, 400.0)
+    return np.asarray(np.where(h >= 400.0, 1.0, 1.0 - np.exp(-hs) * (1.0 + hs + hs * hs / 2.0)))
 
 
 def chi2_6_quantile(p: ArrayLike) -> Array:
     """Inverse of :func:`chi2_6_cdf` for p in [0, 1) (bisection to 1e-12 relative)."""
-    q = np.asarray(p, dtype=np.float64)
+    q = _real_values(p, "p")
     if ((q < 0) | (q >= 1)).any() or not np.isfinite(q).all():
         raise InvalidInputError("p: expected probabilities in [0, 1)")
     lo, hi = np.zeros_like(q), np.full_like(q, 200.0)
@@ -91,7 +109,27 @@ def _poses(x: ArrayLike, name: str) -> Array:
         arr = arr[None]
     if arr.ndim != 3 or arr.shape[1:] != (4, 4):
         raise InvalidInputError(f"{name}: expected shape (4, 4) or (N, 4, 4), got {arr.shape}")
+    _check_rigid(arr, name)
     return arr
+
+
+def _check_rigid(arr: Array, name: str) -> None:
+    """NotARotationError naming ``name[i]`` for the first pose that is not rigid (last row
+    (0, 0, 0, 1), |RᵀR − I| ≤ 1e-6, det R > 0) — checked here so that the error names this
+    function's argument, not the argument of the geoloc.lie call inside."""
+    if not len(arr):
+        return
+    rot = arr[:, :3, :3]
+    with np.errstate(all="ignore"):
+        ortho = np.abs(np.einsum("nji,njk->nik", rot, rot) - np.eye(3)).max(axis=(1, 2))
+        det = np.linalg.det(rot)
+    bad = (np.abs(arr[:, 3] - [0.0, 0.0, 0.0, 1.0]).max(axis=1) > 0) | ~(ortho <= 1e-6) | ~(det > 0)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise NotARotationError(
+            f"{name}[{i}] is not a rigid transform (last row {arr[i, 3].tolist()}, max |RᵀR − I| = {ortho[i]:.3g}); "
+            "project near-rotations first (geoloc.lie.se3_project)"
+        )
 
 
 def _pair(est: ArrayLike, gt: ArrayLike) -> tuple[Array, Array]:
@@ -105,7 +143,10 @@ def pose_errors(est: ArrayLike, gt: ArrayLike) -> tuple[Array, Array]:
     """Translation error ‖t_est − t_gt‖ (m) and rotation error Θ(R_estᵀ R_gt) (degrees),
     each (N,), for (N, 4, 4) (or single (4, 4)) world_from_cam poses."""
     e, g = _pair(est, gt)
-    trans = np.linalg.norm(e[:, :3, 3] - g[:, :3, 3], axis=1)
+    diff = e[:, :3, 3] - g[:, :3, 3]
+    # ‖d‖ scaled by its largest component: the plain norm overflows to inf at 1e200 m
+    big = np.abs(diff).max(axis=1, initial=0.0)
+    trans = big * np.linalg.norm(diff / np.where(big > 0, big, 1.0)[:, None], axis=1)
     rel = np.einsum("nji,njk->nik", e[:, :3, :3], g[:, :3, :3])
     rot = np.degrees(lie.rotation_angle(rel))
     return trans, np.asarray(rot, dtype=np.float64).reshape(-1)
@@ -118,12 +159,12 @@ def tangent_errors(est: ArrayLike, gt: ArrayLike) -> Array:
     return np.asarray(lie.se3_log(lie.se3_compose(lie.se3_inverse(e), g))).reshape(-1, 6)
 
 
-def _covariances(cov: ArrayLike, n: int) -> Array:
-    c = as_float64(cov, "cov")
+def _covariances(cov: ArrayLike, n: int, name: str = "cov") -> Array:
+    c = as_float64(cov, name)
     if c.shape == (6, 6):
         c = c[None]
     if c.shape != (n, 6, 6):
-        raise InvalidInputError(f"cov: expected shape ({n}, 6, 6), got {c.shape}")
+        raise InvalidInputError(f"{name}: expected shape ({n}, 6, 6), got {c.shape}")
     return c
 
 
@@ -149,16 +190,23 @@ def axis_coverage(est: ArrayLike, cov: ArrayLike, gt: ArrayLike, z: float = COVE
     delta = tangent_errors(est, gt)
     c = _covariances(cov, len(delta))
     sigma = np.sqrt(np.maximum(np.diagonal(c, axis1=1, axis2=2), 0.0))
+    z = real_scalar(z, "z")
     return np.asarray((np.abs(delta) <= z * sigma).mean(axis=0), dtype=np.float64)
 
 
 def isometric_sigmas(cov: ArrayLike) -> tuple[Array, Array]:
     """The paper's isometric σ per covariance: σ_p = mean √diag(C_ρρ) (m) and
     σ_r = Θ(exp(√diag(C_φφ)^)) (radians). (6, 6) or (N, 6, 6) → (N,), (N,)."""
-    c = as_float64(cov, "cov").reshape(-1, 6, 6)
+    c = as_float64(cov, "cov")
+    if c.shape[-2:] != (6, 6) or c.ndim not in (2, 3):
+        raise InvalidInputError(f"cov: expected shape (6, 6) or (N, 6, 6), got {c.shape}")
+    c = c.reshape(-1, 6, 6)
     sd = np.sqrt(np.maximum(np.diagonal(c, axis1=1, axis2=2), 0.0))
     sigma_p = sd[:, :3].mean(axis=1)
-    sigma_r = np.asarray(lie.rotation_angle(lie.so3_exp(sd[:, 3:]))).reshape(-1)
+    try:
+        sigma_r = np.asarray(lie.rotation_angle(lie.so3_exp(sd[:, 3:]))).reshape(-1)
+    except InvalidInputError as exc:  # √diag(C_φφ) beyond so3_exp's range
+        raise InvalidInputError(f"cov: rotation standard deviations out of range ({exc})") from None
     return sigma_p, sigma_r
 
 
@@ -197,6 +245,9 @@ def summarize(
     """
     gt = _poses(ground_truth, "ground_truth")
     n = len(gt)
+    for name, seq in (("estimates", estimates), ("covariances", covariances), ("sources", sources), ("timings_ms", timings_ms)):
+        if (seq is not None or name == "estimates") and (isinstance(seq, (str, bytes)) or not hasattr(seq, "__len__") or (isinstance(seq, np.ndarray) and seq.ndim == 0)):
+            raise InvalidInputError(f"{name}: expected a sequence of {n} entries, got {type(seq).__name__}")
     if len(estimates) != n:
         raise InvalidInputError(f"estimates: expected {n} entries (one per ground-truth pose), got {len(estimates)}")
     for name, seq in (("covariances", covariances), ("sources", sources), ("timings_ms", timings_ms)):
@@ -212,7 +263,7 @@ def summarize(
     rot = np.full(n, np.nan)
     est = np.full((n, 4, 4), np.nan)
     if localized.any():
-        est[localized] = _poses(np.stack([np.asarray(e, dtype=np.float64) for e in estimates if e is not None]), "estimates")
+        est[localized] = _poses(np.stack([as_float64(e, f"estimates[{k}]") for k, e in enumerate(estimates) if e is not None]), "estimates")
         trans[localized], rot[localized] = pose_errors(est[localized], gt[localized])
     nees_values = np.full(n, np.nan)
     sigma_p = np.full(n, np.nan)
@@ -223,10 +274,13 @@ def summarize(
     if covariances is not None:
         for k, c in enumerate(covariances):
             if c is not None and localized[k]:
-                cov_stack[k] = _covariances(c, 1)[0]
+                cov_stack[k] = _covariances(c, 1, f"covariances[{k}]")[0]
                 has_cov[k] = True
         if has_cov.any():
-            nees_values[has_cov] = nees(est[has_cov], cov_stack[has_cov], gt[has_cov])
+            try:
+                nees_values[has_cov] = nees(est[has_cov], cov_stack[has_cov], gt[has_cov])
+            except InvalidInputError as exc:
+                raise InvalidInputError(f"covariances: {exc}") from None
             sigma_p[has_cov], sr = isometric_sigmas(cov_stack[has_cov])
             sigma_r[has_cov] = np.degrees(sr)
             for j in np.flatnonzero(has_cov).tolist():
@@ -346,7 +400,7 @@ def format_table(summaries: Mapping[str, Mapping[str, Any]], reference: Mapping[
 def format_tum_line(timestamp: float, pose: ArrayLike) -> str:
     """``"t tx ty tz qx qy qz qw"`` for one world_from_cam pose (TUM order: quaternion
     x, y, z, w, with w ≥ 0), every number written exactly (shortest round-trip repr)."""
-    t = float(timestamp)
+    t = real_scalar(timestamp, "timestamp")
     if not math.isfinite(t):
         raise InvalidInputError(f"timestamp: expected a finite number, got {timestamp!r}")
     T = _poses(pose, "pose")

@@ -58,11 +58,18 @@ class Features:
 
 def decode_sift_octave(packed: NDArray[Any]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
     """OpenCV SIFT's packed ``KeyPoint.octave`` → (octave o as signed, layer l)."""
-    p = np.asarray(packed, dtype=np.int64)
+    raw = np.asarray(packed)
+    if raw.dtype.kind not in "iu":
+        raise InvalidInputError(f"packed: expected integers (KeyPoint.octave), got an array of dtype {raw.dtype}")
+    p = raw.astype(np.int64)
     octave = p & 0xFF
     octave = np.where(octave >= 128, octave - 256, octave)
     layer = (p >> 8) & 0xFF
     return octave, layer
+
+
+#: Largest ``n_features`` a FeatureExtractor accepts (OpenCV's detectors take a C int).
+MAX_FEATURES = 1_000_000
 
 
 class FeatureExtractor:
@@ -74,6 +81,8 @@ class FeatureExtractor:
             raise InvalidInputError(f"kind: expected 'orb' or 'sift', got {kind!r}")
         if not isinstance(n_features, (int, np.integer)) or isinstance(n_features, bool) or n_features < 1:
             raise InvalidInputError(f"n_features: expected a positive integer, got {n_features!r}")
+        if n_features > MAX_FEATURES:  # OpenCV takes a C int: 2**63 raised OverflowError
+            raise InvalidInputError(f"n_features: must be at most {MAX_FEATURES}, got {n_features}")
         if root_sift and kind != "sift":
             raise InvalidInputError("root_sift: only applies to kind='sift'")
         cv2 = import_cv2("feature extraction")
@@ -126,6 +135,8 @@ class FeatureExtractor:
         img = np.asarray(image)
         if img.dtype != np.uint8:
             raise InvalidInputError(f"image: expected uint8 pixels, got dtype {img.dtype}")
+        if img.ndim in (2, 3) and 0 in img.shape[:2]:  # OpenCV asserts on an empty image
+            raise InvalidInputError(f"image: is empty, shape {img.shape}")
         if img.ndim == 3 and img.shape[2] == 3:
             gray = self._cv2.cvtColor(np.ascontiguousarray(img), self._cv2.COLOR_BGR2GRAY)
         elif img.ndim == 2:

@@ -9,13 +9,13 @@ translation first; point covariances are 3×3 in world coordinates (m²).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from . import _core
-from ._validation import as_batch, as_float64, broadcast_batches
+from ._validation import as_batch, as_float64, broadcast_batches, choice, real_scalar
 from .camera import Camera
 from .exceptions import InvalidInputError
 
@@ -124,8 +124,19 @@ def _real_array(x: ArrayLike, name: str) -> Array:
     return np.ascontiguousarray(arr, dtype=np.float64)
 
 
+_LOSSES = ("huber", "cauchy", "none")
+
+
+def _flag(value: Any, name: str) -> bool | None:
+    """None, or a bool (numpy bools too); anything else is an InvalidInputError naming ``name``."""
+    if value is None or isinstance(value, (bool, np.bool_)):
+        return None if value is None else bool(value)
+    raise InvalidInputError(f"{name}: expected True, False or None, got {value!r:.40}")
+
+
 def _check_positive(value: float, name: str) -> float:
-    if not isinstance(value, (int, float, np.floating, np.integer)) or not np.isfinite(value) or value <= 0:
+    value = real_scalar(value, name)
+    if not np.isfinite(value) or value <= 0:
         raise InvalidInputError(f"{name}: expected a finite number > 0, got {value!r}")
     return float(value)
 
@@ -154,7 +165,7 @@ def _matrix_stack(m: ArrayLike, name: str, shape: tuple[int, ...]) -> Array:
     arr = _real_array(m, name)
     if arr.shape != shape:
         raise InvalidInputError(f"{name}: expected shape {shape}, got {arr.shape}")
-    return np.ascontiguousarray(arr.reshape(shape[0], -1))
+    return np.ascontiguousarray(arr.reshape(shape[0], int(np.prod(shape[1:]))))  # -1 fails for 0 rows
 
 
 def triangulate(
@@ -194,8 +205,9 @@ def triangulate(
     covs = None if pose_covariances is None else _matrix_stack(pose_covariances, "pose_covariances", (n_cams, 6, 6))
     raw = _core.triangulate(
         poses_flat, cam.intrinsics, _index_array(cam_ids, "cam_ids", n_obs), _index_array(track_ids, "track_ids", n_obs),
-        np.ascontiguousarray(px), pose_covariances=covs, loss=loss, huber=huber, pixel_sigma=pixel_sigma,
-        max_residual=max_residual, min_angle=min_angle,
+        np.ascontiguousarray(px), pose_covariances=covs, loss=choice(loss, "loss", _LOSSES),
+        huber=real_scalar(huber, "huber"), pixel_sigma=real_scalar(pixel_sigma, "pixel_sigma"),
+        max_residual=real_scalar(max_residual, "max_residual"), min_angle=real_scalar(min_angle, "min_angle"),
     )
     jacobians = raw.pose_jacobians
     p = len(raw.track_ids)
@@ -279,9 +291,11 @@ def solve_pnp(
             raise InvalidInputError("uncertainty: pose_jacobians and pose_covariances go together")
     return _core.solve_pnp(
         pts, px, cam.intrinsics, init_pose=init, point_covariances=covs, point_pose_jacobians=jacs,
-        pose_covariances=pose_covs, loss=loss, huber=huber, pixel_sigma=pixel_sigma, max_residual=max_residual,
-        covariance=covariance, ransac=ransac, min_iterations=min_iterations, max_iterations=max_iterations,
-        confidence=confidence, seed=seed,
+        pose_covariances=pose_covs, loss=choice(loss, "loss", _LOSSES), huber=real_scalar(huber, "huber"),
+        pixel_sigma=real_scalar(pixel_sigma, "pixel_sigma"), max_residual=real_scalar(max_residual, "max_residual"),
+        covariance=choice(covariance, "covariance", ("propagated", "paper")), ransac=_flag(ransac, "ransac"),
+        min_iterations=min_iterations, max_iterations=max_iterations,
+        confidence=real_scalar(confidence, "confidence"), seed=seed,
     )
 
 
@@ -293,6 +307,7 @@ def keyframe_score(
     a, lead_a = as_batch(T1, "T1", (4, 4))
     b, lead_b = as_batch(T2, "T2", (4, 4))
     (a, b), lead = broadcast_batches([(a, lead_a, "T1"), (b, lead_b, "T2")])
+    d_m = real_scalar(d_m, "d_m")
     if not np.isfinite(d_m) or d_m < 0:
         raise InvalidInputError(f"d_m: expected a finite number ≥ 0, got {d_m!r}")
     out = _core.keyframe_score(a, b, float(d_m), _check_positive(ell, "ell"), _check_positive(alpha_m, "alpha_m"))
@@ -320,5 +335,6 @@ def select_keyframes(
     for name, value in (("k", k), ("n", n), ("window", window)):
         if not isinstance(value, (int, np.integer)) or value < 0:
             raise InvalidInputError(f"{name}: expected a non-negative integer, got {value!r}")
-    out = _core.select_keyframes(flat, int(k), int(n), int(window), float(d_m), float(ell), float(alpha_m), float(min_score))
+    reals = [real_scalar(v, name) for name, v in (("d_m", d_m), ("ell", ell), ("alpha_m", alpha_m), ("min_score", min_score))]
+    out = _core.select_keyframes(flat, int(k), int(n), int(window), *reals)
     return np.asarray(out, dtype=np.int64)

@@ -7,7 +7,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from . import _core
-from ._validation import as_batch, as_float64
+from ._validation import as_batch, as_float64, real_scalar
 from .camera import Camera
 from .exceptions import InvalidInputError
 from .retrieval import _local_descriptors as _descriptors
@@ -31,6 +31,8 @@ def match_descriptors(
     """
     a = _descriptors(descriptors_a, "descriptors_a")
     b = _descriptors(descriptors_b, "descriptors_b")
+    ratio = None if ratio is None else real_scalar(ratio, "ratio")
+    max_distance = None if max_distance is None else real_scalar(max_distance, "max_distance")
     return _core.match_descriptors(a, b, ratio=ratio, mutual=bool(mutual), max_distance=max_distance)
 
 
@@ -62,5 +64,5 @@ def epipolar_filter(
         raise InvalidInputError(f"pairs: expected integer pairs of shape (M, 2), got {p.shape} {p.dtype}")
     return _core.epipolar_filter(
         cam.intrinsics, pa, pb, np.ascontiguousarray(ka), np.ascontiguousarray(kb),
-        np.ascontiguousarray(p, dtype=np.int64), max_px=float(max_px),
+        np.ascontiguousarray(p, dtype=np.int64), max_px=real_scalar(max_px, "max_px"),
     )

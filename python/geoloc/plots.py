@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from ._io import as_path
 from ._opencv import import_figure
 from .evaluation import CHI2_6_95, chi2_6_quantile
 from .exceptions import InvalidInputError
@@ -53,7 +54,7 @@ def _frames(results: Results) -> list[dict[str, Any]]:
 
 
 def _save(fig: Any, path: str | os.PathLike[str]) -> Path:
-    target = Path(path)
+    target = as_path(path, "path")
     if not target.parent.is_dir():
         raise InvalidInputError(f"path: folder {str(target.parent)!r} does not exist")
     fig.savefig(target, dpi=FIGURE_DPI)
@@ -194,7 +195,7 @@ def plot_calibration(results: Results, path: str | os.PathLike[str]) -> Path:
 def write_all(results: Results, directory: str | os.PathLike[str]) -> dict[str, Path]:
     """Write the four plots into ``directory`` (created if missing; its parent must exist);
     returns {name: path}."""
-    folder = Path(directory)
+    folder = as_path(directory, "directory")
     if not folder.parent.is_dir():
         raise InvalidInputError(f"directory: parent folder {str(folder.parent)!r} does not exist")
     try:

@@ -47,6 +47,8 @@ class DescriptorIndex:
     """
 
     def __init__(self, descriptors: ArrayLike, backend: Literal["kdtree", "flat"] | None = None) -> None:
+        if backend is not None and backend not in ("kdtree", "flat"):
+            raise InvalidInputError(f"backend: expected 'kdtree', 'flat' or None, got {backend!r:.40}")
         self._index = _core.DescriptorIndex(_f32_rows(descriptors, "descriptors"), backend=backend)
 
     def __len__(self) -> int:
@@ -113,8 +115,13 @@ class BowDatabase:
         if not isinstance(vocabulary, Vocabulary):
             raise InvalidInputError(f"vocabulary: expected a geoloc.retrieval.Vocabulary, got {type(vocabulary).__name__}")
         self.vocabulary = vocabulary
+        if isinstance(images, (str, bytes, np.ndarray)) and np.ndim(images) < 3 or not hasattr(images, "__iter__"):
+            raise InvalidInputError(f"images: expected a list of (N, W) descriptor arrays, got {type(images).__name__}")
         descs = [_local_descriptors(d, f"images[{i}]") for i, d in enumerate(images)]
-        self._database = _core.BowDatabase(vocabulary._vocabulary, descs)
+        try:
+            self._database = _core.BowDatabase(vocabulary._vocabulary, descs)
+        except InvalidInputError as exc:  # the core names its own argument, `descriptors`
+            raise type(exc)(f"images: {exc}") from None
 
     def __len__(self) -> int:
         return len(self._database)

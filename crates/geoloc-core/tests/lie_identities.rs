@@ -193,6 +193,26 @@ fn distance_is_the_twist_norm_and_symmetric() {
 }
 
 #[test]
+fn checked_interpolation_refuses_an_overflowing_alpha() {
+    // found by tests/adversarial: se3_interpolate(T1, T2, 1e300) returned a NaN pose
+    let a = SE3::identity();
+    let b = SE3::exp(&Twist::new(0.1, 0.0, 0.0, 0.0, 0.2, 0.0));
+    for alpha in [1e300, -1e200, f64::INFINITY, f64::NAN] {
+        match a.checked_interpolate(&b, alpha) {
+            Err(geoloc_core::GeolocError::InvalidInput { name, .. }) => assert_eq!(name, "alpha"),
+            other => panic!("alpha {alpha}: expected InvalidInput naming alpha, got {other:?}"),
+        }
+    }
+    assert!(a.checked_interpolate(&b, 1e6).is_ok(), "a large but representable extrapolation");
+    let far = SE3::exp(&Twist::new(1e149, 0.0, 0.0, 0.0, 0.0, 0.0));
+    let far = far * far * far * far * far * far * far * far * far * far * far * far; // ρ ≈ 1.2e150
+    match far.checked_interpolate(&a, 0.5) {
+        Err(geoloc_core::GeolocError::InvalidInput { name, .. }) => assert_eq!(name, "T1, T2"),
+        other => panic!("expected InvalidInput naming T1, T2, got {other:?}"),
+    }
+}
+
+#[test]
 fn interpolation_follows_the_geodesic() {
     let mut rng = SplitMix64::new(6);
     for _ in 0..200 {
@@ -202,6 +222,7 @@ fn interpolation_follows_the_geodesic() {
         let b = a * SE3::exp(&xi);
         assert!(relative_error(&a.interpolate(&b, 0.0).matrix(), &a.matrix()) < 1e-12);
         assert!(relative_error(&a.interpolate(&b, 1.0).matrix(), &b.matrix()) < 1e-11);
+        assert_eq!(a.checked_interpolate(&b, 0.3).expect("ordinary alpha").matrix(), a.interpolate(&b, 0.3).matrix());
         let mid = a.interpolate(&b, 0.3);
         assert!((a.distance(&mid) - 0.3 * xi.norm()).abs() < 1e-9);
         assert!((mid.distance(&b) - 0.7 * xi.norm()).abs() < 1e-9);
@@ -358,5 +379,14 @@ fn overflowing_and_non_rotation_inputs_are_refused() {
     for scale in [1e200, 1e-200, 3.0] {
         let p = SO3::from_matrix_projected(&(r.matrix() * scale)).expect("scaled rotation");
         assert!((p.matrix() - r.matrix()).abs().max() < 1e-14, "scale {scale}");
+    }
+    // denormal scales (found by tests/adversarial: 2^1063 overflowed to inf → NaN rotation);
+    // the entries keep only a few bits, so the projection is a rotation near R, not R
+    for scale in [1e-310, 1e-320] {
+        let p = SO3::from_matrix_projected(&(r.matrix() * scale)).expect("denormal rotation");
+        let m = p.matrix();
+        assert!(m.iter().all(|x| x.is_finite()), "scale {scale}");
+        assert!((m.transpose() * m - Matrix3::identity()).abs().max() < 1e-12, "scale {scale}");
+        assert!((m - r.matrix()).abs().max() < 0.05, "scale {scale}");
     }
 }

@@ -258,7 +258,7 @@ pub fn se3_interpolate<'py>(
     let alpha = rows::<1>("alpha", &alpha)?;
     fill_rows::<16, _>(py, n, |index, out| {
         let i = Row { index, single };
-        let t = pose_at("T1", a, i)?.interpolate(&pose_at("T2", b, i)?, alpha[index]);
+        let t = pose_at("T1", a, i)?.checked_interpolate(&pose_at("T2", b, i)?, alpha[index])?;
         write_matrix(&t.matrix(), out);
         Ok(())
     })

@@ -28,7 +28,9 @@ def file_loader(files: list[Path], camera: Camera, numbers: list[int] | None = N
 
 def existing_folder(path: str | os.PathLike[str]) -> Path:
     """``path`` as a Path, or DatasetError when it is not a folder."""
-    root = Path(path)
+    from .._io import as_path
+
+    root = as_path(path, "path")
     if not root.is_dir():
         raise DatasetError(f"path: dataset folder {str(root)!r} does not exist")
     return root

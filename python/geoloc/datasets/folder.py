@@ -19,12 +19,14 @@ timestamped by name when names are numbers, else by index / 30 s.
 
 from __future__ import annotations
 
+import math
 import os
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
 
+from .._validation import real_scalar
 from ..camera import Camera
 from ..exceptions import DatasetError, InvalidInputError
 from ._files import existing_folder, file_loader
@@ -64,6 +66,10 @@ def load_folder(
     camera = resolve_camera(intrinsics, root, (first.shape[1], first.shape[0]))
     name_times = _name_timestamps(files)
 
+    if trajectory is not None and not isinstance(trajectory, (str, os.PathLike)):
+        raise InvalidInputError(f"trajectory: expected a file name or None, got {type(trajectory).__name__}")
+    if not math.isfinite(real_scalar(max_time_difference, "max_time_difference")) or max_time_difference < 0:
+        raise InvalidInputError(f"max_time_difference: expected seconds ≥ 0, got {max_time_difference!r}")
     traj_file = None if trajectory is None else (root / trajectory)
     if traj_file is None or (not traj_file.exists() and str(trajectory) == DEFAULT_TRAJECTORY):
         times = name_times if name_times is not None else np.arange(len(files)) / FALLBACK_FRAME_RATE_HZ

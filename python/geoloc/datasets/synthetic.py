@@ -170,6 +170,10 @@ def _world_from_cam(position: NDArray[np.float64], yaw: float, pitch: float, rol
     return T
 
 
+#: Largest ``n_frames`` of :func:`synthetic_room` (its trajectory takes ~0.1 ms per frame).
+MAX_FRAMES = 20_000
+
+
 def room_trajectory(n_frames: int) -> NDArray[np.float64]:
     """(n_frames, 4, 4) world_from_cam poses: two laps around the room (see the module doc)."""
     poses = np.empty((n_frames, 4, 4))
@@ -204,6 +208,8 @@ def synthetic_room(
     """
     if not isinstance(n_frames, (int, np.integer)) or isinstance(n_frames, bool) or n_frames < 1:
         raise InvalidInputError(f"n_frames: expected a positive integer, got {n_frames!r}")
+    if n_frames > MAX_FRAMES:  # the trajectory is built frame by frame: 344 532 frames took > 30 s
+        raise InvalidInputError(f"n_frames: must be at most {MAX_FRAMES}, got {n_frames}")
     if not isinstance(seed, (int, np.integer)) or isinstance(seed, bool) or seed < 0:
         raise InvalidInputError(f"seed: expected an integer ≥ 0, got {seed!r}")
     for name, value in (("noise", noise), ("blur", blur)):

@@ -21,6 +21,7 @@ Otherwise loading fails and asks for intrinsics.
 
 from __future__ import annotations
 
+import math
 import os
 import re
 from pathlib import Path
@@ -29,6 +30,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .. import lie
+from .._validation import real_scalar
 from ..camera import Camera
 from ..exceptions import DatasetError, InvalidInputError
 from ._files import data_rows, existing_folder, file_loader, floats
@@ -155,7 +157,7 @@ def load_tum(
     number in ``rgb.txt`` (dropped images leave gaps). Intrinsics: see the module doc.
     """
     root = existing_folder(path)
-    if not np.isfinite(max_time_difference) or max_time_difference < 0:
+    if not math.isfinite(real_scalar(max_time_difference, "max_time_difference")) or max_time_difference < 0:
         raise InvalidInputError(f"max_time_difference: expected seconds ≥ 0, got {max_time_difference!r}")
     rgb = root / "rgb.txt"
     rows = data_rows(rgb)

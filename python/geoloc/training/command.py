@@ -119,22 +119,46 @@ def load_frames(
             raise InvalidInputError(f"--dataset: no such file or folder: {dataset!r}")
         if fmt == "7scenes":
             if datasets is not None:
-                seq = datasets.load_7scenes(path)
+                seq = _load(datasets, fmt, path, trajectory)
             else:
                 from .frames import SevenScenesFrames
 
                 seq = SevenScenesFrames(path)
         elif datasets is None:
             raise GeolocError(f"--format {fmt} needs geoloc.datasets, which this installation lacks")
-        elif fmt == "tum":
-            seq = datasets.load_tum(path)
         else:
-            seq = datasets.load_folder(path, trajectory=trajectory or "traj.txt")
+            seq = _load(datasets, fmt, path, trajectory)
     start, stop = frames
     stop = len(seq) if stop is None else stop
     if start >= len(seq) or stop > len(seq):
         raise InvalidInputError(f"--train: frames {start}:{stop} are outside the dataset's {len(seq)} frames")
     return seq if (start, stop, stride) == (0, len(seq), 1) else _Subset(seq, range(start, stop, stride))
+
+
+def device_name(text: str) -> str:
+    """``auto``, ``cpu``, ``cuda`` or ``cuda:N``, checked while parsing, so a bad ``--device`` is
+    an argparse error naming the option before anything is loaded or printed."""
+    import re
+
+    if not re.fullmatch(r"auto|cpu|cuda(:\d{1,3})?", text):
+        raise argparse.ArgumentTypeError(f"expected auto, cpu, cuda or cuda:N, got {text!r}")
+    return text
+
+
+def _load(datasets: Any, fmt: str, path: Path, trajectory: str | None) -> Any:
+    """The dataset loader's DatasetError (``"path: …"``) re-headed with the option that set
+    the argument (``--dataset``, ``--trajectory``), as the other commands do."""
+    from ..commands._common import option_message
+    from ..exceptions import DatasetError
+
+    try:
+        if fmt == "7scenes":
+            return datasets.load_7scenes(path)
+        if fmt == "tum":
+            return datasets.load_tum(path)
+        return datasets.load_folder(path, trajectory=trajectory or "traj.txt")
+    except DatasetError as e:
+        raise InvalidInputError(option_message(str(e), "--dataset")) from None
 
 
 def add_train_command(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> Handler:
@@ -167,7 +191,7 @@ def add_train_command(commands: argparse._SubParsersAction[argparse.ArgumentPars
     p.add_argument("--checkpoint", type=output_file, metavar="FILE", help="save a checkpoint every 10 epochs and at the end")
     p.add_argument("--resume", action="store_true", help="continue from --checkpoint")
     p.add_argument("--init", type=input_file, metavar="FILE", help="start from the weights of a local checkpoint")
-    p.add_argument("--device", default="auto", metavar="DEV", help="auto (CUDA when present), cpu, cuda, cuda:N (default: auto)")
+    p.add_argument("--device", type=device_name, default="auto", metavar="DEV", help="auto (CUDA when present), cpu, cuda, cuda:N (default: auto)")
     p.add_argument("--threads", type=bounded_int(1, 1024), metavar="N", help="torch CPU threads (default: torch's)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
@@ -178,8 +202,13 @@ def add_train_command(commands: argparse._SubParsersAction[argparse.ArgumentPars
             raise InvalidInputError("--resume: needs --checkpoint FILE")
         require_torch()
         from .export import export_onnx
-        from .train import TrainConfig, train
+        from .train import TrainConfig, load_checkpoint, train
 
+        if args.init is not None:  # refuse a foreign --init before loading frames or printing anything
+            try:
+                load_checkpoint(args.init)
+            except InvalidInputError as e:
+                raise InvalidInputError(f"--init: {str(e).removeprefix('checkpoint: ')}") from None
         frames = load_frames(args.dataset, args.format, args.train, args.seed, args.trajectory, args.stride)
         epochs = args.epochs or (TINY_EPOCHS if args.tiny else PAPER_EPOCHS)
         config = TrainConfig(

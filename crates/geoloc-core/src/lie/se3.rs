@@ -201,6 +201,28 @@ impl SE3 {
     pub fn interpolate(&self, other: &Self, alpha: f64) -> Self {
         *self * Self::exp(&(alpha * (self.inverse() * *other).log()))
     }
+
+    /// [`SE3::interpolate`] for input from outside: refuses a non-finite `alpha` and one whose
+    /// scaled twist α·log(T₁⁻¹T₂) the exponential map cannot represent ([`check_twist`]);
+    /// α = 1e300 returned a NaN pose.
+    ///
+    /// # Errors
+    /// [`GeolocError::InvalidInput`] named "alpha".
+    pub fn checked_interpolate(&self, other: &Self, alpha: f64) -> Result<Self> {
+        if !alpha.is_finite() {
+            return Err(GeolocError::invalid("alpha", format!("{alpha} is not finite")));
+        }
+        let relative = (self.inverse() * *other).log();
+        check_twist(&relative).map_err(|_| {
+            GeolocError::invalid("T1, T2", "T1⁻¹T2 is beyond the exponential map's finite range".to_string())
+        })?;
+        let xi = alpha * relative;
+        check_twist(&xi).map_err(|e| match e {
+            GeolocError::InvalidInput { reason, .. } => GeolocError::invalid("alpha", reason),
+            _ => GeolocError::invalid("alpha", format!("{alpha:e} scales the twist beyond the finite range")),
+        })?;
+        Ok(*self * Self::exp(&xi))
+    }
 }
 
 impl std::ops::Mul for SE3 {

@@ -197,7 +197,9 @@ impl SO3 {
         if largest == 0.0 {
             return Err(not_near("the zero matrix".into()));
         }
-        let matrix = &(matrix * 2f64.powi(-(largest.log2().round() as i32)));
+        // In two factors: for denormal entries (largest ≈ 6e-321) 2^1063 alone is inf.
+        let exponent = -(largest.log2().round() as i32);
+        let matrix = &(matrix * 2f64.powi(exponent / 2) * 2f64.powi(exponent - exponent / 2));
         let det = matrix.determinant();
         if det <= 0.0 {
             return Err(not_near(format!("det = {det:.6e} ≤ 0")));

@@ -1,0 +1,69 @@
+"""Worker-side fixtures, built once per worker process and cached (``("cached", name)``)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+
+def small_room(tmp: Path) -> Any:
+    import geoloc
+
+    return geoloc.datasets.synthetic_room(n_frames=12, seed=0)
+
+
+def small_map(tmp: Path) -> Any:
+    import geoloc
+
+    seq = geoloc.datasets.synthetic_room(n_frames=12, seed=0)
+    return geoloc.Map.build(seq[:10], n_features=300, branching=4, depth=2)
+
+
+def small_map_file(tmp: Path) -> str:
+    m = small_map(tmp)
+    path = tmp / "small.geoloc"
+    m.save(path)
+    return str(path)
+
+
+def small_dataset_dir(tmp: Path) -> str:
+    """A small TUM RGB-D folder (written by Sequence.write_tum)."""
+    import geoloc
+
+    seq = geoloc.datasets.synthetic_room(n_frames=4, seed=1)
+    return str(seq.write_tum(tmp / "tum-ds"))
+
+
+def feature_map(tmp: Path) -> Any:
+    from geoloc.localizer import FeatureMap
+
+    from geoloc import Camera
+
+    rng = np.random.default_rng(0)
+    poses = np.repeat(np.eye(4)[None], 3, axis=0)
+    poses[:, 0, 3] = [0.0, 0.1, 0.2]
+    kps = [rng.uniform(0, 480, size=(40, 2)) for _ in range(3)]
+    descs = [rng.integers(0, 256, size=(40, 32), dtype=np.uint8) for _ in range(3)]
+    return FeatureMap(Camera(525, 525, 320, 240), poses, kps, descs, branching=3, depth=2)
+
+
+def onnx_model(tmp: Path) -> str:
+    """A tiny ONNX descriptor exported with geoloc.training (the parent skips these cases
+    when torch is missing)."""
+    import torch
+
+    from geoloc.training.export import export_onnx
+    from geoloc.training.network import build_network
+
+    torch.manual_seed(0)
+    path = tmp / "tiny.onnx"
+    export_onnx(build_network("tiny", 32), path, quiet=True)
+    return str(path)
+
+
+def onnx_descriptor(tmp: Path) -> Any:
+    from geoloc import OnnxDescriptor
+
+    return OnnxDescriptor(onnx_model(tmp))

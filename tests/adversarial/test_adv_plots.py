@@ -1,0 +1,17 @@
+"""Adversarial cases for geoloc's `plots` entry points (see cases.py for what is generated)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from hypothesis import given
+
+from . import cases
+from .conftest import HAS_TORCH, adversarial_settings, check_case
+from .harness import Worker
+
+
+@adversarial_settings()
+@given(case=cases.module_cases("plots", with_onnx=HAS_TORCH))
+def test_adversarial_plots(worker: Worker, case: dict[str, Any]) -> None:
+    check_case(worker, "plots", case)
