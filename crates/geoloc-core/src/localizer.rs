@@ -267,9 +267,10 @@ impl Localizer {
         })
     }
 
-    /// Forgets the motion history (e.g. after a jump).
+    /// Forgets the motion history (e.g. after a jump), and with it the last timestamp.
     pub fn reset(&mut self) {
         self.history.clear();
+        self.last_timestamp = None;
         self.rejected.clear();
         self.motion_only = 0;
     }

@@ -117,6 +117,9 @@ fn holdout_residuals(loc: &mut Localizer, options: &NoiseOptions) -> Result<Vec<
     for k in (options.holdout_step / 2..n).step_by(options.holdout_step) {
         let b = k / block;
         let excluded = (b * block).saturating_sub(options.margin)..((b + 1) * block + options.margin).min(n);
+        if excluded.len() >= n {
+            continue; // a map this small has nothing to re-localize against
+        }
         let Some(estimate) = loc.localize_held_out(k, excluded)? else { continue };
         let delta = (loc.map.keyframes[k].world_from_cam.inverse() * estimate.world_from_cam).log();
         let rotation = delta.fixed_rows::<3>(3).norm();
