@@ -45,7 +45,12 @@ class FeatureMap:
     Everything is checked here, at construction (counts, finiteness, float32 range, pose
     covariances symmetric positive semi-definite, ``retrieval`` in {"bow", "global"}, the
     vocabulary's limits ``branching`` ≤ 1024, ``depth`` ≤ 24, ``branching**depth`` ≤ 2**24),
-    so a map that builds localizes."""
+    so a map that builds localizes.
+
+    ``estimate_noise=True`` estimates the map's own noise once built (see :attr:`map_noise`):
+    the map-frame covariance C_map by re-localizing every 10th keyframe against the others
+    (its ±15 neighbours excluded), and with ``timestamps`` (one per keyframe, seconds) the
+    motion model's acceleration process noise."""
 
     def __init__(
         self,
@@ -59,6 +64,8 @@ class FeatureMap:
         branching: int = 10,
         depth: int = 3,
         seed: int = 0,
+        timestamps: ArrayLike | None = None,
+        estimate_noise: bool = False,
     ) -> None:
         if not isinstance(camera, Camera):
             raise InvalidInputError(f"camera: expected a geoloc.Camera, got {type(camera).__name__}")
@@ -77,12 +84,27 @@ class FeatureMap:
             if c.shape != (n, 6, 6):
                 raise InvalidInputError(f"pose_covariances: expected shape ({n}, 6, 6), got {c.shape}")
             covs = np.ascontiguousarray(c.reshape(n, 36))
+        ts = None
+        if timestamps is not None:
+            ts = np.ascontiguousarray(as_float64(timestamps, "timestamps"))
+            if ts.shape != (n,):
+                raise InvalidInputError(f"timestamps: expected shape ({n},), got {ts.shape}")
         self.camera = camera
         self.frontend: dict[str, Any] = {}
         self._map = _core.FeatureMap(
             camera.intrinsics, flat, kps, descs, global_descriptors=g, pose_covariances=covs,
             retrieval=retrieval, branching=branching, depth=depth, seed=seed,
+            timestamps=ts, estimate_noise=bool(estimate_noise),
         )
+
+    @property
+    def map_noise(self) -> dict[str, Any]:
+        """What was estimated about the map's noise at build time (all zero when not):
+        ``pose_covariance`` C_map (6, 6, right perturbation, translation first; added to every
+        returned covariance), ``acceleration_psd`` (6,) of the motion model's process noise,
+        ``holdout_samples`` (held-out keyframes C_map comes from)."""
+        cov, psd, samples = self._map.map_noise
+        return {"pose_covariance": cov, "acceleration_psd": np.asarray(psd), "holdout_samples": samples}
 
     def __len__(self) -> int:
         return len(self._map)

@@ -60,6 +60,12 @@ def _descriptor_record(descriptor: Any) -> dict[str, Any]:
     return record
 
 
+def _increasing(timestamps: NDArray[np.float64]) -> NDArray[np.float64] | None:
+    """The keyframes' timestamps for the process-noise estimate, or None when they do not
+    strictly increase (then the motion model gets no process noise from the map)."""
+    return timestamps if len(timestamps) >= 3 and bool(np.all(np.diff(timestamps) > 0)) else None
+
+
 class Map:
     """Keyframes with known poses, their features and the retrieval structure; see the module doc."""
 
@@ -81,6 +87,7 @@ class Map:
         branching: int = 10,
         depth: int = 3,
         seed: int = 0,
+        estimate_noise: bool = True,
         progress: ProgressCallback | None = None,
     ) -> Map:
         """Build a map from ``sequence`` (every ``keyframe_step``-th frame becomes a keyframe).
@@ -88,7 +95,10 @@ class Map:
         ``retrieval`` is ``"bow"`` (a ``branching``^``depth``-word vocabulary trained on the
         keyframes' descriptors, seeded by ``seed``) or a global-descriptor network;
         ``features`` is ``"orb"`` or ``"sift"`` with ``n_features`` per image.
-        ``progress(done, total)`` is called after each keyframe.
+        ``progress(done, total)`` is called after each keyframe. ``estimate_noise`` (default
+        True) estimates the map's own noise after building it — the map-frame covariance
+        from held-out keyframes and the motion model's process noise from the frames'
+        timestamps (:attr:`map_noise`); it is stored in the map file.
         """
         from .datasets import Sequence
 
@@ -125,6 +135,8 @@ class Map:
             branching=branching,
             depth=depth,
             seed=seed,
+            timestamps=_increasing(sequence.timestamps[indices]),
+            estimate_noise=bool(estimate_noise),
         )
         frontend = {
             "version": FRONTEND_VERSION,
@@ -139,6 +151,11 @@ class Map:
     def camera(self) -> Camera:
         """The camera the map was built with (queries must use the same intrinsics)."""
         return self._feature_map.camera
+
+    @property
+    def map_noise(self) -> dict[str, Any]:
+        """The noise estimated at build time; see :attr:`geoloc.localizer.FeatureMap.map_noise`."""
+        return self._feature_map.map_noise
 
     @property
     def features(self) -> FeatureExtractor:

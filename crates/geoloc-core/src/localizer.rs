@@ -14,14 +14,19 @@ use std::time::Instant;
 use nalgebra::{Matrix3, Matrix3x6, Matrix6, Vector2, Vector3};
 
 use crate::error::{GeolocError, Result};
+use crate::fusion::chi2_6_quantile_for_sigma;
 use crate::fusion::{FusionSource, Gate, fuse};
 use crate::keyframes::{KeyframeOptions, select_keyframes};
 use crate::lie::SE3;
 use crate::map::{DescriptorSet, Map};
 use crate::matching::{Descriptors, MatchOptions, epipolar_filter, match_descriptors};
-use crate::motion::motion_predict;
+use crate::motion::motion_predict_with_noise;
+use crate::optim::covariance::{isometric_sigmas, spd_inverse};
+
+mod noise;
 use crate::pnp::{PnpOptions, PointUncertainty, SharedPoseUncertainty, solve_pnp};
 use crate::triangulate::{TrackStatus, TriangulationOptions, triangulate};
+pub use noise::NoiseOptions;
 
 /// Options of the [`Localizer`], defaults from the paper.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -44,6 +49,14 @@ pub struct LocalizerOptions {
     pub gate: Gate,
     /// Fewest 2D–3D correspondences worth a PnP (default 12).
     pub min_correspondences: usize,
+    /// N: this many consecutive geometric poses that agree with each other but not with
+    /// the prediction re-initialize the motion history from them (default 3, ≥ 3).
+    pub reinit_after: usize,
+    /// M: after this many consecutive motion-only frames the frame is reported lost and
+    /// the motion history cleared (default 10).
+    pub lost_after: usize,
+    /// ... or as soon as the prediction's isometric position σ exceeds this (m, default 0.25).
+    pub max_motion_sigma_m: f64,
 }
 
 impl Default for LocalizerOptions {
@@ -58,6 +71,9 @@ impl Default for LocalizerOptions {
             gate_sigma: 3.0,
             gate: Gate::Isometric,
             min_correspondences: 12,
+            reinit_after: 3,
+            lost_after: 10,
+            max_motion_sigma_m: 0.25,
         }
     }
 }
@@ -71,9 +87,13 @@ impl LocalizerOptions {
         if self.history < 2 {
             return Err(GeolocError::invalid("history", format!("must be ≥ 2, got {}", self.history)));
         }
+        if self.reinit_after < 3 {
+            return Err(GeolocError::invalid("reinit_after", format!("must be ≥ 3, got {}", self.reinit_after)));
+        }
         let positive = [
             ("gate_sigma", self.gate_sigma),
             ("epipolar_px", self.epipolar_px),
+            ("max_motion_sigma_m", self.max_motion_sigma_m),
             ("pixel_sigma", self.pnp.pixel_sigma),
             ("pixel_sigma", self.triangulation.pixel_sigma),
             ("max_residual", self.pnp.max_residual_px),
@@ -204,10 +224,22 @@ struct MapPoints {
 }
 
 /// Localizes frame after frame against a [`Map`], keeping the motion history.
+///
+/// The motion model and the fusion run on the *measurement* part of the uncertainty: the
+/// history holds the geometric poses T_G with their PnP covariances C_G (independent from
+/// frame to frame), the prediction adds the map's process noise, and the gate compares
+/// T_G with T_M on C_G + C_M. The map-frame covariance C_map (label error shared by
+/// consecutive frames, so it must not be averaged down) is added to whatever is returned.
 pub struct Localizer {
     map: Arc<Map>,
     options: LocalizerOptions,
+    /// (timestamp, T_G, C_G) of the last accepted geometric measurements.
     history: VecDeque<(f64, SE3, Matrix6<f64>)>,
+    /// Consecutive geometric poses the gate rejected (cleared by anything else).
+    rejected: Vec<(f64, Estimate)>,
+    /// Consecutive motion-only frames.
+    motion_only: usize,
+    last_timestamp: Option<f64>,
     cache: HashMap<(usize, Vec<usize>), Arc<MapPoints>>,
 }
 
@@ -224,12 +256,23 @@ impl Localizer {
     /// `epipolar_px` not finite and > 0.
     pub fn new(map: Arc<Map>, options: LocalizerOptions) -> Result<Self> {
         options.check()?;
-        Ok(Self { map, options, history: VecDeque::new(), cache: HashMap::new() })
+        Ok(Self {
+            map,
+            options,
+            history: VecDeque::new(),
+            rejected: Vec::new(),
+            motion_only: 0,
+            last_timestamp: None,
+            cache: HashMap::new(),
+        })
     }
 
-    /// Forgets the motion history (e.g. after a jump).
+    /// Forgets the motion history (e.g. after a jump), and with it the last timestamp.
     pub fn reset(&mut self) {
         self.history.clear();
+        self.last_timestamp = None;
+        self.rejected.clear();
+        self.motion_only = 0;
     }
 
     /// Localizes one frame: the steps of DESIGN.md §1, (a)–(e), each a method below.
@@ -258,11 +301,12 @@ impl Localizer {
         // (d) motion model and (e) gated fusion
         let t = Instant::now();
         let prediction = self.predict(frame.timestamp);
-        let (estimate, source, reason) = self.combine(geometric, prediction);
-        timings.motion_fusion_ms = ms(t);
-        if let Some(e) = &estimate {
-            self.remember(frame.timestamp, e);
+        let (mut estimate, source, reason) = self.combine(frame.timestamp, geometric, prediction);
+        if let Some(e) = &mut estimate {
+            e.covariance += self.map.noise.pose_covariance;
         }
+        self.last_timestamp = Some(frame.timestamp);
+        timings.motion_fusion_ms = ms(t);
         timings.total_ms = ms(start);
         Ok(Localization { estimate, source, reason, keyframe, inliers, timings })
     }
@@ -280,7 +324,7 @@ impl Localizer {
         if let Some(i) = frame.keypoints.iter().position(|k| !(k.x.is_finite() && k.y.is_finite())) {
             return Err(GeolocError::NonFinite { name: "keypoints".into(), index: i });
         }
-        if !frame.timestamp.is_finite() || self.history.back().is_some_and(|(t, _, _)| frame.timestamp <= *t) {
+        if !frame.timestamp.is_finite() || self.last_timestamp.is_some_and(|t| frame.timestamp <= t) {
             return Err(GeolocError::invalid(
                 "timestamp",
                 format!("must be finite and increase, got {}", frame.timestamp),
@@ -339,15 +383,17 @@ impl Localizer {
         let ts: Vec<f64> = self.history.iter().map(|(t, _, _)| *t).collect();
         let poses: Vec<SE3> = self.history.iter().map(|(_, p, _)| *p).collect();
         let covs: Vec<Matrix6<f64>> = self.history.iter().map(|(_, _, c)| *c).collect();
-        motion_predict(&poses, &ts, timestamp, Some(&covs))
+        motion_predict_with_noise(&poses, &ts, timestamp, Some(&covs), &self.map.noise.acceleration_psd)
             .ok()
             .map(|p| Estimate { world_from_cam: p.world_from_cam, covariance: p.covariance })
     }
 
-    /// (e) the gate and the fusion of T_G with T_M: which estimate the frame gets, its
-    /// source, and why.
+    /// (e) the gate and the fusion of T_G with T_M (measurement parts): which estimate
+    /// the frame gets, its source, and why; updates the history, the rejected run and the
+    /// motion-only count.
     fn combine(
-        &self,
+        &mut self,
+        timestamp: f64,
         geometric: std::result::Result<Estimate, String>,
         prediction: Option<Estimate>,
     ) -> (Option<Estimate>, Source, String) {
@@ -355,29 +401,99 @@ impl Localizer {
             (Ok(g), Some(m)) => {
                 let (gate_sigma, gate) = (self.options.gate_sigma, self.options.gate);
                 match fuse(&m.world_from_cam, &m.covariance, &g.world_from_cam, &g.covariance, gate_sigma, gate) {
-                    Ok(f) => {
+                    Ok(f) if f.details == FusionSource::Fused => {
+                        self.accept(timestamp, &g);
                         let e = Estimate { world_from_cam: f.world_from_cam, covariance: f.covariance };
-                        if f.details == FusionSource::Fused {
-                            (Some(e), Source::Fused, "ok".to_string())
-                        } else {
-                            (Some(e), Source::Motion, "geometric pose outside the motion gate".to_string())
+                        (Some(e), Source::Fused, "ok".to_string())
+                    }
+                    Ok(_) => {
+                        self.rejected.push((timestamp, g));
+                        match self.reinitialize() {
+                            Some(done) => done,
+                            None => self.coast(m, "geometric pose outside the motion gate".to_string()),
                         }
                     }
-                    Err(e) => (Some(g), Source::Geometric, format!("fusion skipped: {e}")),
+                    Err(e) => {
+                        self.accept(timestamp, &g);
+                        (Some(g), Source::Geometric, format!("fusion skipped: {e}"))
+                    }
                 }
             }
-            (Ok(g), None) => (Some(g), Source::Geometric, "ok (no motion history yet)".to_string()),
-            (Err(why), Some(m)) => (Some(m), Source::Motion, format!("geometric locator failed: {why}")),
-            (Err(why), None) => (None, Source::Lost, format!("geometric locator failed and no motion history: {why}")),
+            (Ok(g), None) => {
+                self.accept(timestamp, &g);
+                (Some(g), Source::Geometric, "ok (no motion history yet)".to_string())
+            }
+            (Err(why), Some(m)) => {
+                self.rejected.clear();
+                self.coast(m, format!("geometric locator failed: {why}"))
+            }
+            (Err(why), None) => {
+                self.rejected.clear();
+                (None, Source::Lost, format!("geometric locator failed and no motion history: {why}"))
+            }
         }
     }
 
-    /// Adds a frame's estimate to the motion history (the last `history` of them).
-    fn remember(&mut self, timestamp: f64, estimate: &Estimate) {
-        self.history.push_back((timestamp, estimate.world_from_cam, estimate.covariance));
+    /// A geometric measurement joins the history (the last `history` of them).
+    fn accept(&mut self, timestamp: f64, g: &Estimate) {
+        self.rejected.clear();
+        self.motion_only = 0;
+        self.history.push_back((timestamp, g.world_from_cam, g.covariance));
         while self.history.len() > self.options.history.max(2) {
             self.history.pop_front();
         }
+    }
+
+    /// The motion prediction alone, unless it has coasted `lost_after` frames or its
+    /// position σ exceeds `max_motion_sigma_m`: then lost, with the history cleared so the
+    /// next geometric pose starts afresh (a lost frame never poisons the next ones).
+    fn coast(&mut self, m: Estimate, why: String) -> (Option<Estimate>, Source, String) {
+        self.motion_only += 1;
+        let (sigma_p, _) = isometric_sigmas(&m.covariance);
+        if self.motion_only > self.options.lost_after || sigma_p > self.options.max_motion_sigma_m {
+            let n = self.motion_only;
+            self.history.clear();
+            self.motion_only = 0;
+            let reason =
+                format!("{why}; lost after {n} motion-only frames (σ_p {sigma_p:.3} m), motion history cleared");
+            return (None, Source::Lost, reason);
+        }
+        (Some(m), Source::Motion, why)
+    }
+
+    /// No lock-out: when the last N (`reinit_after`) rejected geometric poses are
+    /// consecutive frames and agree with each other (the last one passes the χ²₆ gate of
+    /// `gate_sigma` against the constant-velocity prediction from the others), the motion
+    /// history restarts from them and the frame gets its geometric pose.
+    fn reinitialize(&mut self) -> Option<(Option<Estimate>, Source, String)> {
+        let n = self.options.reinit_after;
+        if self.rejected.len() > n {
+            self.rejected.remove(0);
+        }
+        if self.rejected.len() < n {
+            return None;
+        }
+        let (t_last, last) = self.rejected[n - 1];
+        let earlier = &self.rejected[..n - 1];
+        let ts: Vec<f64> = earlier.iter().map(|(t, _)| *t).collect();
+        let poses: Vec<SE3> = earlier.iter().map(|(_, e)| e.world_from_cam).collect();
+        let covs: Vec<Matrix6<f64>> = earlier.iter().map(|(_, e)| e.covariance).collect();
+        let q = &self.map.noise.acceleration_psd;
+        let p = motion_predict_with_noise(&poses, &ts, t_last, Some(&covs), q).ok()?;
+        let e = (p.world_from_cam.inverse() * last.world_from_cam).log();
+        let info = spd_inverse(&(p.covariance + last.covariance), "covariance").ok()?;
+        if (e.transpose() * info * e)[0] > chi2_6_quantile_for_sigma(self.options.gate_sigma) {
+            return None;
+        }
+        let run = std::mem::take(&mut self.rejected);
+        self.history.clear();
+        for (t, g) in &run {
+            self.accept(*t, g);
+        }
+        let reason = format!(
+            "motion history re-initialized from {n} consecutive geometric poses that agree with each other but not with the prediction"
+        );
+        Some((Some(last), Source::Geometric, reason))
     }
 
     /// (c) forward intersection: triangulated points of the group around `seed`, from

@@ -6,9 +6,9 @@
 pub mod file;
 mod persist;
 
-pub use persist::{CameraHeader, MapHeader, RetrievalHeader};
+pub use persist::{CameraHeader, MapHeader, NoiseHeader, RetrievalHeader};
 
-use nalgebra::{Matrix6, Vector2};
+use nalgebra::{Matrix6, Vector2, Vector6};
 
 use crate::bow::{BowDatabase, Vocabulary};
 use crate::camera::Camera;
@@ -54,6 +54,24 @@ pub struct Map {
     pub pose_covariances: Option<Vec<Matrix6<f64>>>,
     /// The retrieval structure.
     pub retrieval: Retrieval,
+    /// What was estimated about the map's noise at build time (zero when not estimated).
+    pub noise: MapNoise,
+}
+
+/// The map's noise, estimated at build time from its own keyframes
+/// ([`Map::with_estimated_noise`]); all zero when not estimated (old maps load so).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct MapNoise {
+    /// C_map: 6×6 covariance (right perturbation of world_from_cam, translation first) of
+    /// the pose-label error a query's pose shares with the map (label inconsistency between
+    /// parts of the trajectory), beyond what the PnP covariance explains. Added to every
+    /// returned covariance.
+    pub pose_covariance: Matrix6<f64>,
+    /// q: power spectral density of the white body acceleration per twist axis
+    /// ((m/s²)²·s, (rad/s²)²·s), from the keyframes' timestamps and poses; 0 = none.
+    pub acceleration_psd: Vector6<f64>,
+    /// Held-out keyframes whose re-localization C_map was estimated from.
+    pub holdout_samples: usize,
 }
 
 /// How to build the retrieval structure.
@@ -175,7 +193,7 @@ impl Map {
             RetrievalKind::Global => Retrieval::Global(global_index(&keyframes)?),
             RetrievalKind::Bow { branching, depth } => bow_retrieval(&keyframes, branching, depth, seed)?,
         };
-        Ok(Self { camera, keyframes, pose_covariances, retrieval })
+        Ok(Self { camera, keyframes, pose_covariances, retrieval, noise: MapNoise::default() })
     }
 
     /// The world_from_cam poses of the keyframes.
@@ -190,6 +208,23 @@ impl Map {
     /// A query without what the map's retrieval needs, or of the wrong size
     /// (`global_descriptor`, `descriptors`).
     pub fn retrieve(&self, descriptors: &Descriptors<'_>, global: Option<&[f32]>) -> Result<usize> {
+        self.retrieve_excluding(descriptors, global, 0..0)
+    }
+
+    /// [`Map::retrieve`] skipping the keyframes in `excluded` (for held-out re-localization);
+    /// the best of the others.
+    ///
+    /// # Errors
+    /// As [`Map::retrieve`]; `InvalidInput` when every keyframe is excluded.
+    pub fn retrieve_excluding(
+        &self,
+        descriptors: &Descriptors<'_>,
+        global: Option<&[f32]>,
+        excluded: std::ops::Range<usize>,
+    ) -> Result<usize> {
+        let n = self.keyframes.len();
+        let k = (excluded.end.min(n).saturating_sub(excluded.start) + 1).min(n);
+        let none = || GeolocError::invalid("descriptors", "the map has no keyframes outside the excluded ones");
         match &self.retrieval {
             Retrieval::Global(index) => {
                 let g = global.ok_or_else(|| {
@@ -204,16 +239,12 @@ impl Map {
                 if let Some(i) = g.iter().position(|v| !v.is_finite()) {
                     return Err(GeolocError::NonFinite { name: "global_descriptor".into(), index: i });
                 }
-                let (_, idx) = index.query(g, 1)?;
-                Ok(idx[0])
+                let (_, idx) = index.query(g, k)?;
+                idx.into_iter().find(|i| !excluded.contains(i)).ok_or_else(none)
             }
             Retrieval::Bow { vocabulary, database } => {
                 let words = vocabulary.words_of(descriptors)?;
-                database
-                    .query(&words, 1)
-                    .first()
-                    .map(|&(i, _)| i)
-                    .ok_or_else(|| GeolocError::invalid("descriptors", "the map has no keyframes"))
+                database.query(&words, k).into_iter().map(|(i, _)| i).find(|i| !excluded.contains(i)).ok_or_else(none)
             }
         }
     }

@@ -5,7 +5,9 @@ use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 
 use geoloc_core::camera::Camera;
-use geoloc_core::localizer::{Frame, Localization as CoreLocalization, Localizer as CoreLocalizer, LocalizerOptions};
+use geoloc_core::localizer::{
+    Frame, Localization as CoreLocalization, Localizer as CoreLocalizer, LocalizerOptions, NoiseOptions,
+};
 use geoloc_core::map::{Keyframe, Map as CoreMap, RetrievalMethod};
 use nalgebra::Vector2;
 use numpy::{PyArray2, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2, PyUntypedArrayMethods};
@@ -66,7 +68,7 @@ pub struct FeatureMap {
 #[pymethods]
 impl FeatureMap {
     #[new]
-    #[pyo3(signature = (intrinsics, poses_wc, keypoints_list, descriptors_list, *, global_descriptors=None, pose_covariances=None, retrieval="bow", branching=None, depth=None, seed=None))]
+    #[pyo3(signature = (intrinsics, poses_wc, keypoints_list, descriptors_list, *, global_descriptors=None, pose_covariances=None, retrieval="bow", branching=None, depth=None, seed=None, timestamps=None, estimate_noise=false))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         py: Python<'_>,
@@ -80,6 +82,8 @@ impl FeatureMap {
         branching: Option<&Bound<'_, PyAny>>,
         depth: Option<&Bound<'_, PyAny>>,
         seed: Option<&Bound<'_, PyAny>>,
+        timestamps: Option<PyReadonlyArray1<'_, f64>>,
+        estimate_noise: bool,
     ) -> PyResult<Self> {
         let method: RetrievalMethod = retrieval.parse().map_err(to_py_err)?;
         let kind = method.with(count_arg(branching, "branching", 10)?, count_arg(depth, "depth", 3)?);
@@ -88,7 +92,16 @@ impl FeatureMap {
         let camera = Camera::new(fx, fy, cx, cy).map_err(to_py_err)?;
         let kfs = keyframes(&poses_wc, &keypoints_list, &descriptors_list, global_descriptors.as_ref())?;
         let covs = pose_covariances.as_ref().map(|c| matrices::<6, 6, 36>("pose_covariances", c)).transpose()?;
-        let map = py.detach(|| CoreMap::build(camera, kfs, covs, kind, seed)).map_err(to_py_err)?;
+        let ts = timestamps
+            .as_ref()
+            .map(|t| t.as_slice().map_err(|_| invalid("timestamps", "must be contiguous")))
+            .transpose()?;
+        let map = py
+            .detach(|| {
+                let map = CoreMap::build(camera, kfs, covs, kind, seed)?;
+                if estimate_noise { map.with_estimated_noise(ts, &NoiseOptions::default()) } else { Ok(map) }
+            })
+            .map_err(to_py_err)?;
         Ok(Self { inner: Arc::new(map) })
     }
 
@@ -101,6 +114,13 @@ impl FeatureMap {
     fn intrinsics(&self) -> (f64, f64, f64, f64) {
         let c = self.inner.camera;
         (c.fx, c.fy, c.cx, c.cy)
+    }
+
+    /// The noise estimated at build time: (C_map (6, 6), acceleration PSD (6,), held-out samples).
+    #[getter]
+    fn map_noise<'py>(&self, py: Python<'py>) -> PyResult<(Bound<'py, PyArray2<f64>>, Vec<f64>, usize)> {
+        let n = &self.inner.noise;
+        Ok((square(py, &n.pose_covariance)?, n.acceleration_psd.iter().copied().collect(), n.holdout_samples))
     }
 
     /// Writes the map to `path` atomically; `frontend` is the caller's settings (JSON object text).

@@ -24,11 +24,11 @@
 
 use std::path::Path;
 
-use nalgebra::{Matrix4, Matrix6, Vector2};
+use nalgebra::{Matrix4, Matrix6, Vector2, Vector6};
 use serde::{Deserialize, Serialize};
 
 use super::file::{self, MapFile, Tensor, TensorData};
-use super::{Keyframe, Map, Retrieval};
+use super::{Keyframe, Map, MapNoise, Retrieval};
 use crate::bow::{BowDatabase, Vocabulary, VocabularyArrays};
 use crate::camera::Camera;
 use crate::error::{GeolocError, Result};
@@ -84,6 +84,45 @@ pub struct MapHeader {
     pub pose_covariances: bool,
     /// The caller's own settings (a JSON object), e.g. the feature extractor.
     pub frontend: serde_json::Value,
+    /// What was estimated about the map's noise at build time; absent in maps written
+    /// before it existed (read as zero: no map-frame noise, no process noise).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub map_noise: Option<NoiseHeader>,
+}
+
+/// [`MapNoise`] in the header: C_map row-major (36 values), q (6 values), the samples.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct NoiseHeader {
+    /// C_map, row-major, translation first (m², rad²).
+    pub pose_covariance: Vec<f64>,
+    /// Acceleration power spectral density per twist axis.
+    pub acceleration_psd: Vec<f64>,
+    /// Held-out keyframes C_map was estimated from.
+    pub holdout_samples: usize,
+}
+
+impl NoiseHeader {
+    fn from_noise(n: &MapNoise) -> Option<Self> {
+        (*n != MapNoise::default()).then(|| Self {
+            pose_covariance: n.pose_covariance.transpose().iter().copied().collect(),
+            acceleration_psd: n.acceleration_psd.iter().copied().collect(),
+            holdout_samples: n.holdout_samples,
+        })
+    }
+
+    /// Checks and converts: 36 + 6 finite values, C_map symmetric PSD, q ≥ 0.
+    fn to_noise(&self) -> Result<MapNoise> {
+        if self.pose_covariance.len() != 36 || self.acceleration_psd.len() != 6 {
+            return Err(format_error("map_noise: expected 36 pose_covariance and 6 acceleration_psd values"));
+        }
+        let c = Matrix6::from_row_slice(&self.pose_covariance);
+        super::check_covariance("map_noise.pose_covariance", &c).map_err(as_format)?;
+        let q = Vector6::from_column_slice(&self.acceleration_psd);
+        if q.iter().any(|v| !(v.is_finite() && *v >= 0.0)) {
+            return Err(format_error("map_noise.acceleration_psd: must be finite and ≥ 0"));
+        }
+        Ok(MapNoise { pose_covariance: c, acceleration_psd: q, holdout_samples: self.holdout_samples })
+    }
 }
 
 fn format_error(reason: impl Into<String>) -> GeolocError {
@@ -147,6 +186,7 @@ impl Map {
             retrieval,
             pose_covariances: self.pose_covariances.is_some(),
             frontend,
+            map_noise: NoiseHeader::from_noise(&self.noise),
         };
         let header = serde_json::to_string(&header).map_err(|e| format_error(e.to_string()))?;
         Ok(MapFile { header, tensors: tensors.into_iter().collect() })
@@ -211,7 +251,8 @@ impl Map {
                 Retrieval::Bow { vocabulary, database }
             }
         };
-        Ok((Self { camera, keyframes, pose_covariances, retrieval }, header))
+        let noise = header.map_noise.as_ref().map(NoiseHeader::to_noise).transpose()?.unwrap_or_default();
+        Ok((Self { camera, keyframes, pose_covariances, retrieval, noise }, header))
     }
 
     /// Saves the map to `path` atomically (see [`file::write`]).
@@ -493,6 +534,25 @@ mod tests {
         assert!(err.to_string().contains("vocabulary.children"), "{err}");
         let err = original.to_map_file("[1, 2]").expect_err("frontend must be an object");
         assert!(matches!(err, GeolocError::InvalidInput { ref name, .. } if name == "frontend"), "{err:?}");
+    }
+
+    #[test]
+    fn map_noise_round_trips_and_old_maps_read_it_as_zero() {
+        let mut original = map(true, RetrievalKind::Bow { branching: 4, depth: 2 }, false);
+        let old = original.to_map_file("{}").expect("serializes");
+        assert!(!old.header.contains("map_noise"), "a map without noise writes the old header");
+        let (back, header) = Map::from_map_file(&old).expect("valid");
+        assert_eq!(back.noise, MapNoise::default());
+        assert!(header.map_noise.is_none());
+        let a = Matrix6::from_fn(|r, c| 1e-4 * ((r + 1) * (c + 1)) as f64) + Matrix6::identity() * 1e-3;
+        original.noise = MapNoise { pose_covariance: a, acceleration_psd: Vector6::repeat(0.25), holdout_samples: 57 };
+        let file = original.to_map_file("{}").expect("serializes");
+        let (back, header) = Map::from_map_file(&file).expect("valid");
+        assert_eq!(back.noise, original.noise);
+        assert_eq!(header.map_noise.map(|n| n.holdout_samples), Some(57));
+        let mut bad = file.clone();
+        bad.header = bad.header.replace("0.25", "-0.25");
+        assert!(Map::from_map_file(&bad).expect_err("negative q").to_string().contains("acceleration_psd"));
     }
 
     #[test]

@@ -1,0 +1,55 @@
+"""Issue 8 at the image level: the map records its estimated noise (and keeps it through
+save/load), and the sequential mode is never worse than the geometric locator alone on the
+synthetic room. The 7-Scenes cross-validation is ``benchmarks/calibration.py`` (minutes)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+import geoloc
+from geoloc.evaluation import summarize_results
+
+pytest.importorskip("cv2")
+
+
+@pytest.fixture(scope="module")
+def room() -> tuple[Any, Any, geoloc.Map]:
+    seq = geoloc.datasets.synthetic_room(n_frames=150, seed=0)
+    train, test = seq[:100], seq[100:]
+    return train, test, geoloc.Map.build(train)
+
+
+def test_map_records_its_noise_and_keeps_it(room: tuple[Any, Any, geoloc.Map], tmp_path: Path) -> None:
+    _, _, m = room
+    noise = m.map_noise
+    assert noise["holdout_samples"] >= 5
+    c = noise["pose_covariance"]
+    assert c.shape == (6, 6) and np.all(np.isfinite(c)) and np.all(np.linalg.eigvalsh(c) >= 0)
+    assert noise["acceleration_psd"].shape == (6,) and np.all(noise["acceleration_psd"] > 0)
+    m.save(tmp_path / "room.geoloc")
+    back = geoloc.Map.load(tmp_path / "room.geoloc").map_noise
+    np.testing.assert_array_equal(back["pose_covariance"], c)
+    np.testing.assert_array_equal(back["acceleration_psd"], noise["acceleration_psd"])
+
+
+def test_sequential_is_never_worse_than_single(room: tuple[Any, Any, geoloc.Map]) -> None:
+    _, test, m = room
+    summaries = {}
+    for mode in ("single", "sequential"):
+        loc = geoloc.Localizer(m)
+        results = []
+        for i in range(len(test)):
+            if mode == "single":
+                loc.reset()
+            results.append(loc.localize(test.gray(i), float(test.timestamps[i])))
+        summaries[mode] = summarize_results(results, test.poses)
+    single, seq = summaries["single"], summaries["sequential"]
+    # "no worse": within 10 % of the single mode's median (sub-millimetre on this scene)
+    assert seq["median_translation_m"] <= 1.1 * single["median_translation_m"]
+    assert seq["median_rotation_deg"] <= 1.1 * single["median_rotation_deg"]
+    assert seq["recall"]["5cm_5deg"] >= single["recall"]["5cm_5deg"]
+    assert seq["nees_coverage"] >= 0.85 and single["nees_coverage"] >= 0.85
