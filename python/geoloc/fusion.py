@@ -8,7 +8,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from . import _core
-from ._validation import as_float64
+from ._validation import as_float64, choice, real_scalar
 from .exceptions import InvalidInputError
 
 __all__ = ["FusionResult", "fuse"]
@@ -48,5 +48,6 @@ def fuse(
     """
     return _core.fuse(
         _one(pose_m, "pose_m", (4, 4)), _one(cov_m, "cov_m", (6, 6)), _one(pose_g, "pose_g", (4, 4)),
-        _one(cov_g, "cov_g", (6, 6)), gate_sigma=float(gate_sigma), gate=gate,
+        _one(cov_g, "cov_g", (6, 6)), gate_sigma=real_scalar(gate_sigma, "gate_sigma"),
+        gate=choice(gate, "gate", ("isometric", "chi2")),
     )

@@ -21,7 +21,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from . import _core
 from ._core import Localization as LocalizationResult
-from ._validation import as_batch, as_float64
+from ._validation import as_batch, as_float64, real_scalar
 from .camera import Camera
 from .exceptions import InvalidInputError
 from .retrieval import _f32_rows, _local_descriptors
@@ -73,6 +73,9 @@ class FeatureMap:
         if len(lead) != 1:
             raise InvalidInputError(f"poses: expected shape (K, 4, 4), got {np.shape(poses)}")
         n = flat.shape[0]
+        for name, value in (("keypoints", keypoints), ("descriptors", descriptors)):
+            if not isinstance(value, (list, tuple)) and not (isinstance(value, np.ndarray) and value.ndim >= 1):
+                raise InvalidInputError(f"{name}: expected a list of one array per pose, got {type(value).__name__}")
         if len(keypoints) != n or len(descriptors) != n:
             raise InvalidInputError(f"keypoints, descriptors: expected one array per pose ({n})")
         descs = [_local_descriptors(d, f"descriptors[{i}]") for i, d in enumerate(descriptors)]
@@ -152,8 +155,8 @@ class FeatureLocalizer:
         if not isinstance(map, FeatureMap):
             raise InvalidInputError(f"map: expected a geoloc.localizer.FeatureMap, got {type(map).__name__}")
         self._loc = _core.FeatureLocalizer(
-            map._map, pixel_sigma=float(pixel_sigma), max_residual=float(max_residual),
-            gate_sigma=float(gate_sigma), history=history,
+            map._map, pixel_sigma=real_scalar(pixel_sigma, "pixel_sigma"), max_residual=real_scalar(max_residual, "max_residual"),
+            gate_sigma=real_scalar(gate_sigma, "gate_sigma"), history=history,
         )
 
     def localize(
@@ -169,7 +172,7 @@ class FeatureLocalizer:
             if g.ndim != 1:
                 raise InvalidInputError(f"global_descriptor: expected shape (D,), got {g.shape}")
             g = _f32_rows(g[None], "global_descriptor")[0]
-        return self._loc.localize(float(timestamp), k, d, g)
+        return self._loc.localize(real_scalar(timestamp, "timestamp"), k, d, g)
 
     def reset(self) -> None:
         """Forget the motion history."""

@@ -26,6 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .camera import Camera
+from ._validation import real_scalar
 from .exceptions import InvalidInputError
 from .features import FeatureExtractor, Features
 from .localizer import FeatureLocalizer, FeatureMap, LocalizationResult
@@ -184,7 +185,9 @@ class Map:
     @classmethod
     def load(cls, path: str | os.PathLike[str]) -> Map:
         """Read a map written by :meth:`save`; a truncated, corrupt or other-version file is refused."""
-        feature_map = FeatureMap.load(Path(path))
+        from ._io import as_path
+
+        feature_map = FeatureMap.load(as_path(path, "path"))
         frontend = feature_map.frontend
         if not isinstance(frontend, dict) or frontend.get("version") != FRONTEND_VERSION:
             raise InvalidInputError(f"path: {str(path)!r} was not written by this version of geoloc's Python package")
@@ -279,7 +282,7 @@ class Localizer:
         g = None
         if self._global is not None:
             g = np.asarray(self._global([pixels]), dtype=np.float32)[0]
-        r: LocalizationResult = self._core.localize(timestamp, f.keypoints, f.descriptors, g)
+        r: LocalizationResult = self._core.localize(real_scalar(timestamp, "timestamp"), f.keypoints, f.descriptors, g)
         end = time.perf_counter()
         timings = {"decode": 1e3 * (decoded - start), "features": 1e3 * (described - decoded)}
         timings.update(r.timings_ms)

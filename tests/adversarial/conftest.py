@@ -30,16 +30,7 @@ EXAMPLES = max(12, settings.default.max_examples // 4)
 HAS_TORCH = importlib.util.find_spec("torch") is not None and importlib.util.find_spec("onnxruntime") is not None
 
 #: Known defects in files other sessions own: (module, kind, regex on the failure detail).
-KNOWN: list[tuple[str, str, str]] = [
-    ("fusion", "wrong-type", r"TypeError: '.*' object is not an instance of 'str'"),
-    ("localizer", "wrong-type", r"TypeError: (float\(\) argument|object of type|'.*' object is not)"),
-    ("localizer", "wrong-type", r"TypeError: int\(\) argument"),
-    ("mapping", "wrong-type", r"TypeError: expected str, bytes or os.PathLike object"),
-    ("motion", "invariant", r"(pose|covariance) is not finite"),  # denormal timestamps / covariances
-    ("fusion", "wrong-type", r"TypeError: float\(\) argument must be"),
-    ("mapping", "wrong-type", r"TypeError: float\(\) argument must be"),
-    ("fusion", "wrong-name", r"information: holds non-finite values"),  # cov_m = 1e-310·C  # localize(image, timestamp=None)
-]
+KNOWN: list[tuple[str, str, str]] = []  # defects tolerated by the fuzz tests: none left
 
 
 def is_known(module: str, out: dict[str, Any]) -> bool:

@@ -1,6 +1,6 @@
-"""Defects the adversarial suite found in files other sessions are editing now (fusion.py,
-motion.rs / motion.py, localizer.py, mapping.py): each exact reproducer is a strict xfail, so
-the day it is fixed this file says so. The fuzz tests tolerate exactly these (conftest.KNOWN)."""
+"""Regression tests for the defects the adversarial suite found in fusion.py, motion.rs,
+localizer.py and mapping.py while other work was under way there (each was a strict xfail
+until it was fixed)."""
 
 from __future__ import annotations
 
@@ -36,27 +36,21 @@ def _finite_prediction(call: Callable[[], Any]) -> None:
     assert np.isfinite(r.pose).all() and np.isfinite(r.covariance).all()
 
 
-OWNED_ELSEWHERE = "recorded: the fix belongs to a file another session is editing"
 
-
-@pytest.mark.xfail(strict=True, raises=TypeError, reason=f"fusion.py passes gate to the bindings unchecked; {OWNED_ELSEWHERE}")
 @pytest.mark.parametrize("gate", [1, None, b"isometric", True])
 def test_fuse_gate_not_a_string(gate: Any) -> None:
     _rejects(lambda: geoloc.fuse(np.eye(4), COV[0], P_G, COV[0], gate=gate), "gate")
 
 
-@pytest.mark.xfail(strict=True, raises=TypeError, reason=f"fusion.py: float(gate_sigma) raises TypeError; {OWNED_ELSEWHERE}")
 @pytest.mark.parametrize("gate_sigma", [None, [1.0]])
 def test_fuse_gate_sigma_not_a_number(gate_sigma: Any) -> None:
     _rejects(lambda: geoloc.fuse(np.eye(4), COV[0], P_G, COV[0], gate_sigma=gate_sigma), "gate_sigma")
 
 
-@pytest.mark.xfail(strict=True, reason=f"motion.rs: time differences of 1e-321 s divide to inf → NaN pose; {OWNED_ELSEWHERE}")
 def test_motion_denormal_timestamps() -> None:
     _finite_prediction(lambda: geoloc.motion_predict(TRACK, [0.0, 1e-321, 2e-321, 3e-321], 0.4))
 
 
-@pytest.mark.xfail(strict=True, reason=f"motion.rs: inverting 1e-310 covariances overflows → NaN covariance; {OWNED_ELSEWHERE}")
 @pytest.mark.parametrize("scale", [1e-310, "one entry 1e-320"])
 def test_motion_denormal_covariances(scale: Any) -> None:
     covs = COV.copy()
@@ -67,30 +61,25 @@ def test_motion_denormal_covariances(scale: Any) -> None:
     _finite_prediction(lambda: geoloc.motion_predict(TRACK, [0.0, 0.1, 0.2, 0.3], 0.4, covariances=covs))
 
 
-@pytest.mark.xfail(strict=True, raises=TypeError, reason=f"localizer.py: len(keypoints) on a number; {OWNED_ELSEWHERE}")
 def test_feature_map_keypoints_not_a_sequence() -> None:
     _rejects(lambda: FeatureMap(CAM, TRACK[:3], 0, DESCS), "keypoints")
 
 
-@pytest.mark.xfail(strict=True, raises=TypeError, reason=f"localizer.py: float(None); {OWNED_ELSEWHERE}")
 def test_feature_localizer_max_residual_none() -> None:
     fm = FeatureMap(CAM, TRACK[:3], KPS, DESCS, branching=3, depth=2)
     _rejects(lambda: FeatureLocalizer(fm, max_residual=None), "max_residual")  # type: ignore[arg-type]
 
 
-@pytest.mark.xfail(strict=True, raises=TypeError, reason=f"mapping.py: Map.load(924) → TypeError from os.fspath; {OWNED_ELSEWHERE}")
 @pytest.mark.parametrize("path", [924, None])
 def test_map_load_not_a_path(path: Any) -> None:
     _rejects(lambda: geoloc.Map.load(path), "path")
 
 
-@pytest.mark.xfail(strict=True, raises=TypeError, reason=f"mapping.py: float(timestamp) on None; {OWNED_ELSEWHERE}")
 def test_map_localizer_timestamp_none() -> None:
     seq = geoloc.datasets.synthetic_room(n_frames=12, seed=0)
     m = geoloc.Map.build(seq[:10], n_features=300, branching=4, depth=2)
     _rejects(lambda: geoloc.Localizer(m).localize(seq[11].image, None), "timestamp")  # type: ignore[arg-type]
 
 
-@pytest.mark.xfail(strict=True, reason=f"fusion.rs: cov_m = 1e-310·C inverts to inf, the error names `information`; {OWNED_ELSEWHERE}")
 def test_fuse_denormal_covariance_names_cov_m() -> None:
     _rejects(lambda: geoloc.fuse(np.eye(4), COV[0] * 1e-310, P_G, COV[0] * 2), "cov_m")

@@ -21,7 +21,7 @@ use nalgebra::{Matrix6, SMatrix, SVector, Vector6};
 
 use crate::error::{GeolocError, Result};
 use crate::lie::{SE3, Twist, se3};
-use crate::optim::covariance::check_covariances;
+use crate::optim::covariance::{check_covariances, spd_inverse};
 use crate::optim::{LeastSquares, LmOptions, PoseEstimate, solve};
 
 /// What the motion model adds to its prediction.
@@ -187,6 +187,10 @@ pub fn estimate_acceleration_psd(poses: &[SE3], timestamps: &[f64]) -> Result<Ve
     }))
 }
 
+/// Smallest time between two poses of a fit (1 ns): closer timestamps make the velocity's
+/// 1/Δt overflow (denormal differences divide to ∞).
+pub const MIN_TIME_STEP_S: f64 = 1e-9;
+
 /// The input checks of [`motion_predict`]; returns the fit's weights Wᵢ = Cᵢ⁻¹ (identity
 /// without covariances).
 fn validate(
@@ -215,8 +219,11 @@ fn validate(
     }
     let mut sorted = timestamps.to_vec();
     sorted.sort_by(f64::total_cmp);
-    if sorted.windows(2).any(|w| w[1] - w[0] <= 0.0) {
-        return Err(GeolocError::invalid("timestamps", "must be distinct"));
+    if sorted.windows(2).any(|w| w[1] - w[0] < MIN_TIME_STEP_S) {
+        return Err(GeolocError::invalid(
+            "timestamps",
+            format!("must be distinct, at least {MIN_TIME_STEP_S:e} s apart"),
+        ));
     }
     let t_ref = sorted[m - 1];
     if (t_query - t_ref).abs() > MAX_TIME_SPAN_S {
@@ -233,14 +240,7 @@ fn validate(
         return Err(GeolocError::invalid("covariances", format!("has {} entries but poses has {m}", c.len())));
     }
     check_covariances("covariances", c)?;
-    c.iter()
-        .enumerate()
-        .map(|(i, ci)| {
-            ci.cholesky()
-                .map(|ch| ch.inverse())
-                .ok_or_else(|| GeolocError::invalid(format!("covariances[{i}]"), "is not symmetric positive definite"))
-        })
-        .collect()
+    c.iter().enumerate().map(|(i, ci)| spd_inverse(ci, &format!("covariances[{i}]"))).collect()
 }
 
 /// Per-axis weights 1/σ_a² from the residuals of a unit-weight fit, σ_a² = Σᵢ eᵢ,ₐ²/(m − 2)

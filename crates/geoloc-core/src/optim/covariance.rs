@@ -81,7 +81,12 @@ pub fn spd_inverse(m: &Matrix6<f64>, name: &str) -> Result<Matrix6<f64>> {
     if (m - m.transpose()).abs().max() > SYMMETRY_TOLERANCE * m.abs().max().max(f64::MIN_POSITIVE) {
         return Err(GeolocError::invalid(name, "is not symmetric"));
     }
-    m.cholesky().map(|c| c.inverse()).ok_or_else(|| GeolocError::invalid(name, "is not positive definite"))
+    let inverse =
+        m.cholesky().map(|c| c.inverse()).ok_or_else(|| GeolocError::invalid(name, "is not positive definite"))?;
+    if !inverse.iter().all(|v| v.is_finite()) {
+        return Err(GeolocError::invalid(name, "is too small to invert (its inverse overflows)"));
+    }
+    Ok(inverse)
 }
 
 /// C = H⁻¹ for an information matrix H = Σ w JᵀWJ, or None when the pose is not observable
