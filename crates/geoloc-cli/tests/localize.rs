@@ -8,15 +8,13 @@ use std::process::{Command, Output, Stdio};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use geoloc_core::camera::{Camera, project};
 use geoloc_core::frames::{FrameRecord, write_json_header, write_json_record, write_record, write_stream_header};
 use geoloc_core::lie::SE3;
 use geoloc_core::localizer::{Frame, Localizer, LocalizerOptions};
 use geoloc_core::map::{DescriptorSet, Keyframe, Map, RetrievalKind};
-use geoloc_core::testing::{SplitMix64, look_at};
-use nalgebra::{Vector2, Vector3};
+use geoloc_core::testing::{self, LandmarkScene, SplitMix64};
 
-const WIDTH: usize = 32;
+const WIDTH: usize = testing::LANDMARK_DESCRIPTOR_BYTES;
 const LANDMARKS: usize = 1200;
 /// Mutated streams run through the real binary.
 const FUZZ_CASES: usize = 200;
@@ -25,50 +23,19 @@ const HANG: Duration = Duration::from_secs(30);
 /// Exit status of a Rust panic.
 const PANIC_STATUS: i32 = 101;
 
-struct Scene {
-    landmarks: Vec<Vector3<f64>>,
-    descriptors: Vec<[u8; WIDTH]>,
-    camera: Camera,
-}
-
-impl Scene {
-    fn new(rng: &mut SplitMix64) -> Self {
-        let landmarks = (0..LANDMARKS)
-            .map(|_| Vector3::new(rng.uniform_in(-6.0, 6.0), rng.uniform_in(-1.5, 1.5), rng.uniform_in(3.0, 6.0)))
-            .collect();
-        let descriptors = (0..LANDMARKS).map(|_| std::array::from_fn(|_| (rng.next_u64() & 0xff) as u8)).collect();
-        Self { landmarks, descriptors, camera: Camera::new(525.0, 525.0, 320.0, 240.0).expect("valid") }
-    }
-
-    fn observe(&self, rng: &mut SplitMix64, pose: &SE3) -> (Vec<Vector2<f64>>, Vec<u8>) {
-        let (mut kps, mut desc) = (Vec::new(), Vec::new());
-        for (x, d) in self.landmarks.iter().zip(&self.descriptors) {
-            let p = project(&self.camera, pose, x);
-            if p.p_cam.z > 0.5 && (0.0..640.0).contains(&p.uv.x) && (0.0..480.0).contains(&p.uv.y) {
-                kps.push(p.uv + Vector2::new(rng.normal(), rng.normal()) * 0.5);
-                let mut d = *d;
-                let bit = (rng.next_u64() % (8 * WIDTH as u64)) as usize;
-                d[bit / 8] ^= 1 << (bit % 8);
-                desc.extend_from_slice(&d);
-            }
-        }
-        (kps, desc)
-    }
-}
-
+/// The camera path of these tests: [`testing::walk`] (the scene is [`LandmarkScene`]).
 fn walk(t: f64, offset: f64) -> SE3 {
-    let c = Vector3::new(-1.0 + 0.6 * t, offset + 0.05 * (2.0 * t).sin(), 0.0);
-    look_at(&c, &(c + Vector3::new(0.1 * (1.3 * t).sin(), 0.0, 5.0)))
+    testing::walk(t, offset, -1.0)
 }
 
 /// The map (saved to `dir/scene.geoloc`) and `frames` query records along a parallel path.
 fn scene(dir: &Path, frames: usize) -> (PathBuf, Vec<FrameRecord>) {
     let mut rng = SplitMix64::new(7);
-    let scene = Scene::new(&mut rng);
+    let scene = LandmarkScene::new(&mut rng, LANDMARKS, 6.0);
     let keyframes = (0..30)
         .map(|i| {
             let pose = walk(i as f64 * 0.1, 0.0);
-            let (keypoints, data) = scene.observe(&mut rng, &pose);
+            let (keypoints, data) = scene.observe(&mut rng, &pose, 1);
             Keyframe {
                 world_from_cam: pose,
                 keypoints,
@@ -84,7 +51,7 @@ fn scene(dir: &Path, frames: usize) -> (PathBuf, Vec<FrameRecord>) {
     let records = (0..frames)
         .map(|f| {
             let t = 0.3 + f as f64 / 30.0;
-            let (keypoints, data) = scene.observe(&mut rng, &walk(t, 0.1));
+            let (keypoints, data) = scene.observe(&mut rng, &walk(t, 0.1), 1);
             let n = keypoints.len();
             FrameRecord {
                 timestamp: t,

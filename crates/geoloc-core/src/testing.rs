@@ -100,3 +100,67 @@ mod tests {
         assert!(mean_trace.abs() < 0.02, "{mean_trace}");
     }
 }
+
+/// Bytes of the binary descriptors of a [`LandmarkScene`].
+pub const LANDMARK_DESCRIPTOR_BYTES: usize = 32;
+
+/// A field of landmarks at depth 3–6 m in front of the x axis, each with a random binary
+/// descriptor: the simulated scene of the localizer tests (core, calibration, geoloc-rs).
+#[derive(Clone, Debug)]
+pub struct LandmarkScene {
+    /// World points.
+    pub landmarks: Vec<Vector3<f64>>,
+    /// One descriptor per landmark.
+    pub descriptors: Vec<[u8; LANDMARK_DESCRIPTOR_BYTES]>,
+    /// fx = fy = 525, (cx, cy) = (320, 240), 640×480 images.
+    pub camera: crate::camera::Camera,
+}
+
+impl LandmarkScene {
+    /// `count` landmarks uniform in x ∈ [−half_width_m, half_width_m], y ∈ [−1.5, 1.5], z ∈ [3, 6].
+    pub fn new(rng: &mut SplitMix64, count: usize, half_width_m: f64) -> Self {
+        let landmarks = (0..count)
+            .map(|_| {
+                Vector3::new(
+                    rng.uniform_in(-half_width_m, half_width_m),
+                    rng.uniform_in(-1.5, 1.5),
+                    rng.uniform_in(3.0, 6.0),
+                )
+            })
+            .collect();
+        let descriptors = (0..count).map(|_| std::array::from_fn(|_| (rng.next_u64() & 0xff) as u8)).collect();
+        let camera = crate::camera::Camera::new(525.0, 525.0, 320.0, 240.0).expect("invariant: valid intrinsics");
+        Self { landmarks, descriptors, camera }
+    }
+
+    /// What a camera at `pose` sees: keypoints with 0.5 px Gaussian noise and descriptors with
+    /// `flipped_bits` random bits flipped (row-major bytes).
+    pub fn observe(
+        &self,
+        rng: &mut SplitMix64,
+        pose: &SE3,
+        flipped_bits: usize,
+    ) -> (Vec<nalgebra::Vector2<f64>>, Vec<u8>) {
+        let (mut kps, mut desc) = (Vec::new(), Vec::new());
+        for (x, d) in self.landmarks.iter().zip(&self.descriptors) {
+            let p = crate::camera::project(&self.camera, pose, x);
+            if p.p_cam.z > 0.5 && (0.0..640.0).contains(&p.uv.x) && (0.0..480.0).contains(&p.uv.y) {
+                kps.push(p.uv + nalgebra::Vector2::new(rng.normal(), rng.normal()) * 0.5);
+                let mut d = *d;
+                for _ in 0..flipped_bits {
+                    let bit = (rng.next_u64() % (8 * LANDMARK_DESCRIPTOR_BYTES as u64)) as usize;
+                    d[bit / 8] ^= 1 << (bit % 8);
+                }
+                desc.extend_from_slice(&d);
+            }
+        }
+        (kps, desc)
+    }
+}
+
+/// A camera walking along x at 0.6 m/s from `start_x` (m), `offset` (m) beside the path,
+/// looking forward (+z) with a gentle sway: world_from_cam at time `t` (s).
+pub fn walk(t: f64, offset: f64, start_x: f64) -> SE3 {
+    let c = Vector3::new(start_x + 0.6 * t, offset + 0.05 * (2.0 * t).sin(), 0.0);
+    look_at(&c, &(c + Vector3::new(0.1 * (1.3 * t).sin(), 0.0, 5.0)))
+}

@@ -5,56 +5,19 @@
 
 use std::sync::Arc;
 
-use geoloc_core::camera::{Camera, project};
 use geoloc_core::lie::SE3;
 use geoloc_core::localizer::{Frame, Localizer, LocalizerOptions, NoiseOptions, Source};
 use geoloc_core::map::{DescriptorSet, Keyframe, Map, RetrievalKind};
 use geoloc_core::matching::Descriptors;
-use geoloc_core::testing::{SplitMix64, look_at};
-use nalgebra::{Vector2, Vector3};
+use geoloc_core::testing::{self, LandmarkScene, SplitMix64};
 
-const WIDTH: usize = 32;
+const WIDTH: usize = testing::LANDMARK_DESCRIPTOR_BYTES;
 /// Landmarks of the scene (about a third in view at a time).
 const LANDMARKS: usize = 3000;
-struct World {
-    landmarks: Vec<Vector3<f64>>,
-    descriptors: Vec<[u8; WIDTH]>,
-    camera: Camera,
-}
 
-impl World {
-    fn new(rng: &mut SplitMix64) -> Self {
-        let landmarks = (0..LANDMARKS)
-            .map(|_| Vector3::new(rng.uniform_in(-12.0, 12.0), rng.uniform_in(-1.5, 1.5), rng.uniform_in(3.0, 6.0)))
-            .collect();
-        let descriptors = (0..LANDMARKS).map(|_| std::array::from_fn(|_| (rng.next_u64() & 0xff) as u8)).collect();
-        Self { landmarks, descriptors, camera: Camera::new(525.0, 525.0, 320.0, 240.0).expect("valid") }
-    }
-
-    /// What a camera at `pose` sees: keypoints with 0.5 px noise and descriptors with 3
-    /// flipped bits.
-    fn observe(&self, rng: &mut SplitMix64, pose: &SE3) -> (Vec<Vector2<f64>>, Vec<u8>) {
-        let (mut kps, mut desc) = (Vec::new(), Vec::new());
-        for (x, d) in self.landmarks.iter().zip(&self.descriptors) {
-            let p = project(&self.camera, pose, x);
-            if p.p_cam.z > 0.5 && (0.0..640.0).contains(&p.uv.x) && (0.0..480.0).contains(&p.uv.y) {
-                kps.push(p.uv + Vector2::new(rng.normal(), rng.normal()) * 0.5);
-                let mut d = *d;
-                for _ in 0..3 {
-                    let bit = (rng.next_u64() % (8 * WIDTH as u64)) as usize;
-                    d[bit / 8] ^= 1 << (bit % 8);
-                }
-                desc.extend_from_slice(&d);
-            }
-        }
-        (kps, desc)
-    }
-}
-
-/// A camera walking along x at 0.6 m/s, looking forward (+z), with a gentle sway.
+/// The camera path of these tests: [`testing::walk`] (the scene is [`LandmarkScene`]).
 fn walk(t: f64, offset: f64) -> SE3 {
-    let c = Vector3::new(-1.5 + 0.6 * t, offset + 0.05 * (2.0 * t).sin(), 0.0);
-    look_at(&c, &(c + Vector3::new(0.1 * (1.3 * t).sin(), 0.0, 5.0)))
+    testing::walk(t, offset, -1.5)
 }
 
 /// Injected pose-label noise per axis: 1 cm, 0.4°.
@@ -67,11 +30,11 @@ const CHI2_6_95: f64 = 12.591_587_243_743_977;
 const COVERAGE_BAND: (f64, f64) = (0.85, 0.995);
 
 /// Keyframes every `dt` s of the walk; labels with the injected noise when `noisy`.
-fn keyframes(world: &World, rng: &mut SplitMix64, n: usize, dt: f64, noisy: bool) -> Vec<Keyframe> {
+fn keyframes(world: &LandmarkScene, rng: &mut SplitMix64, n: usize, dt: f64, noisy: bool) -> Vec<Keyframe> {
     (0..n)
         .map(|i| {
             let truth = walk(i as f64 * dt, 0.0);
-            let (keypoints, data) = world.observe(rng, &truth);
+            let (keypoints, data) = world.observe(rng, &truth, 3);
             let label = if noisy { truth * SE3::exp(&rng.pose_noise(LABEL_SIGMA_M, LABEL_SIGMA_RAD)) } else { truth };
             Keyframe {
                 world_from_cam: label,
@@ -90,7 +53,7 @@ fn bow() -> RetrievalKind {
 #[test]
 fn map_noise_covers_injected_label_noise() {
     let mut rng = SplitMix64::new(31);
-    let world = World::new(&mut rng);
+    let world = LandmarkScene::new(&mut rng, LANDMARKS, 12.0);
     let kfs = keyframes(&world, &mut rng, 120, 0.05, true);
     let times: Vec<f64> = (0..120).map(|i| i as f64 * 0.05).collect();
     let map = Map::build(world.camera, kfs, None, bow(), 0).expect("valid map");
@@ -111,7 +74,7 @@ fn map_noise_covers_injected_label_noise() {
         let t = 0.2 + f as f64 * 0.045;
         let truth = walk(t, 0.05);
         let label = truth * SE3::exp(&rng.pose_noise(LABEL_SIGMA_M, LABEL_SIGMA_RAD));
-        let (keypoints, data) = world.observe(&mut rng, &truth);
+        let (keypoints, data) = world.observe(&mut rng, &truth, 3);
         loc.reset();
         let frame = Frame {
             timestamp: t,
@@ -137,7 +100,7 @@ fn map_noise_covers_injected_label_noise() {
 #[test]
 fn a_jump_reinitializes_and_a_long_failure_is_lost_then_recovers() {
     let mut rng = SplitMix64::new(41);
-    let world = World::new(&mut rng);
+    let world = LandmarkScene::new(&mut rng, LANDMARKS, 12.0);
     let kfs = keyframes(&world, &mut rng, 60, 0.1, false);
     let map = Map::build(world.camera, kfs, None, bow(), 0).expect("valid map");
     let options = LocalizerOptions::default();
@@ -146,7 +109,7 @@ fn a_jump_reinitializes_and_a_long_failure_is_lost_then_recovers() {
     for f in 0..110 {
         let t = 0.3 + f as f64 / 30.0;
         let truth = walk(t, if f >= 30 { 0.4 } else { 0.0 });
-        let (keypoints, mut data) = world.observe(&mut rng, &truth);
+        let (keypoints, mut data) = world.observe(&mut rng, &truth, 3);
         if (60..75).contains(&f) {
             data.iter_mut().for_each(|b| *b = (rng.next_u64() & 0xff) as u8);
         }

@@ -9,15 +9,14 @@
 use std::sync::Arc;
 
 use geoloc_core::GeolocError;
-use geoloc_core::camera::{Camera, project};
 use geoloc_core::lie::SE3;
 use geoloc_core::localizer::{Frame, Localizer, LocalizerOptions, Source};
 use geoloc_core::map::{DescriptorSet, Keyframe, Map, RetrievalKind};
 use geoloc_core::matching::Descriptors;
-use geoloc_core::testing::{SplitMix64, look_at};
-use nalgebra::{Matrix6, Vector2, Vector3};
+use geoloc_core::testing::{self, LandmarkScene, SplitMix64};
+use nalgebra::{Matrix6, Vector2};
 
-const WIDTH: usize = 32;
+const WIDTH: usize = testing::LANDMARK_DESCRIPTOR_BYTES;
 /// Landmarks of the scene (about a third in view at a time).
 const LANDMARKS: usize = 3000;
 /// Retrieval is right when the retrieved keyframe is within this distance of the truth
@@ -27,53 +26,17 @@ const NEARBY_M: f64 = 0.4;
 /// ... and the median retrieved keyframe is within this distance.
 const NEARBY_MEDIAN_M: f64 = 0.2;
 
-struct World {
-    landmarks: Vec<Vector3<f64>>,
-    descriptors: Vec<[u8; WIDTH]>,
-    camera: Camera,
-}
-
-impl World {
-    fn new(rng: &mut SplitMix64) -> Self {
-        let landmarks = (0..LANDMARKS)
-            .map(|_| Vector3::new(rng.uniform_in(-12.0, 12.0), rng.uniform_in(-1.5, 1.5), rng.uniform_in(3.0, 6.0)))
-            .collect();
-        let descriptors = (0..LANDMARKS).map(|_| std::array::from_fn(|_| (rng.next_u64() & 0xff) as u8)).collect();
-        Self { landmarks, descriptors, camera: Camera::new(525.0, 525.0, 320.0, 240.0).expect("valid") }
-    }
-
-    /// What a camera at `pose` sees: keypoints with 0.5 px noise and descriptors with 3
-    /// flipped bits.
-    fn observe(&self, rng: &mut SplitMix64, pose: &SE3) -> (Vec<Vector2<f64>>, Vec<u8>) {
-        let (mut kps, mut desc) = (Vec::new(), Vec::new());
-        for (x, d) in self.landmarks.iter().zip(&self.descriptors) {
-            let p = project(&self.camera, pose, x);
-            if p.p_cam.z > 0.5 && (0.0..640.0).contains(&p.uv.x) && (0.0..480.0).contains(&p.uv.y) {
-                kps.push(p.uv + Vector2::new(rng.normal(), rng.normal()) * 0.5);
-                let mut d = *d;
-                for _ in 0..3 {
-                    let bit = (rng.next_u64() % (8 * WIDTH as u64)) as usize;
-                    d[bit / 8] ^= 1 << (bit % 8);
-                }
-                desc.extend_from_slice(&d);
-            }
-        }
-        (kps, desc)
-    }
-}
-
-/// A camera walking along x at 0.6 m/s, looking forward (+z), with a gentle sway.
+/// The camera path of these tests: [`testing::walk`] (the scene is [`LandmarkScene`]).
 fn walk(t: f64, offset: f64) -> SE3 {
-    let c = Vector3::new(-1.5 + 0.6 * t, offset + 0.05 * (2.0 * t).sin(), 0.0);
-    look_at(&c, &(c + Vector3::new(0.1 * (1.3 * t).sin(), 0.0, 5.0)))
+    testing::walk(t, offset, -1.5)
 }
 
 /// Keyframes every 0.1 s of the walk.
-fn keyframes(world: &World, rng: &mut SplitMix64) -> Vec<Keyframe> {
+fn keyframes(world: &LandmarkScene, rng: &mut SplitMix64) -> Vec<Keyframe> {
     (0..60)
         .map(|i| {
             let pose = walk(i as f64 * 0.1, 0.0);
-            let (keypoints, data) = world.observe(rng, &pose);
+            let (keypoints, data) = world.observe(rng, &pose, 3);
             Keyframe {
                 world_from_cam: pose,
                 keypoints,
@@ -99,7 +62,7 @@ fn run(corrupt_fraction: f64) -> Run {
 
 fn run_frames(corrupt_fraction: f64, frames: usize) -> Run {
     let mut rng = SplitMix64::new(11);
-    let world = World::new(&mut rng);
+    let world = LandmarkScene::new(&mut rng, LANDMARKS, 12.0);
     let keyframes = keyframes(&world, &mut rng);
     let kf_poses: Vec<SE3> = keyframes.iter().map(|k| k.world_from_cam).collect();
     let map =
@@ -110,7 +73,7 @@ fn run_frames(corrupt_fraction: f64, frames: usize) -> Run {
     for f in 0..frames {
         let t = 0.3 + f as f64 / 30.0;
         let truth = walk(t, 0.15);
-        let (keypoints, mut data) = world.observe(&mut rng, &truth);
+        let (keypoints, mut data) = world.observe(&mut rng, &truth, 3);
         if f >= 5 && corrupt_rng.uniform() < corrupt_fraction {
             // a gross failure: descriptors shuffled between keypoints, so every match is wrong
             let n = keypoints.len();
@@ -215,7 +178,7 @@ fn name_of<T>(r: Result<T, GeolocError>) -> String {
 #[test]
 fn bad_maps_and_frames_are_refused_by_name() {
     let mut rng = SplitMix64::new(3);
-    let world = World::new(&mut rng);
+    let world = LandmarkScene::new(&mut rng, LANDMARKS, 12.0);
     let kfs: Vec<Keyframe> = keyframes(&world, &mut rng).into_iter().take(5).collect();
     let bow = RetrievalKind::Bow { branching: 2, depth: 2 };
     let build =
