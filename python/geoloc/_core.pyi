@@ -127,17 +127,23 @@ def solve_pnp(
     seed: int | None = None,
 ) -> PnPResult: ...
 def keyframe_score(
-    pose1: NDArray[np.float64], pose2: NDArray[np.float64], d_m: float, ell: float, alpha_m: float
+    pose1: NDArray[np.float64],
+    pose2: NDArray[np.float64],
+    *,
+    d_m: float | None = None,
+    ell: float | None = None,
+    alpha_m: float | None = None,
 ) -> NDArray[np.float64]: ...
 def select_keyframes(
     poses_wc: NDArray[np.float64],
-    k: int,
-    n: int,
-    window: int,
-    d_m: float,
-    ell: float,
-    alpha_m: float,
-    min_score: float,
+    k: int | np.integer[Any],
+    *,
+    n: int | np.integer[Any] | None = None,
+    window: int | np.integer[Any] | None = None,
+    d_m: float | None = None,
+    ell: float | None = None,
+    alpha_m: float | None = None,
+    min_score: float | None = None,
 ) -> NDArray[np.uint64]: ...
 @final
 class MotionPrediction:

@@ -134,13 +134,6 @@ def _flag(value: Any, name: str) -> bool | None:
     raise InvalidInputError(f"{name}: expected True, False or None, got {value!r:.40}")
 
 
-def _check_positive(value: float, name: str) -> float:
-    value = real_scalar(value, name)
-    if not np.isfinite(value) or value <= 0:
-        raise InvalidInputError(f"{name}: expected a finite number > 0, got {value!r}")
-    return float(value)
-
-
 def _index_array(x: ArrayLike, name: str, n: int) -> NDArray[np.int64]:
     arr = np.asarray(x)
     if arr.dtype.kind not in "iu" and not (arr.dtype.kind == "f" and arr.size == 0):
@@ -307,10 +300,9 @@ def keyframe_score(
     a, lead_a = as_batch(T1, "T1", (4, 4))
     b, lead_b = as_batch(T2, "T2", (4, 4))
     (a, b), lead = broadcast_batches([(a, lead_a, "T1"), (b, lead_b, "T2")])
-    d_m = real_scalar(d_m, "d_m")
-    if not np.isfinite(d_m) or d_m < 0:
-        raise InvalidInputError(f"d_m: expected a finite number ≥ 0, got {d_m!r}")
-    out = _core.keyframe_score(a, b, float(d_m), _check_positive(ell, "ell"), _check_positive(alpha_m, "alpha_m"))
+    out = _core.keyframe_score(
+        a, b, d_m=real_scalar(d_m, "d_m"), ell=real_scalar(ell, "ell"), alpha_m=real_scalar(alpha_m, "alpha_m")
+    )
     return np.asarray(out).reshape(lead)
 
 
@@ -332,9 +324,6 @@ def select_keyframes(
     near the ends of a sequence the group is smaller or one-sided.
     """
     flat = _pose_stack(poses, "poses")
-    for name, value in (("k", k), ("n", n), ("window", window)):
-        if not isinstance(value, (int, np.integer)) or value < 0:
-            raise InvalidInputError(f"{name}: expected a non-negative integer, got {value!r}")
-    reals = [real_scalar(v, name) for name, v in (("d_m", d_m), ("ell", ell), ("alpha_m", alpha_m), ("min_score", min_score))]
-    out = _core.select_keyframes(flat, int(k), int(n), int(window), *reals)
+    reals = {name: real_scalar(v, name) for name, v in (("d_m", d_m), ("ell", ell), ("alpha_m", alpha_m), ("min_score", min_score))}
+    out = _core.select_keyframes(flat, k, n=n, window=window, **reals)
     return np.asarray(out, dtype=np.int64)

@@ -37,6 +37,31 @@ impl Default for KeyframeOptions {
     }
 }
 
+impl KeyframeOptions {
+    /// Checks the score's parameters (d_m finite ≥ 0; ℓ, α_m finite > 0; `min_score` finite)
+    /// and the group size (`n` ≥ 1).
+    ///
+    /// # Errors
+    /// `InvalidInput` naming the offending option (`n`, `d_m`, `ell`, `alpha_m`, `min_score`).
+    pub fn check(&self) -> Result<()> {
+        if self.n == 0 {
+            return Err(GeolocError::invalid("n", "must be at least 1"));
+        }
+        for (name, v) in [("ell", self.ell), ("alpha_m", self.alpha_m_rad)] {
+            if !(v.is_finite() && v > 0.0) {
+                return Err(GeolocError::invalid(name, format!("must be finite and > 0, got {v}")));
+            }
+        }
+        if !(self.d_m.is_finite() && self.d_m >= 0.0) {
+            return Err(GeolocError::invalid("d_m", format!("must be finite and ≥ 0, got {}", self.d_m)));
+        }
+        if !self.min_score.is_finite() {
+            return Err(GeolocError::invalid("min_score", format!("must be finite, got {}", self.min_score)));
+        }
+        Ok(())
+    }
+}
+
 /// s(T₁, T₂) of the module doc.
 pub fn keyframe_score(a: &SE3, b: &SE3, d_m: f64, ell: f64, alpha_m_rad: f64) -> f64 {
     let baseline = (a.translation - b.translation).norm();
@@ -48,22 +73,12 @@ pub fn keyframe_score(a: &SE3, b: &SE3, d_m: f64, ell: f64, alpha_m_rad: f64) ->
 /// The keyframe group around `seed` (sorted indices into `poses`; see the module doc).
 ///
 /// # Errors
-/// `seed` out of range, `n` = 0, or non-positive / non-finite d_m, ℓ, α_m.
+/// `seed` out of range (named `k`), or options refused by [`KeyframeOptions::check`].
 pub fn select_keyframes(poses: &[SE3], seed: usize, options: &KeyframeOptions) -> Result<Vec<usize>> {
     if seed >= poses.len() {
         return Err(GeolocError::invalid("k", format!("{seed} is out of range for {} poses", poses.len())));
     }
-    if options.n == 0 {
-        return Err(GeolocError::invalid("n", "must be at least 1"));
-    }
-    for (name, v) in [("ell", options.ell), ("alpha_m", options.alpha_m_rad)] {
-        if !(v.is_finite() && v > 0.0) {
-            return Err(GeolocError::invalid(name, format!("must be finite and > 0, got {v}")));
-        }
-    }
-    if !(options.d_m.is_finite() && options.d_m >= 0.0) {
-        return Err(GeolocError::invalid("d_m", format!("must be finite and ≥ 0, got {}", options.d_m)));
-    }
+    options.check()?;
     let score =
         |a: usize, b: usize| keyframe_score(&poses[a], &poses[b], options.d_m, options.ell, options.alpha_m_rad);
     let mut group = vec![seed];

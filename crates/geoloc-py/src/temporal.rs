@@ -9,45 +9,67 @@ use pyo3::prelude::*;
 use crate::convert::{count_usize, matrices, matrix_to_array, one_matrix, one_pose, poses};
 use crate::errors::{invalid, to_py_err};
 
-fn options(n: usize, window: usize, d_m: f64, ell: f64, alpha_m: f64, min_score: f64) -> KeyframeOptions {
-    KeyframeOptions { n, window, d_m, ell, alpha_m_rad: alpha_m, min_score }
+/// The keyframe options from keyword arguments (defaults: the paper's), checked by the core.
+#[allow(clippy::too_many_arguments)]
+fn options(
+    n: Option<&Bound<'_, PyAny>>,
+    window: Option<&Bound<'_, PyAny>>,
+    d_m: Option<f64>,
+    ell: Option<f64>,
+    alpha_m: Option<f64>,
+    min_score: Option<f64>,
+) -> PyResult<KeyframeOptions> {
+    let d = KeyframeOptions::default();
+    let options = KeyframeOptions {
+        n: n.map_or(Ok(d.n), |v| count_usize("n", v))?,
+        window: window.map_or(Ok(d.window), |v| count_usize("window", v))?,
+        d_m: d_m.unwrap_or(d.d_m),
+        ell: ell.unwrap_or(d.ell),
+        alpha_m_rad: alpha_m.unwrap_or(d.alpha_m_rad),
+        min_score: min_score.unwrap_or(d.min_score),
+    };
+    options.check().map_err(to_py_err)?;
+    Ok(options)
 }
 
 /// s(T₁, T₂) for each pair of rows (N, 16) × (N, 16) → (N,).
 #[pyfunction]
+#[pyo3(signature = (pose1, pose2, *, d_m=None, ell=None, alpha_m=None))]
 pub fn keyframe_score<'py>(
     py: Python<'py>,
     pose1: PyReadonlyArray2<'py, f64>,
     pose2: PyReadonlyArray2<'py, f64>,
-    d_m: f64,
-    ell: f64,
-    alpha_m: f64,
+    d_m: Option<f64>,
+    ell: Option<f64>,
+    alpha_m: Option<f64>,
 ) -> PyResult<Bound<'py, PyArray1<f64>>> {
+    let o = options(None, None, d_m, ell, alpha_m, None)?;
     let (a, b) = (poses("T1", &pose1)?, poses("T2", &pose2)?);
     if a.len() != b.len() {
         return Err(invalid("T2", format!("has {} poses but T1 has {}", b.len(), a.len())));
     }
-    Ok(a.iter().zip(&b).map(|(x, y)| core_score(x, y, d_m, ell, alpha_m)).collect::<Vec<_>>().into_pyarray(py))
+    let scores: Vec<f64> = a.iter().zip(&b).map(|(x, y)| core_score(x, y, o.d_m, o.ell, o.alpha_m_rad)).collect();
+    Ok(scores.into_pyarray(py))
 }
 
 /// The keyframe group around `k`.
 #[pyfunction]
-#[pyo3(signature = (poses_wc, k, n, window, d_m, ell, alpha_m, min_score))]
+#[pyo3(signature = (poses_wc, k, *, n=None, window=None, d_m=None, ell=None, alpha_m=None, min_score=None))]
 #[allow(clippy::too_many_arguments)]
 pub fn select_keyframes<'py>(
     py: Python<'py>,
     poses_wc: PyReadonlyArray2<'py, f64>,
     k: &Bound<'py, PyAny>,
-    n: &Bound<'py, PyAny>,
-    window: &Bound<'py, PyAny>,
-    d_m: f64,
-    ell: f64,
-    alpha_m: f64,
-    min_score: f64,
+    n: Option<Bound<'py, PyAny>>,
+    window: Option<Bound<'py, PyAny>>,
+    d_m: Option<f64>,
+    ell: Option<f64>,
+    alpha_m: Option<f64>,
+    min_score: Option<f64>,
 ) -> PyResult<Bound<'py, PyArray1<u64>>> {
+    let options = options(n.as_ref(), window.as_ref(), d_m, ell, alpha_m, min_score)?;
     let p = poses("poses", &poses_wc)?;
-    let (k, n, window) = (count_usize("k", k)?, count_usize("n", n)?, count_usize("window", window)?);
-    let group = core_select(&p, k, &options(n, window, d_m, ell, alpha_m, min_score)).map_err(to_py_err)?;
+    let group = core_select(&p, count_usize("k", k)?, &options).map_err(to_py_err)?;
     Ok(group.into_iter().map(|i| i as u64).collect::<Vec<_>>().into_pyarray(py))
 }
 
