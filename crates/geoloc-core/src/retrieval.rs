@@ -224,6 +224,7 @@ impl DescriptorIndex {
         }
         let q_count = queries.len() / self.dim;
         let (q_lo, q_hi) = magnitude_range(queries);
+        // one Vec of q·k (distance, index) pairs per block of queries, in query order
         let found: Vec<Vec<(f32, usize)>> = if f32_safe((self.magnitudes.0.min(q_lo), self.magnitudes.1.max(q_hi))) {
             let block = if self.tree.is_some() { QUERY_CHUNK } else { GEMM_QUERY_BLOCK };
             map_indices(q_count.div_ceil(block), 2, |chunk| {
@@ -231,35 +232,33 @@ impl DescriptorIndex {
                 let rows = &queries[first * self.dim..(first + block).min(q_count) * self.dim];
                 self.search_f32(rows, k)
             })
-            .concat()
         } else {
             map_indices(q_count, 2, |q| self.scan_f64(&queries[q * self.dim..(q + 1) * self.dim], k))
         };
         let mut distances = Vec::with_capacity(q_count * k);
         let mut indices = Vec::with_capacity(q_count * k);
-        for row in found {
-            distances.extend(row.iter().map(|&(d, _)| d));
-            indices.extend(row.iter().map(|&(_, i)| i));
+        for &(d, i) in found.iter().flatten() {
+            distances.push(d);
+            indices.push(i);
         }
         Ok((distances, indices))
     }
 
-    /// The k nearest (distance, index) of each of a block of queries, by the f32 paths.
-    fn search_f32(&self, rows: &[f32], k: usize) -> Vec<Vec<(f32, usize)>> {
+    /// The k nearest (distance, index) of each of a block of queries, by the f32 paths,
+    /// concatenated (k per query, in query order).
+    fn search_f32(&self, rows: &[f32], k: usize) -> Vec<(f32, usize)> {
         let results: Vec<Vec<(f32, usize)>> = match &self.tree {
             Some(tree) => rows.chunks_exact(self.dim).map(|q| tree.nearest(q, k)).collect(),
             None if rows.len() == self.dim => vec![self.scan(rows, k)],
             None => self.scan_block(rows, k),
         };
-        results
-            .into_iter()
-            .map(|mut found| {
-                // a canonical order: distance, then index (trees may order ties freely)
-                found.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-                found.truncate(k);
-                found.into_iter().map(|(d2, i)| (d2.max(0.0).sqrt(), i)).collect()
-            })
-            .collect()
+        let mut out = Vec::with_capacity(results.len() * k);
+        for mut found in results {
+            // a canonical order: distance, then index (trees may order ties freely)
+            found.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+            out.extend(found.into_iter().take(k).map(|(d2, i)| (d2.max(0.0).sqrt(), i)));
+        }
+        out
     }
 
     /// Exact scan in f64 for one query (any finite magnitudes): Σ (xᵢ − qᵢ)² in f64, the k
