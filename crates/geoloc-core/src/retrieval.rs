@@ -104,8 +104,15 @@ impl<const K: usize> Tree for KiddoTree<K> {
     fn nearest(&self, query: &[f32], k: usize) -> Vec<(f32, usize)> {
         let q: [f32; K] = query.try_into().expect("invariant: query rows have the index dimension");
         let n = NonZero::new(k).expect("invariant: k ≥ 1 is checked by the caller");
-        let found = self.0.nearest_n::<SquaredEuclidean>(&q, n);
-        let Some(worst) = found.iter().map(|f| f.distance).reduce(f32::max) else { return Vec::new() };
+        // the k-th distance: k = 1 (global-descriptor retrieval) without nearest_n's result
+        // collection (an allocation per query)
+        let worst = if k == 1 {
+            self.0.nearest_one::<SquaredEuclidean>(&q).distance
+        } else {
+            let found = self.0.nearest_n::<SquaredEuclidean>(&q, n);
+            let Some(worst) = found.iter().map(|f| f.distance).reduce(f32::max) else { return Vec::new() };
+            worst
+        };
         // everything as close as the k-th: ties at the boundary must be resolved by index,
         // exactly as a scan would (a stopped camera yields thousands of them)
         let all = NonZero::new(self.0.size().max(1)).expect("invariant: max(1) is non-zero");
@@ -132,6 +139,10 @@ pub struct DescriptorIndex {
     data: Vec<f32>,
     /// ‖x‖² per row (for the matrix-product scan).
     norms: Vec<f32>,
+    /// The flat backend's rows again, as (≤ [`GEMM_ROW_BLOCK`] × D) column-major blocks: the
+    /// left operand of the scan's matrix product X·Qᵀ, whose result then holds one contiguous
+    /// column per query (empty with the tree).
+    row_blocks: Vec<nalgebra::DMatrix<f32>>,
     /// (smallest non-zero |x|, largest |x|) of the data.
     magnitudes: (f32, f32),
     tree: Option<Box<dyn Tree>>,
@@ -184,7 +195,14 @@ impl DescriptorIndex {
         let tree = if use_tree { build_for_dim(&data, dim) } else { None };
         let norms = data.chunks_exact(dim).map(|r| r.iter().map(|v| v * v).sum()).collect();
         let magnitudes = magnitude_range(&data);
-        Ok(Self { dim, data, norms, magnitudes, tree })
+        let row_blocks = match tree {
+            Some(_) => Vec::new(),
+            None => data
+                .chunks(GEMM_ROW_BLOCK * dim)
+                .map(|block| nalgebra::DMatrix::from_row_slice(block.len() / dim, dim, block))
+                .collect(),
+        };
+        Ok(Self { dim, data, norms, row_blocks, magnitudes, tree })
     }
 
     /// N.
@@ -247,16 +265,16 @@ impl DescriptorIndex {
     /// The k nearest (distance, index) of each of a block of queries, by the f32 paths,
     /// concatenated (k per query, in query order).
     fn search_f32(&self, rows: &[f32], k: usize) -> Vec<(f32, usize)> {
-        let results: Vec<Vec<(f32, usize)>> = match &self.tree {
-            Some(tree) => rows.chunks_exact(self.dim).map(|q| tree.nearest(q, k)).collect(),
-            None if rows.len() == self.dim => vec![self.scan(rows, k)],
-            None => self.scan_block(rows, k),
-        };
-        let mut out = Vec::with_capacity(results.len() * k);
-        for mut found in results {
+        let mut out = Vec::with_capacity(rows.len() / self.dim * k);
+        let mut emit = |mut found: Vec<(f32, usize)>| {
             // a canonical order: distance, then index (trees may order ties freely)
             found.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
             out.extend(found.into_iter().take(k).map(|(d2, i)| (d2.max(0.0).sqrt(), i)));
+        };
+        match &self.tree {
+            Some(tree) => rows.chunks_exact(self.dim).for_each(|q| emit(tree.nearest(q, k))),
+            None if rows.len() == self.dim => emit(self.scan(rows, k)),
+            None => self.scan_block(rows, k).into_iter().for_each(emit),
         }
         out
     }
@@ -342,7 +360,9 @@ impl<D: Distance> TopK<D> {
 }
 
 /// Queries per block of the matrix-product scan.
-const GEMM_QUERY_BLOCK: usize = 64;
+const GEMM_QUERY_BLOCK: usize = 256;
+/// Rows the scan checks at once against a query's threshold (one vectorized comparison).
+const LANES: usize = 16;
 /// Database rows per block of the matrix-product scan (keeps the product in cache).
 const GEMM_ROW_BLOCK: usize = 2048;
 
@@ -355,7 +375,7 @@ impl DescriptorIndex {
     /// returned — the same neighbours as the reference scan.
     fn scan_block(&self, queries: &[f32], k: usize) -> Vec<Vec<(f32, usize)>> {
         use nalgebra::DMatrix;
-        let (dim, n) = (self.dim, self.len());
+        let dim = self.dim;
         let b = queries.len() / dim;
         // rounding bound of the f32 expansion, B_q = γ_{D+3} (max‖x‖ + ‖q‖)² with γ_m ≈ m ε:
         // a true top-k row has estimate ≤ d + B ≤ (k-th estimate + B) + B
@@ -363,22 +383,31 @@ impl DescriptorIndex {
         let max_norm = self.norms.iter().fold(0.0_f32, |m, &v| m.max(v)).sqrt();
         let q_norm: Vec<f32> = queries.chunks_exact(dim).map(|q| q.iter().map(|v| v * v).sum()).collect();
         let margin: Vec<f32> = q_norm.iter().map(|&qn| 2.0 * gamma * (max_norm + qn.sqrt()).powi(2)).collect();
-        let q_mat = DMatrix::from_row_slice(b, dim, queries);
+        // (D × b) column-major is exactly the row-major (b × D) queries
+        let q_mat = DMatrix::from_column_slice(dim, b, queries);
         let mut candidates: Vec<Vec<(f32, usize)>> = vec![Vec::new(); b];
         let mut estimates: Vec<TopK<f32>> = (0..b).map(|_| TopK::new(k)).collect();
-        for start in (0..n).step_by(GEMM_ROW_BLOCK) {
-            let rows = GEMM_ROW_BLOCK.min(n - start);
-            let block = &self.data[start * dim..(start + rows) * dim];
-            // (D × rows) column-major is exactly the row-major (rows × D) block
-            let x_mat = DMatrix::from_column_slice(dim, rows, block);
-            let dots = &q_mat * &x_mat; // b × rows
-            for r in 0..rows {
-                let x_norm = self.norms[start + r];
-                for q in 0..b {
-                    let estimate = x_norm + q_norm[q] - 2.0 * dots[(q, r)];
-                    if estimate <= estimates[q].worst() + margin[q] {
-                        candidates[q].push((estimate, start + r));
-                        estimates[q].push(estimate, start + r);
+        for (block, x_mat) in self.row_blocks.iter().enumerate() {
+            let (start, rows) = (block * GEMM_ROW_BLOCK, x_mat.nrows());
+            let dots = x_mat * &q_mat; // rows × b, column-major: one contiguous column per query
+            let x_norms = &self.norms[start..start + rows];
+            for (q, column) in dots.as_slice().chunks_exact(rows).enumerate() {
+                let (found, cands) = (&mut estimates[q], &mut candidates[q]);
+                let mut threshold = found.worst() + margin[q];
+                let estimate = |dot: f32, x_norm: f32| x_norm + q_norm[q] - 2.0 * dot;
+                for (lane, (dots, x_norms)) in column.chunks(LANES).zip(x_norms.chunks(LANES)).enumerate() {
+                    // a branch-free (vectorized) look first: most lanes of most chunks miss
+                    let any = dots.iter().zip(x_norms).fold(false, |any, (&d, &x)| any | (estimate(d, x) <= threshold));
+                    if !any {
+                        continue;
+                    }
+                    for (r, (&d, &x)) in dots.iter().zip(x_norms).enumerate() {
+                        let (e, row) = (estimate(d, x), start + lane * LANES + r);
+                        if e <= threshold {
+                            cands.push((e, row));
+                            found.push(e, row);
+                            threshold = found.worst() + margin[q];
+                        }
                     }
                 }
             }
@@ -462,6 +491,35 @@ mod tests {
 
     /// A stopped camera: thousands of identical descriptors must not panic, and ties come
     /// back by index.
+    /// The matrix-product scan across several row blocks, query blocks and partial lane
+    /// chunks (N, Q not multiples of the block sizes or of the lane width), with exact
+    /// duplicates planted at the block edges: the same neighbours and ties as brute force.
+    #[test]
+    fn flat_scan_across_blocks_equals_brute_force() {
+        let mut rng = SplitMix64::new(7);
+        let (n, q_count, dim) = (2 * GEMM_ROW_BLOCK + 37, GEMM_QUERY_BLOCK + 19, 12);
+        let mut data = random(&mut rng, n * dim);
+        for (from, to) in [(3, GEMM_ROW_BLOCK - 1), (5, GEMM_ROW_BLOCK), (9, n - 1)] {
+            let row = data[from * dim..(from + 1) * dim].to_vec();
+            data[to * dim..(to + 1) * dim].copy_from_slice(&row);
+        }
+        let mut queries = random(&mut rng, q_count * dim);
+        queries[..dim].copy_from_slice(&data[3 * dim..4 * dim]);
+        queries[GEMM_QUERY_BLOCK * dim..(GEMM_QUERY_BLOCK + 1) * dim].copy_from_slice(&data[9 * dim..10 * dim]);
+        let index = DescriptorIndex::with_backend(data.clone(), dim, Some(Backend::Flat)).expect("valid");
+        let k = 3;
+        let (d, i) = index.query(&queries, k).expect("valid");
+        for q in 0..q_count {
+            let want = brute(&data, dim, &queries[q * dim..(q + 1) * dim], k);
+            let got: Vec<usize> = i[q * k..(q + 1) * k].to_vec();
+            assert_eq!(got, want.iter().map(|w| w.1).collect::<Vec<_>>(), "query {q}");
+            for s in 0..k {
+                assert!((d[q * k + s] - want[s].0.sqrt()).abs() < 1e-5, "query {q}");
+            }
+        }
+        assert_eq!(&i[..2], &[3, GEMM_ROW_BLOCK - 1], "a duplicate across a block edge: ties by index");
+    }
+
     #[test]
     fn many_identical_descriptors() {
         for dim in [3, 8, 32] {

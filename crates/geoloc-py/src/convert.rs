@@ -164,19 +164,22 @@ impl<'py> BorrowedDescriptors<'py> {
     }
 }
 
-/// An optional integer argument ([`count`]); `None` gives `default`; a bool is refused.
-pub fn u64_arg(obj: Option<&Bound<'_, PyAny>>, name: &str, default: u64) -> PyResult<u64> {
-    let Some(obj) = obj.filter(|o| !o.is_none()) else { return Ok(default) };
-    if obj.is_instance_of::<pyo3::types::PyBool>() {
-        return Err(invalid(name, "expected an integer, got a bool"));
+/// The integer argument `obj` unless absent or None; a bool is refused.
+fn given_int<'a, 'py>(obj: Option<&'a Bound<'py, PyAny>>, name: &str) -> PyResult<Option<&'a Bound<'py, PyAny>>> {
+    match obj.filter(|o| !o.is_none()) {
+        Some(o) if o.is_instance_of::<pyo3::types::PyBool>() => Err(invalid(name, "expected an integer, got a bool")),
+        given => Ok(given),
     }
-    count(name, obj)
 }
 
-/// [`u64_arg`] as a count (usize).
+/// An optional integer argument ([`count`]); `None` gives `default`; a bool is refused.
+pub fn u64_arg(obj: Option<&Bound<'_, PyAny>>, name: &str, default: u64) -> PyResult<u64> {
+    given_int(obj, name)?.map_or(Ok(default), |o| count(name, o))
+}
+
+/// [`u64_arg`] as a count (usize, [`count_usize`]).
 pub fn count_arg(obj: Option<&Bound<'_, PyAny>>, name: &str, default: usize) -> PyResult<usize> {
-    let v = u64_arg(obj, name, default as u64)?;
-    usize::try_from(v).map_err(|_| invalid(name, format!("{v} is too large")))
+    given_int(obj, name)?.map_or(Ok(default), |o| count_usize(name, o))
 }
 
 /// A Python integer (or anything with `__index__`, e.g. `np.int64`) as a non-negative
