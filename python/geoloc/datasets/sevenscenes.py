@@ -45,15 +45,19 @@ _FRAME = re.compile(r"^frame-(\d+)\.color\.(png|jpg|jpeg)$", re.IGNORECASE)
 _MAX_BOTTOM_ROW_ERROR = 1e-6
 
 
+def _read_matrix(path: Path, n: int, what: str) -> np.ndarray:
+    """The n×n matrix a text file holds (n rows of n numbers, any whitespace/line ends)."""
+    values = [v for k, r in enumerate(data_rows(path)) for v in floats(r, path, k + 1)]
+    if len(values) != n * n:
+        raise DatasetError(f"{what} {str(path)!r}: expected {n * n} numbers (a {n}×{n} matrix), got {len(values)}")
+    return np.array(values).reshape(n, n)
+
+
 def read_7scenes_pose(path: str | os.PathLike[str]) -> np.ndarray:
     """One pose file (4 rows of 4 numbers, any whitespace/line ends) → (4, 4) world_from_cam,
     rotation projected onto SO(3)."""
     p = Path(path)
-    rows = data_rows(p)
-    values = [v for k, r in enumerate(rows) for v in floats(r, p, k + 1)]
-    if len(values) != 16:
-        raise DatasetError(f"pose file {str(p)!r}: expected 16 numbers (a 4×4 matrix), got {len(values)}")
-    pose = np.array(values).reshape(4, 4)
+    pose = _read_matrix(p, 4, "pose file")
     if np.abs(pose[3] - [0, 0, 0, 1]).max() > _MAX_BOTTOM_ROW_ERROR:
         raise DatasetError(f"pose file {str(p)!r}: last row is {pose[3].tolist()}, expected [0, 0, 0, 1]")
     try:
@@ -66,12 +70,7 @@ def read_7scenes_pose(path: str | os.PathLike[str]) -> np.ndarray:
 
 def read_7scenes_intrinsics(path: str | os.PathLike[str]) -> Camera:
     """``camera-intrinsics.txt`` (a 3×3 K) as a 640×480 Camera without distortion."""
-    p = Path(path)
-    rows = data_rows(p)
-    values = [v for k, r in enumerate(rows) for v in floats(r, p, k + 1)]
-    if len(values) != 9:
-        raise DatasetError(f"intrinsics file {str(p)!r}: expected 9 numbers (a 3×3 K), got {len(values)}")
-    K = np.array(values).reshape(3, 3)
+    K = _read_matrix(Path(path), 3, "intrinsics file")
     return Camera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], *IMAGE_SIZE)
 
 
