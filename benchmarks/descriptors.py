@@ -52,8 +52,10 @@ def features(seq: datasets.Sequence, kind: str, cache: Path) -> tuple[list[np.nd
     path = cache / f"features_{kind}.npz"
     if path.exists():
         z = np.load(path)
-        off = np.concatenate([[0], np.cumsum(z["n"])])
-        return [z["kp"][a:b] for a, b in zip(off[:-1], off[1:])], [z["desc"][a:b] for a, b in zip(off[:-1], off[1:])]
+        # read each array once: z["kp"] re-reads the file, and a slice of it keeps the whole copy
+        n, kp, desc = z["n"], z["kp"], z["desc"]
+        off = np.concatenate([[0], np.cumsum(n)])
+        return [kp[a:b] for a, b in zip(off[:-1], off[1:])], [desc[a:b] for a, b in zip(off[:-1], off[1:])]
     extract = FeatureExtractor("orb" if kind == "orb" else "sift", 1000, root_sift=kind == "rootsift")
     kps, descs = [], []
     for i in range(len(seq)):
