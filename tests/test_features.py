@@ -9,7 +9,7 @@ import pytest
 
 import geoloc
 from geoloc import datasets
-from geoloc.features import ORB_SCALE_FACTOR, FeatureExtractor, decode_sift_octave
+from geoloc.features import ORB_SCALE_FACTOR, SIFT_CONTRAST_THRESHOLD, FeatureExtractor, decode_sift_octave
 
 cv2 = pytest.importorskip("cv2")
 
@@ -51,7 +51,7 @@ def test_sift_octave_decoding_and_root_sift(frame: tuple[np.ndarray, geoloc.Came
     assert f.descriptors.shape == (len(f), 128) and f.descriptors.dtype == np.float32
     assert -1 in f.octaves.tolist()  # OpenCV upsamples the first octave
     # KeyPoint.size = 2·σ₀·2^(o + (l + ξ)/3) with ξ ∈ [-½, ½]: our σ = 2^(o + (l-1)/3).
-    kps = cv2.SIFT_create(nfeatures=500).detect(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY), None)
+    kps = cv2.SIFT_create(nfeatures=500, contrastThreshold=SIFT_CONTRAST_THRESHOLD).detect(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY), None)
     size_sigma = np.array([k.size for k in kps]) / (2 * SIFT_SIGMA0)
     assert len(kps) == len(f)
     ratio = size_sigma / f.pixel_sigmas
@@ -107,3 +107,14 @@ def test_orb_on_a_real_frame() -> None:
     seq = datasets.load_7scenes(folder)
     f = FeatureExtractor()(seq[600].image, seq.camera)
     assert NEAR_FULL * N_FEATURES <= len(f) <= N_FEATURES
+
+
+def test_sift_gives_the_requested_count_on_a_blurred_frame() -> None:
+    """Issue 13: with OpenCV's contrast threshold (0.04) SIFT found 437 of 1000 keypoints on
+    this blurred frame (and a median of 832 on the 7-Scenes kitchen) while ORB finds ~1000;
+    ``n_features`` must mean the same for both kinds."""
+    seq = datasets.synthetic_room(n_frames=10, blur=2.0)
+    image, camera = seq[3].image, seq.camera
+    assert len(cv2.SIFT_create(nfeatures=N_FEATURES).detect(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY), None)) < NEAR_FULL * N_FEATURES
+    orb = len(FeatureExtractor("orb", n_features=N_FEATURES)(image, camera))  # 877 here
+    assert len(FeatureExtractor("sift", n_features=N_FEATURES)(image, camera)) >= max(orb, NEAR_FULL * N_FEATURES)

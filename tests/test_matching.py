@@ -78,3 +78,30 @@ def test_self_matches_at_extreme_magnitudes() -> None:
     x = (np.random.default_rng(0).normal(size=(50, 16)) * 1e20).astype(np.float32)
     pairs, dist = matching.match_descriptors(x, x)
     assert len(pairs) == 50 and np.all(pairs[:, 0] == pairs[:, 1]) and np.all(dist == 0)
+
+
+@pytest.mark.parametrize("scale", [512.0, 1.0])  # OpenCV SIFT rows have norm ≈ 512, RootSIFT rows norm 1
+def test_float_matching_equals_brute_force_in_euclidean_units(scale: float) -> None:
+    """Issue 13: every float threshold is in the units of the Euclidean distance (not its
+    square, not bits): the ratio test d₁ < r·d₂, the mutual check and ``max_distance`` give
+    exactly the brute-force selection, for SIFT-sized and RootSIFT-sized rows."""
+    rng = np.random.default_rng(5)
+    a = np.abs(rng.normal(size=(150, 128))).astype(np.float32)
+    b = np.concatenate([a[:100] + 0.3 * np.abs(rng.normal(size=(100, 128))), np.abs(rng.normal(size=(120, 128)))])
+    a *= np.float32(scale) / np.linalg.norm(a, axis=1, keepdims=True)
+    b = (np.float32(scale) * b / np.linalg.norm(b, axis=1, keepdims=True)).astype(np.float32)
+    d = np.linalg.norm(a[:, None, :].astype(np.float64) - b[None].astype(np.float64), axis=-1)
+    order = np.sort(d, axis=1)
+    nearest, back = d.argmin(1), d.argmin(0)
+    first = np.sort(order[:, 0])
+    max_distance = float(first[75] + first[76]) / 2  # between two rows: no boundary ties in f32
+    for ratio, limit in ((0.8, None), (0.9, max_distance), (None, None)):
+        pairs, dist = matching.match_descriptors(a, b, ratio=ratio, mutual=True, max_distance=limit)
+        keep = back[nearest] == np.arange(len(a))
+        if ratio is not None:
+            keep &= order[:, 0] < ratio * order[:, 1]
+        if limit is not None:
+            keep &= order[:, 0] <= limit
+        np.testing.assert_array_equal(pairs[:, 0], np.flatnonzero(keep))
+        np.testing.assert_array_equal(pairs[:, 1], nearest[keep])
+        np.testing.assert_allclose(dist, order[keep, 0], rtol=1e-5)

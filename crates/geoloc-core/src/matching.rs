@@ -213,7 +213,18 @@ pub fn hamming(a: &[u8], b: &[u8]) -> u32 {
         + tail
 }
 
-/// Options of [`match_descriptors`].
+/// Options of [`match_descriptors`], the same for both descriptor kinds because every test
+/// is in the units of [`Row::distance`] of the kind at hand:
+/// * `ratio` is unit-free (d₁ < r·d₂ with d the Hamming distance in bits for binary rows and
+///   the Euclidean distance, not its square, for float rows), so Lowe's 0.8 means the same
+///   for ORB, SIFT (rows of norm ≈ 512 from OpenCV) and RootSIFT (rows of norm 1). Measured
+///   on 7-Scenes kitchen training pairs with known poses (mutual nearest neighbours; true:
+///   Sampson < 1 px, false: > 10 px), ORB at 0.8 keeps 78 % of the true and 10 % of the false
+///   matches; issue 13: from the same seed keyframes SIFT with 0.8 gives more PnP inliers
+///   than ORB (median 35 vs 19 on the 0–99 fold).
+/// * `max_distance` is off by default: it is an absolute distance whose scale depends on
+///   the kind (bits out of 256 for ORB, ≈ 0…512 for SIFT, 0…√2 for RootSIFT); a value set
+///   for one kind is meaningless for another.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct MatchOptions {
     /// Lowe's ratio: keep a match when best < ratio · second best (None: no ratio test;
@@ -221,7 +232,8 @@ pub struct MatchOptions {
     pub ratio: Option<f32>,
     /// Keep only matches that are each other's best (default true).
     pub mutual: bool,
-    /// Keep only matches closer than this (None: no limit).
+    /// Keep only matches with d₁ ≤ this, in [`Row::distance`] units of the kind (None: no
+    /// limit, the default).
     pub max_distance: Option<f32>,
 }
 
