@@ -4,9 +4,11 @@
 //! provides global descriptors, else a bag-of-words vocabulary and database).
 
 pub mod file;
+pub mod model;
 mod persist;
 
-pub use persist::{CameraHeader, MapHeader, NoiseHeader, RetrievalHeader};
+pub use model::{ModelOptions, SceneModel};
+pub use persist::{CameraHeader, MapHeader, ModelHeader, NoiseHeader, RetrievalHeader};
 
 use nalgebra::{Matrix6, Vector2, Vector6};
 
@@ -56,6 +58,8 @@ pub struct Map {
     pub retrieval: Retrieval,
     /// What was estimated about the map's noise at build time (zero when not estimated).
     pub noise: MapNoise,
+    /// The map-level 3D model of the model locator ([`Map::with_model`]), if built.
+    pub model: Option<SceneModel>,
 }
 
 /// The map's noise, estimated at build time from its own keyframes
@@ -162,6 +166,7 @@ impl std::fmt::Debug for Map {
             .field("keyframes", &self.keyframes.len())
             .field("pose_covariances", &self.pose_covariances.is_some())
             .field("retrieval", &retrieval)
+            .field("model_points", &self.model.as_ref().map(SceneModel::len))
             .finish()
     }
 }
@@ -193,7 +198,16 @@ impl Map {
             RetrievalKind::Global => Retrieval::Global(global_index(&keyframes)?),
             RetrievalKind::Bow { branching, depth } => bow_retrieval(&keyframes, branching, depth, seed)?,
         };
-        Ok(Self { camera, keyframes, pose_covariances, retrieval, noise: MapNoise::default() })
+        Ok(Self { camera, keyframes, pose_covariances, retrieval, noise: MapNoise::default(), model: None })
+    }
+
+    /// The map with its 3D model built from all keyframes ([`SceneModel::build`]).
+    ///
+    /// # Errors
+    /// As [`SceneModel::build`].
+    pub fn with_model(mut self, options: &ModelOptions) -> Result<Self> {
+        self.model = Some(SceneModel::build(&self.camera, &self.keyframes, self.pose_covariances.as_deref(), options)?);
+        Ok(self)
     }
 
     /// The world_from_cam poses of the keyframes.
@@ -247,6 +261,53 @@ impl Map {
                 database.query(&words, k).into_iter().map(|(i, _)| i).find(|i| !excluded.contains(i)).ok_or_else(none)
             }
         }
+    }
+}
+
+impl Map {
+    /// The `k` keyframes most similar to a query, best first, skipping those in `excluded`
+    /// (the ranking of [`Map::retrieve`]; fewer when the map has fewer).
+    ///
+    /// # Errors
+    /// As [`Map::retrieve_excluding`]; `k` 0.
+    pub fn retrieve_top(
+        &self,
+        descriptors: &Descriptors<'_>,
+        global: Option<&[f32]>,
+        k: usize,
+        excluded: std::ops::Range<usize>,
+    ) -> Result<Vec<usize>> {
+        if k == 0 {
+            return Err(GeolocError::invalid("top_k", "must be ≥ 1"));
+        }
+        let n = self.keyframes.len();
+        let want = (excluded.end.min(n).saturating_sub(excluded.start) + k).min(n);
+        let ranked: Vec<usize> = match &self.retrieval {
+            Retrieval::Global(index) => {
+                let g = global.ok_or_else(|| {
+                    GeolocError::invalid("global_descriptor", "this map retrieves by global descriptor; give one")
+                })?;
+                if g.len() != index.dim() {
+                    return Err(GeolocError::invalid(
+                        "global_descriptor",
+                        format!("expected {} values, got {}", index.dim(), g.len()),
+                    ));
+                }
+                if let Some(i) = g.iter().position(|v| !v.is_finite()) {
+                    return Err(GeolocError::NonFinite { name: "global_descriptor".into(), index: i });
+                }
+                index.query(g, want)?.1
+            }
+            Retrieval::Bow { vocabulary, database } => {
+                let words = vocabulary.words_of(descriptors)?;
+                database.query(&words, want).into_iter().map(|(i, _)| i).collect()
+            }
+        };
+        let top: Vec<usize> = ranked.into_iter().filter(|i| !excluded.contains(i)).take(k).collect();
+        if top.is_empty() {
+            return Err(GeolocError::invalid("descriptors", "the map has no keyframes outside the excluded ones"));
+        }
+        Ok(top)
     }
 }
 
