@@ -72,3 +72,29 @@ def test_bad_locator_options_are_refused_by_name(room: tuple[Any, geoloc.Map]) -
         geoloc.Localizer(m, locator="hloc")  # type: ignore[arg-type]
     with pytest.raises(InvalidInputError, match="top_k"):
         geoloc.Localizer(m, locator="model", top_k=0)
+
+
+def test_cli_build_map_with_model_then_localize_with_the_model_locator(tmp_path: Path) -> None:
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(Path(geoloc.__file__).parents[1]), env.get("PYTHONPATH", "")])
+
+    def run(*args: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run([sys.executable, "-m", "geoloc", *args], capture_output=True, text=True, env=env)
+
+    path, out = tmp_path / "room.geoloc", tmp_path / "poses.txt"
+    room = ("--format", "synthetic", "--synthetic-frames", "60")
+    built = run("build-map", *room, "--frames", "0:30", "--model", "--out", str(path))
+    assert built.returncode == 0, built.stdout + built.stderr
+    assert geoloc.Map.load(path)._feature_map.model_points
+    done = run("localize", "--map", str(path), *room, "--frames", "30:60:3", "--mode", "single", "--locator", "model", "--out", str(out))
+    assert done.returncode == 0, done.stdout + done.stderr
+    rows = [line.split() for line in out.read_text().splitlines() if not line.startswith("#")]
+    truth = geoloc.datasets.synthetic_room(n_frames=60).poses[30:60:3, :3, 3]
+    assert len(rows) == 10
+    assert np.median(np.linalg.norm(np.array([[float(v) for v in r[1:4]] for r in rows]) - truth, axis=1)) < 0.01
+    bad = run("localize", "--map", str(path), *room, "--locator", "hloc", "--out", str(out))
+    assert bad.returncode == 2 and "--locator" in bad.stderr
