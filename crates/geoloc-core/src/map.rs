@@ -236,40 +236,17 @@ impl Map {
         global: Option<&[f32]>,
         excluded: std::ops::Range<usize>,
     ) -> Result<usize> {
-        let n = self.keyframes.len();
-        let k = (excluded.end.min(n).saturating_sub(excluded.start) + 1).min(n);
-        let none = || GeolocError::invalid("descriptors", "the map has no keyframes outside the excluded ones");
-        match &self.retrieval {
-            Retrieval::Global(index) => {
-                let g = global.ok_or_else(|| {
-                    GeolocError::invalid("global_descriptor", "this map retrieves by global descriptor; give one")
-                })?;
-                if g.len() != index.dim() {
-                    return Err(GeolocError::invalid(
-                        "global_descriptor",
-                        format!("expected {} values, got {}", index.dim(), g.len()),
-                    ));
-                }
-                if let Some(i) = g.iter().position(|v| !v.is_finite()) {
-                    return Err(GeolocError::NonFinite { name: "global_descriptor".into(), index: i });
-                }
-                let (_, idx) = index.query(g, k)?;
-                idx.into_iter().find(|i| !excluded.contains(i)).ok_or_else(none)
-            }
-            Retrieval::Bow { vocabulary, database } => {
-                let words = vocabulary.words_of(descriptors)?;
-                database.query(&words, k).into_iter().map(|(i, _)| i).find(|i| !excluded.contains(i)).ok_or_else(none)
-            }
-        }
+        // retrieve_top returns at least one keyframe or an error
+        Ok(self.retrieve_top(descriptors, global, 1, excluded)?[0])
     }
-}
 
-impl Map {
     /// The `k` keyframes most similar to a query, best first, skipping those in `excluded`
     /// (the ranking of [`Map::retrieve`]; fewer when the map has fewer).
     ///
     /// # Errors
-    /// As [`Map::retrieve_excluding`]; `k` 0.
+    /// A query without what the map's retrieval needs, or of the wrong size
+    /// (`global_descriptor`, `descriptors`); every keyframe excluded (`descriptors`); `k` 0
+    /// (`top_k`).
     pub fn retrieve_top(
         &self,
         descriptors: &Descriptors<'_>,
