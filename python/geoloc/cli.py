@@ -234,6 +234,10 @@ def _add_build_map(commands: argparse._SubParsersAction[argparse.ArgumentParser]
         "--step", type=bounded_int(1, 10_000), default=1, metavar="K", help="every K-th selected frame becomes a keyframe (default: 1)"
     )
     _feature_options(build)
+    build.add_argument(
+        "--model", action="store_true",
+        help="also build and store the map-level 3D model of `localize --locator model` (else built when such a localizer starts)",
+    )
     build.add_argument("--out", type=output_file, required=True, metavar="scene.geoloc", help="map file to write (its folder must exist)")
 
     def run(args: argparse.Namespace) -> int:
@@ -270,6 +274,10 @@ def _add_localize(commands: argparse._SubParsersAction[argparse.ArgumentParser])
         "--retrieval", type=retrieval, default=None, metavar="MODEL.onnx",
         help="the descriptor network the map was built with (maps that retrieve by a network only)",
     )
+    loc.add_argument(
+        "--locator", choices=("paper", "model"), default="paper",
+        help="paper: one retrieved keyframe and its group; model: top-5 retrieval against the map's 3D model (default: paper)",
+    )
     loc.add_argument("--out", type=output_file, required=True, metavar="poses.txt", help="TUM trajectory to write (its folder must exist)")
 
     def run(args: argparse.Namespace) -> int:
@@ -305,6 +313,10 @@ def _add_evaluate(commands: argparse._SubParsersAction[argparse.ArgumentParser])
         help="single: history forgotten before every frame; sequential: motion model + fusion (default: both)",
     )
     _feature_options(ev)
+    ev.add_argument(
+        "--locator", choices=("paper", "model"), default="paper",
+        help="paper: one retrieved keyframe and its group; model: top-5 retrieval against the map's 3D model (default: paper)",
+    )
     ev.add_argument("--json", type=output_file, metavar="FILE", help="write the result dict (DESIGN.md §7 keys) as JSON")
     ev.add_argument("--timings", action="store_true", help="print the median time of every stage")
     ev.add_argument(

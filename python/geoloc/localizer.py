@@ -50,7 +50,11 @@ class FeatureMap:
     ``estimate_noise=True`` estimates the map's own noise once built (see :attr:`map_noise`):
     the map-frame covariance C_map by re-localizing every 10th keyframe against the others
     (its ±15 neighbours excluded), and with ``timestamps`` (one per keyframe, seconds) the
-    motion model's acceleration process noise."""
+    motion model's acceleration process noise.
+
+    ``model=True`` builds the map-level 3D model of the model locator (``locator="model"``)
+    once, here, and stores it with the map (:attr:`model_points`); without it a model
+    localizer builds it when it is created."""
 
     def __init__(
         self,
@@ -66,6 +70,7 @@ class FeatureMap:
         seed: int = 0,
         timestamps: ArrayLike | None = None,
         estimate_noise: bool = False,
+        model: bool = False,
     ) -> None:
         if not isinstance(camera, Camera):
             raise InvalidInputError(f"camera: expected a geoloc.Camera, got {type(camera).__name__}")
@@ -97,8 +102,13 @@ class FeatureMap:
         self._map = _core.FeatureMap(
             camera.intrinsics, flat, kps, descs, global_descriptors=g, pose_covariances=covs,
             retrieval=retrieval, branching=branching, depth=depth, seed=seed,
-            timestamps=ts, estimate_noise=bool(estimate_noise),
+            timestamps=ts, estimate_noise=bool(estimate_noise), model=bool(model),
         )
+
+    @property
+    def model_points(self) -> int | None:
+        """Points of the stored map-level 3D model, or None when the map has none."""
+        return self._map.model_points
 
     @property
     def map_noise(self) -> dict[str, Any]:
@@ -147,16 +157,26 @@ class FeatureLocalizer:
     """Localizes frames (given as features) against a :class:`FeatureMap`, frame after frame.
 
     Options (checked in the core): ``pixel_sigma``, ``max_residual``, ``gate_sigma`` finite
-    and > 0, ``history`` an integer ≥ 2 (numpy integers accepted)."""
+    and > 0, ``history`` an integer ≥ 2 (numpy integers accepted). ``locator``: "paper" (one
+    retrieved keyframe, its co-visible group triangulated on the fly) or "model" (top-``top_k``
+    retrieval against the map-level 3D model, PnP, guided matching; builds the model here if
+    the map has none)."""
 
     def __init__(
-        self, map: FeatureMap, pixel_sigma: float = 1.0, max_residual: float = 5.0, gate_sigma: float = 3.0, history: int = 4
+        self,
+        map: FeatureMap,
+        pixel_sigma: float = 1.0,
+        max_residual: float = 5.0,
+        gate_sigma: float = 3.0,
+        history: int = 4,
+        locator: Literal["paper", "model"] = "paper",
+        top_k: int = 5,
     ) -> None:
         if not isinstance(map, FeatureMap):
             raise InvalidInputError(f"map: expected a geoloc.localizer.FeatureMap, got {type(map).__name__}")
         self._loc = _core.FeatureLocalizer(
             map._map, pixel_sigma=real_scalar(pixel_sigma, "pixel_sigma"), max_residual=real_scalar(max_residual, "max_residual"),
-            gate_sigma=real_scalar(gate_sigma, "gate_sigma"), history=history,
+            gate_sigma=real_scalar(gate_sigma, "gate_sigma"), history=history, locator=str(locator), top_k=top_k,
         )
 
     def localize(

@@ -20,7 +20,7 @@ import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Protocol
+from typing import Any, Callable, Literal, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -89,6 +89,7 @@ class Map:
         depth: int = 3,
         seed: int = 0,
         estimate_noise: bool = True,
+        model: bool = False,
         progress: ProgressCallback | None = None,
     ) -> Map:
         """Build a map from ``sequence`` (every ``keyframe_step``-th frame becomes a keyframe).
@@ -99,7 +100,9 @@ class Map:
         ``progress(done, total)`` is called after each keyframe. ``estimate_noise`` (default
         True) estimates the map's own noise after building it — the map-frame covariance
         from held-out keyframes and the motion model's process noise from the frames'
-        timestamps (:attr:`map_noise`); it is stored in the map file.
+        timestamps (:attr:`map_noise`); it is stored in the map file. ``model`` (default False)
+        builds the map-level 3D model of ``Localizer(..., locator="model")`` and stores it too
+        (a map without one builds it when such a localizer starts).
         """
         from .datasets import Sequence
 
@@ -138,6 +141,7 @@ class Map:
             seed=seed,
             timestamps=_increasing(sequence.timestamps[indices]),
             estimate_noise=bool(estimate_noise),
+            model=bool(model),
         )
         frontend = {
             "version": FRONTEND_VERSION,
@@ -222,7 +226,10 @@ class MapLocalization:
 
 
 class Localizer:
-    """Localizes images frame after frame against a :class:`Map`, keeping the motion history."""
+    """Localizes images frame after frame against a :class:`Map`, keeping the motion history.
+
+    ``locator``: "paper" (the paper's: one retrieved keyframe and its co-visible group) or
+    "model" (top-``top_k`` retrieval against the map-level 3D model, PnP, guided matching)."""
 
     def __init__(
         self,
@@ -234,6 +241,8 @@ class Localizer:
         gate_sigma: float = 3.0,
         history: int = 4,
         global_descriptor: GlobalDescriptor | None = None,
+        locator: Literal["paper", "model"] = "paper",
+        top_k: int = 5,
     ) -> None:
         if not isinstance(map, Map):
             raise InvalidInputError(f"map: expected a geoloc.Map, got {type(map).__name__}")
@@ -257,7 +266,8 @@ class Localizer:
         self.camera = camera or map.camera
         self._global = global_descriptor
         self._core = FeatureLocalizer(
-            map._feature_map, pixel_sigma=pixel_sigma, max_residual=max_residual, gate_sigma=gate_sigma, history=history
+            map._feature_map, pixel_sigma=pixel_sigma, max_residual=max_residual, gate_sigma=gate_sigma, history=history,
+            locator=locator, top_k=top_k,
         )
 
     def _decode(self, image: Any) -> NDArray[np.uint8]:

@@ -18,7 +18,7 @@ use std::time::Instant;
 
 use geoloc_core::GeolocError;
 use geoloc_core::frames::{FrameReader, FrameRecord, read_json_records};
-use geoloc_core::localizer::{Frame, Localizer, LocalizerOptions};
+use geoloc_core::localizer::{Frame, Localizer, LocalizerOptions, Locator};
 use geoloc_core::map::{Map, MapHeader, RetrievalHeader};
 use geoloc_core::matching::DescriptorSet;
 use geoloc_core::parallel::{Parallelism, with_parallelism};
@@ -61,6 +61,14 @@ pub struct Args {
     /// Fused poses the constant-velocity model is fitted to.
     #[arg(long, default_value_t = 4)]
     history: usize,
+    /// Geometric locator: "paper" (one retrieved keyframe and its group) or "model" (top-5
+    /// retrieval against the map's 3D model; built at start when the map has none).
+    #[arg(long, default_value = "paper", value_parser = parse_locator)]
+    locator: Locator,
+}
+
+fn parse_locator(s: &str) -> Result<Locator, String> {
+    s.parse().map_err(|e: GeolocError| e.to_string())
 }
 
 type Records = Box<dyn Iterator<Item = geoloc_core::Result<FrameRecord>>>;
@@ -111,6 +119,7 @@ fn localize(args: &Args) -> Result<(), String> {
 fn options(args: &Args) -> LocalizerOptions {
     let mut options =
         LocalizerOptions { gate_sigma: args.gate_sigma, history: args.history, ..LocalizerOptions::default() };
+    options.locator = args.locator;
     options.pnp.pixel_sigma = args.pixel_sigma;
     options.pnp.max_residual_px = args.max_residual;
     options.triangulation.pixel_sigma = args.pixel_sigma;

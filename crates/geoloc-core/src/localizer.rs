@@ -6,6 +6,10 @@
 //! uncertainty (T_G, C_G) → constant-velocity prediction from the last fused poses (T_M, C_M)
 //! → gated fusion (T_F, C_F). The first frames, before there is any history, use the
 //! geometric pose alone. Every result says which path produced it and why.
+//!
+//! `LocalizerOptions::locator` picks the geometric locator: [`Locator::Paper`] (the above,
+//! steps (a)–(c)) or [`Locator::Model`] (top-k retrieval against the map-level 3D model,
+//! PnP on the union, guided matching; see the `model` submodule). (d) and (e) are shared.
 
 use std::collections::{HashMap, VecDeque};
 use std::sync::Arc;
@@ -18,11 +22,12 @@ use crate::fusion::chi2_6_quantile_for_sigma;
 use crate::fusion::{FusionSource, Gate, fuse};
 use crate::keyframes::{KeyframeOptions, select_keyframes};
 use crate::lie::SE3;
-use crate::map::{DescriptorSet, Map};
+use crate::map::{DescriptorSet, Map, ModelOptions, SceneModel};
 use crate::matching::{Descriptors, MatchOptions, epipolar_filter, match_descriptors};
 use crate::motion::motion_predict_with_noise;
 use crate::optim::covariance::{isometric_sigmas, spd_inverse};
 
+mod model;
 mod noise;
 use crate::pnp::{PnpOptions, PointUncertainty, SharedPoseUncertainty, solve_pnp};
 use crate::triangulate::{TrackStatus, TriangulationOptions, triangulate};
@@ -57,6 +62,55 @@ pub struct LocalizerOptions {
     pub lost_after: usize,
     /// ... or as soon as the prediction's isometric position σ exceeds this (m, default 0.25).
     pub max_motion_sigma_m: f64,
+    /// Which geometric locator (default the paper's).
+    pub locator: Locator,
+    /// Model locator: keyframes retrieved (default 5).
+    pub top_k: usize,
+    /// Model locator: radius of the guided matching around each projected point (px, default 6).
+    pub guided_radius_px: f64,
+    /// Model locator: rounds of guided matching and refinement (default 2; 0 = none).
+    pub guided_rounds: usize,
+    /// Model locator: how the 3D model is built when the map has none.
+    pub model: ModelOptions,
+}
+
+/// Which geometric locator a [`Localizer`] uses.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Locator {
+    /// The paper's: one retrieved keyframe, its co-visible group, points triangulated on the fly.
+    Paper,
+    /// The map-level 3D model: top-k retrieval, 2D–3D matching, PnP, guided matching.
+    Model,
+}
+
+impl Locator {
+    /// Every locator, in declaration order.
+    pub const ALL: [Self; 2] = [Self::Paper, Self::Model];
+
+    /// The name: `"paper"` or `"model"` (the one place that spells it).
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Paper => "paper",
+            Self::Model => "model",
+        }
+    }
+}
+
+impl std::fmt::Display for Locator {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+impl std::str::FromStr for Locator {
+    type Err = GeolocError;
+
+    fn from_str(s: &str) -> Result<Self> {
+        Self::ALL
+            .into_iter()
+            .find(|v| v.as_str() == s)
+            .ok_or_else(|| GeolocError::invalid("locator", format!("expected \"paper\" or \"model\", got {s:?}")))
+    }
 }
 
 impl Default for LocalizerOptions {
@@ -74,6 +128,11 @@ impl Default for LocalizerOptions {
             reinit_after: 3,
             lost_after: 10,
             max_motion_sigma_m: 0.25,
+            locator: Locator::Paper,
+            top_k: 5,
+            guided_radius_px: 6.0,
+            guided_rounds: 2,
+            model: ModelOptions::default(),
         }
     }
 }
@@ -90,7 +149,12 @@ impl LocalizerOptions {
         if self.reinit_after < 3 {
             return Err(GeolocError::invalid("reinit_after", format!("must be ≥ 3, got {}", self.reinit_after)));
         }
+        if self.top_k == 0 {
+            return Err(GeolocError::invalid("top_k", "must be ≥ 1"));
+        }
+        self.model.check()?;
         let positive = [
+            ("guided_radius", self.guided_radius_px),
             ("gate_sigma", self.gate_sigma),
             ("epipolar_px", self.epipolar_px),
             ("max_motion_sigma_m", self.max_motion_sigma_m),
@@ -211,6 +275,10 @@ pub struct Localization {
     pub timings: Timings,
 }
 
+/// A geometric locator's answer: the retrieved keyframe, T_G and C_G (or why not), the
+/// PnP inliers.
+type GeometricPose = (usize, std::result::Result<Estimate, String>, usize);
+
 /// D_jk (row-major points × group keyframes) and the group keyframes' pose covariances.
 type SharedErrors = (Vec<Matrix3x6<f64>>, Vec<Matrix6<f64>>);
 
@@ -241,6 +309,8 @@ pub struct Localizer {
     motion_only: usize,
     last_timestamp: Option<f64>,
     cache: HashMap<(usize, Vec<usize>), Arc<MapPoints>>,
+    /// The model locator's 3D model when the map has none (built by [`Localizer::new`]).
+    built_model: Option<SceneModel>,
 }
 
 fn ms(start: Instant) -> f64 {
@@ -253,10 +323,18 @@ impl Localizer {
     /// # Errors
     /// Options out of range, named as the Python caller spells them: `history` < 2,
     /// `gate_sigma`, `pixel_sigma` (of PnP or triangulation), `max_residual` or
-    /// `epipolar_px` not finite and > 0.
+    /// `epipolar_px` not finite and > 0, `top_k` 0; with the model locator on a map without a
+    /// model, the errors of building one ([`SceneModel::build`], which it then does here).
     pub fn new(map: Arc<Map>, options: LocalizerOptions) -> Result<Self> {
         options.check()?;
+        let built_model = match (options.locator, &map.model) {
+            (Locator::Model, None) => {
+                Some(SceneModel::build(&map.camera, &map.keyframes, map.pose_covariances.as_deref(), &options.model)?)
+            }
+            _ => None,
+        };
         Ok(Self {
+            built_model,
             map,
             options,
             history: VecDeque::new(),
@@ -275,6 +353,11 @@ impl Localizer {
         self.motion_only = 0;
     }
 
+    /// The 3D model of the model locator: the map's, or the one built for this localizer.
+    fn model(&self) -> Option<&SceneModel> {
+        self.map.model.as_ref().or(self.built_model.as_ref())
+    }
+
     /// Localizes one frame: the steps of DESIGN.md §1, (a)–(e), each a method below.
     ///
     /// # Errors
@@ -286,18 +369,10 @@ impl Localizer {
         let start = Instant::now();
         self.check_frame(frame)?;
         let mut timings = Timings::default();
-        // (a) retrieval and (b) the co-visible keyframe group around the retrieved keyframe
-        let t = Instant::now();
-        let keyframe = self.map.retrieve(&frame.descriptors, frame.global)?;
-        timings.retrieval_ms = ms(t);
-        let t = Instant::now();
-        let group = select_keyframes(&self.map.poses(), keyframe, &self.options.keyframes)?;
-        timings.keyframes_ms = ms(t);
-        // (c) forward intersection (cached per group), then backward intersection
-        let t = Instant::now();
-        let points = self.map_points(keyframe, &group)?;
-        timings.map_points_ms = ms(t);
-        let (geometric, inliers) = self.geometric_pose(frame, &points, group.len(), &mut timings)?;
+        let (keyframe, geometric, inliers) = match self.options.locator {
+            Locator::Paper => self.paper_pose(frame, &mut timings)?,
+            Locator::Model => self.model_pose(frame, 0..0, &mut timings)?,
+        };
         // (d) motion model and (e) gated fusion
         let t = Instant::now();
         let prediction = self.predict(frame.timestamp);
@@ -309,6 +384,23 @@ impl Localizer {
         timings.motion_fusion_ms = ms(t);
         timings.total_ms = ms(start);
         Ok(Localization { estimate, source, reason, keyframe, inliers, timings })
+    }
+
+    /// The paper's geometric locator: (a) retrieval, (b) the co-visible keyframe group
+    /// around the retrieved keyframe, (c) forward intersection (cached per group), then
+    /// backward intersection. The retrieved keyframe, T_G and C_G or why not, the inliers.
+    fn paper_pose(&mut self, frame: &Frame<'_>, timings: &mut Timings) -> Result<GeometricPose> {
+        let t = Instant::now();
+        let keyframe = self.map.retrieve(&frame.descriptors, frame.global)?;
+        timings.retrieval_ms = ms(t);
+        let t = Instant::now();
+        let group = select_keyframes(&self.map.poses(), keyframe, &self.options.keyframes)?;
+        timings.keyframes_ms = ms(t);
+        let t = Instant::now();
+        let points = self.map_points(keyframe, &group)?;
+        timings.map_points_ms = ms(t);
+        let (geometric, inliers) = self.geometric_pose(frame, &points, group.len(), timings)?;
+        Ok((keyframe, geometric, inliers))
     }
 
     /// The frame's own checks (the map checks what it compares against).

@@ -4,9 +4,11 @@
 //! provides global descriptors, else a bag-of-words vocabulary and database).
 
 pub mod file;
+pub mod model;
 mod persist;
 
-pub use persist::{CameraHeader, MapHeader, NoiseHeader, RetrievalHeader};
+pub use model::{ModelOptions, SceneModel};
+pub use persist::{CameraHeader, MapHeader, ModelHeader, NoiseHeader, RetrievalHeader};
 
 use nalgebra::{Matrix6, Vector2, Vector6};
 
@@ -56,6 +58,8 @@ pub struct Map {
     pub retrieval: Retrieval,
     /// What was estimated about the map's noise at build time (zero when not estimated).
     pub noise: MapNoise,
+    /// The map-level 3D model of the model locator ([`Map::with_model`]), if built.
+    pub model: Option<SceneModel>,
 }
 
 /// The map's noise, estimated at build time from its own keyframes
@@ -162,6 +166,7 @@ impl std::fmt::Debug for Map {
             .field("keyframes", &self.keyframes.len())
             .field("pose_covariances", &self.pose_covariances.is_some())
             .field("retrieval", &retrieval)
+            .field("model_points", &self.model.as_ref().map(SceneModel::len))
             .finish()
     }
 }
@@ -193,7 +198,16 @@ impl Map {
             RetrievalKind::Global => Retrieval::Global(global_index(&keyframes)?),
             RetrievalKind::Bow { branching, depth } => bow_retrieval(&keyframes, branching, depth, seed)?,
         };
-        Ok(Self { camera, keyframes, pose_covariances, retrieval, noise: MapNoise::default() })
+        Ok(Self { camera, keyframes, pose_covariances, retrieval, noise: MapNoise::default(), model: None })
+    }
+
+    /// The map with its 3D model built from all keyframes ([`SceneModel::build`]).
+    ///
+    /// # Errors
+    /// As [`SceneModel::build`].
+    pub fn with_model(mut self, options: &ModelOptions) -> Result<Self> {
+        self.model = Some(SceneModel::build(&self.camera, &self.keyframes, self.pose_covariances.as_deref(), options)?);
+        Ok(self)
     }
 
     /// The world_from_cam poses of the keyframes.
@@ -222,10 +236,30 @@ impl Map {
         global: Option<&[f32]>,
         excluded: std::ops::Range<usize>,
     ) -> Result<usize> {
+        // retrieve_top returns at least one keyframe or an error
+        Ok(self.retrieve_top(descriptors, global, 1, excluded)?[0])
+    }
+
+    /// The `k` keyframes most similar to a query, best first, skipping those in `excluded`
+    /// (the ranking of [`Map::retrieve`]; fewer when the map has fewer).
+    ///
+    /// # Errors
+    /// A query without what the map's retrieval needs, or of the wrong size
+    /// (`global_descriptor`, `descriptors`); every keyframe excluded (`descriptors`); `k` 0
+    /// (`top_k`).
+    pub fn retrieve_top(
+        &self,
+        descriptors: &Descriptors<'_>,
+        global: Option<&[f32]>,
+        k: usize,
+        excluded: std::ops::Range<usize>,
+    ) -> Result<Vec<usize>> {
+        if k == 0 {
+            return Err(GeolocError::invalid("top_k", "must be ≥ 1"));
+        }
         let n = self.keyframes.len();
-        let k = (excluded.end.min(n).saturating_sub(excluded.start) + 1).min(n);
-        let none = || GeolocError::invalid("descriptors", "the map has no keyframes outside the excluded ones");
-        match &self.retrieval {
+        let want = (excluded.end.min(n).saturating_sub(excluded.start) + k).min(n);
+        let ranked: Vec<usize> = match &self.retrieval {
             Retrieval::Global(index) => {
                 let g = global.ok_or_else(|| {
                     GeolocError::invalid("global_descriptor", "this map retrieves by global descriptor; give one")
@@ -239,14 +273,18 @@ impl Map {
                 if let Some(i) = g.iter().position(|v| !v.is_finite()) {
                     return Err(GeolocError::NonFinite { name: "global_descriptor".into(), index: i });
                 }
-                let (_, idx) = index.query(g, k)?;
-                idx.into_iter().find(|i| !excluded.contains(i)).ok_or_else(none)
+                index.query(g, want)?.1
             }
             Retrieval::Bow { vocabulary, database } => {
                 let words = vocabulary.words_of(descriptors)?;
-                database.query(&words, k).into_iter().map(|(i, _)| i).find(|i| !excluded.contains(i)).ok_or_else(none)
+                database.query(&words, want).into_iter().map(|(i, _)| i).collect()
             }
+        };
+        let top: Vec<usize> = ranked.into_iter().filter(|i| !excluded.contains(i)).take(k).collect();
+        if top.is_empty() {
+            return Err(GeolocError::invalid("descriptors", "the map has no keyframes outside the excluded ones"));
         }
+        Ok(top)
     }
 }
 

@@ -6,9 +6,9 @@ use std::sync::{Arc, Mutex};
 
 use geoloc_core::camera::Camera;
 use geoloc_core::localizer::{
-    Frame, Localization as CoreLocalization, Localizer as CoreLocalizer, LocalizerOptions, NoiseOptions,
+    Frame, Localization as CoreLocalization, Localizer as CoreLocalizer, LocalizerOptions, Locator, NoiseOptions,
 };
-use geoloc_core::map::{Keyframe, Map as CoreMap, RetrievalMethod};
+use geoloc_core::map::{Keyframe, Map as CoreMap, ModelOptions, RetrievalMethod};
 use nalgebra::Vector2;
 use numpy::{PyArray2, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2, PyUntypedArrayMethods};
 use pyo3::prelude::*;
@@ -68,7 +68,7 @@ pub struct FeatureMap {
 #[pymethods]
 impl FeatureMap {
     #[new]
-    #[pyo3(signature = (intrinsics, poses_wc, keypoints_list, descriptors_list, *, global_descriptors=None, pose_covariances=None, retrieval="bow", branching=None, depth=None, seed=None, timestamps=None, estimate_noise=false))]
+    #[pyo3(signature = (intrinsics, poses_wc, keypoints_list, descriptors_list, *, global_descriptors=None, pose_covariances=None, retrieval="bow", branching=None, depth=None, seed=None, timestamps=None, estimate_noise=false, model=false))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         py: Python<'_>,
@@ -84,6 +84,7 @@ impl FeatureMap {
         seed: Option<&Bound<'_, PyAny>>,
         timestamps: Option<PyReadonlyArray1<'_, f64>>,
         estimate_noise: bool,
+        model: bool,
     ) -> PyResult<Self> {
         let method: RetrievalMethod = retrieval.parse().map_err(to_py_err)?;
         let kind = method.with(count_arg(branching, "branching", 10)?, count_arg(depth, "depth", 3)?);
@@ -99,6 +100,7 @@ impl FeatureMap {
         let map = py
             .detach(|| {
                 let map = CoreMap::build(camera, kfs, covs, kind, seed)?;
+                let map = if model { map.with_model(&ModelOptions::default())? } else { map };
                 if estimate_noise { map.with_estimated_noise(ts, &NoiseOptions::default()) } else { Ok(map) }
             })
             .map_err(to_py_err)?;
@@ -114,6 +116,12 @@ impl FeatureMap {
     fn intrinsics(&self) -> (f64, f64, f64, f64) {
         let c = self.inner.camera;
         (c.fx, c.fy, c.cx, c.cy)
+    }
+
+    /// Points of the map-level 3D model, or None when the map has no model.
+    #[getter]
+    fn model_points(&self) -> Option<usize> {
+        self.inner.model.as_ref().map(|m| m.len())
     }
 
     /// The noise estimated at build time: (C_map (6, 6), acceleration PSD (6,), held-out samples).
@@ -226,21 +234,30 @@ pub struct FeatureLocalizer {
 #[pymethods]
 impl FeatureLocalizer {
     #[new]
-    #[pyo3(signature = (map, *, pixel_sigma=1.0, max_residual=5.0, gate_sigma=3.0, history=None))]
+    #[pyo3(signature = (map, *, pixel_sigma=1.0, max_residual=5.0, gate_sigma=3.0, history=None, locator="paper", top_k=None))]
+    #[allow(clippy::too_many_arguments)]
     fn new(
+        py: Python<'_>,
         map: &FeatureMap,
         pixel_sigma: f64,
         max_residual: f64,
         gate_sigma: f64,
         history: Option<&Bound<'_, PyAny>>,
+        locator: &str,
+        top_k: Option<&Bound<'_, PyAny>>,
     ) -> PyResult<Self> {
-        let mut options =
-            LocalizerOptions { gate_sigma, history: count_arg(history, "history", 4)?, ..LocalizerOptions::default() };
+        let mut options = LocalizerOptions {
+            gate_sigma,
+            history: count_arg(history, "history", 4)?,
+            locator: locator.parse::<Locator>().map_err(to_py_err)?,
+            top_k: count_arg(top_k, "top_k", 5)?,
+            ..LocalizerOptions::default()
+        };
         options.pnp.pixel_sigma = pixel_sigma;
         options.pnp.max_residual_px = max_residual;
         options.triangulation.pixel_sigma = pixel_sigma;
         options.triangulation.max_residual_px = max_residual;
-        let inner = CoreLocalizer::new(Arc::clone(&map.inner), options).map_err(to_py_err)?;
+        let inner = py.detach(|| CoreLocalizer::new(Arc::clone(&map.inner), options)).map_err(to_py_err)?;
         Ok(Self { inner: Mutex::new(inner) })
     }
 

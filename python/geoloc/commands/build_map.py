@@ -26,6 +26,7 @@ def run(args: argparse.Namespace) -> int:
         features=args.features,
         n_features=args.n_features,
         keyframe_step=args.step,
+        model=bool(getattr(args, "model", False)),
         progress=Progress("map", then=MAP_DONE),
     )
     built = time.perf_counter() - start

@@ -63,12 +63,13 @@ def evaluate_split(
     n_features: int = 1000,
     retrieval: str = "bow",
     options: tuple[str, str] = ("--train", "--test"),
+    locator: str = "paper",
 ) -> dict[str, Any]:
     """Build the map from ``sequence[train]``, localize ``sequence[test]`` in each mode.
 
     Returns ``{"map": Map, "build_s": float, "test": Sequence, "summaries": {mode: dict}}``,
     each summary :func:`geoloc.evaluation.summarize_results` plus per-frame ``frame`` (the
-    dataset's frame index) and ``reason``.
+    dataset's frame index) and ``reason``. ``locator`` is "paper" or "model".
     """
     from ..evaluation import summarize_results
     from ..mapping import Localizer, Map
@@ -91,7 +92,7 @@ def evaluate_split(
     build_s = time.perf_counter() - start
     summaries: dict[str, Any] = {}
     for mode in modes:
-        localizer = Localizer(the_map, global_descriptor=None if network == "bow" else network)
+        localizer = Localizer(the_map, global_descriptor=None if network == "bow" else network, locator=locator)  # type: ignore[arg-type]
         results = localize_sequence(localizer, test_seq, mode, Progress(f"{mode:>10}"))
         summary = summarize_results(results, test_seq.poses, test_seq.timestamps)
         for entry, r, frame in zip(summary["per_frame"], results, test_seq.indices):
@@ -196,7 +197,8 @@ def run(args: argparse.Namespace) -> int:
     train = args.train or default_train
     test = args.test or default_test
     result = evaluate_split(
-        sequence, train, test, _modes(args.mode), features=args.features, n_features=args.n_features, retrieval=args.retrieval
+        sequence, train, test, _modes(args.mode), features=args.features, n_features=args.n_features, retrieval=args.retrieval,
+        locator=args.locator,
     )
     data = report(sequence, result, dataset=args.dataset, fmt=args.format, train=train, test=test, timings=args.timings)
     if args.json:

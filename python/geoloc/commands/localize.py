@@ -81,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
                 "(queries must use the map's camera)"
             )
     sequence = select(sequence, args.frames, "--frames")
-    results = localize_sequence(Localizer(the_map, global_descriptor=network), sequence, args.mode, Progress("localize"))
+    results = localize_sequence(Localizer(the_map, global_descriptor=network, locator=args.locator), sequence, args.mode, Progress("localize"))
     kept = [k for k, r in enumerate(results) if r.pose is not None]
     if not kept:
         raise InvalidInputError(f"--out: every one of the {len(results)} frames was lost; nothing written to {args.out!r}")

@@ -30,7 +30,7 @@ use std::sync::Arc;
 
 use nalgebra::{Matrix6, Vector6};
 
-use super::{Estimate, Frame, Localizer, LocalizerOptions, Timings};
+use super::{Estimate, Frame, Localizer, LocalizerOptions, Locator, Timings};
 use crate::error::{GeolocError, Result};
 use crate::keyframes::select_keyframes;
 use crate::lie::SE3;
@@ -159,11 +159,16 @@ fn map_covariance(samples: &[(Vector6<f64>, Matrix6<f64>)]) -> (Matrix6<f64>, us
 impl Localizer {
     /// The geometric pose of keyframe `k`'s own features against the map without the
     /// keyframes in `excluded` (retrieval and the keyframe group skip them); None when the
-    /// locator fails.
-    fn localize_held_out(&mut self, k: usize, excluded: std::ops::Range<usize>) -> Result<Option<Estimate>> {
+    /// locator fails. The model locator uses no point that an excluded keyframe observes.
+    pub(super) fn localize_held_out(&mut self, k: usize, excluded: std::ops::Range<usize>) -> Result<Option<Estimate>> {
         let map = Arc::clone(&self.map);
         let kf = &map.keyframes[k];
         let descriptors = kf.descriptors.view();
+        if self.options.locator == Locator::Model {
+            let frame = Frame { timestamp: 0.0, keypoints: &kf.keypoints, descriptors, global: kf.global.as_deref() };
+            let (_, pose, _) = self.model_pose(&frame, excluded, &mut Timings::default())?;
+            return Ok(pose.ok());
+        }
         let seed = map.retrieve_excluding(&descriptors, kf.global.as_deref(), excluded.clone())?;
         let allowed: Vec<usize> = (0..map.keyframes.len()).filter(|i| !excluded.contains(i)).collect();
         let poses: Vec<SE3> = allowed.iter().map(|&i| map.keyframes[i].world_from_cam).collect();

@@ -14,6 +14,13 @@
 //! | `vocabulary.node_offsets` | i64 (nodes + 1) | BoW only: see [`crate::bow::VocabularyArrays`] |
 //! | `vocabulary.centres` | u8 or f32 (R, W) | BoW only: the tree's cluster centres |
 //! | `vocabulary.children` | i64 (R) | BoW only: child node index, or −word − 1 |
+//! | `model.points` | f64 (P, 3) | optional 3D model ([`super::SceneModel`]): world points |
+//! | `model.point_covariances` | f64 (P, 3, 3) | model: Σ_X per point |
+//! | `model.descriptors` | u8 or f32 (P, W) | model: representative descriptor per point |
+//! | `model.keypoint_points` | i64 (N) | model: point id of each keypoint, −1 for none |
+//!
+//! Maps written before the model existed have no `model` header field and no `model.*`
+//! arrays: they load with `model` None (the model locator then builds it when it starts).
 //!
 //! The header ([`MapHeader`], JSON) holds the camera, the descriptor kind and width, the
 //! retrieval method and its parameters, and `frontend`: a JSON object the caller owns (the
@@ -24,11 +31,11 @@
 
 use std::path::Path;
 
-use nalgebra::{Matrix4, Matrix6, Vector2, Vector6};
+use nalgebra::{Matrix3, Matrix4, Matrix6, Vector2, Vector3, Vector6};
 use serde::{Deserialize, Serialize};
 
 use super::file::{self, MapFile, Tensor, TensorData};
-use super::{Keyframe, Map, MapNoise, Retrieval};
+use super::{Keyframe, Map, MapNoise, Retrieval, SceneModel};
 use crate::bow::{BowDatabase, Vocabulary, VocabularyArrays};
 use crate::camera::Camera;
 use crate::error::{GeolocError, Result};
@@ -88,6 +95,16 @@ pub struct MapHeader {
     /// before it existed (read as zero: no map-frame noise, no process noise).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub map_noise: Option<NoiseHeader>,
+    /// The 3D model's size, when the map stores one (absent in maps without a model).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub model: Option<ModelHeader>,
+}
+
+/// The stored 3D model ([`SceneModel`]): its number of points.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ModelHeader {
+    /// Number of points.
+    pub points: usize,
 }
 
 /// [`MapNoise`] in the header: C_map row-major (36 values), q (6 values), the samples.
@@ -187,7 +204,11 @@ impl Map {
             pose_covariances: self.pose_covariances.is_some(),
             frontend,
             map_noise: NoiseHeader::from_noise(&self.noise),
+            model: self.model.as_ref().map(|m| ModelHeader { points: m.len() }),
         };
+        if let Some(model) = &self.model {
+            tensors.extend(model_tensors(model)?);
+        }
         let header = serde_json::to_string(&header).map_err(|e| format_error(e.to_string()))?;
         Ok(MapFile { header, tensors: tensors.into_iter().collect() })
     }
@@ -252,7 +273,8 @@ impl Map {
             }
         };
         let noise = header.map_noise.as_ref().map(NoiseHeader::to_noise).transpose()?.unwrap_or_default();
-        Ok((Self { camera, keyframes, pose_covariances, retrieval, noise }, header))
+        let model = header.model.map(|h| read_model(file, h.points, &keyframes)).transpose()?;
+        Ok((Self { camera, keyframes, pose_covariances, retrieval, noise, model }, header))
     }
 
     /// Saves the map to `path` atomically (see [`file::write`]).
@@ -405,6 +427,65 @@ fn vocabulary_tensors(v: &VocabularyArrays) -> Result<Vec<(String, Tensor)>> {
     ])
 }
 
+fn model_tensors(model: &SceneModel) -> Result<Vec<(String, Tensor)>> {
+    let p = model.len();
+    let ids: Vec<i64> =
+        model.point_ids.iter().flatten().map(|id| id.map_or(-1, |i| i64::try_from(i).unwrap_or(-1))).collect();
+    Ok(vec![
+        tensor(
+            "model.points",
+            vec![p, 3],
+            TensorData::F64(model.points.iter().flat_map(|x| [x.x, x.y, x.z]).collect()),
+        )?,
+        tensor(
+            "model.point_covariances",
+            vec![p, 3, 3],
+            TensorData::F64(
+                model.covariances.iter().flat_map(|c| c.transpose().iter().copied().collect::<Vec<_>>()).collect(),
+            ),
+        )?,
+        descriptor_tensor("model.descriptors", &model.descriptors)?,
+        tensor("model.keypoint_points", vec![ids.len()], TensorData::I64(ids))?,
+    ])
+}
+
+/// The stored model, checked: shapes, finite values, descriptors of the keyframes' kind and
+/// width, point ids in −1..P, every point observed.
+fn read_model(file: &MapFile, p: usize, keyframes: &[Keyframe]) -> Result<SceneModel> {
+    let points = f64_array(file, "model.points", &[p, 3])?;
+    let covs = f64_array(file, "model.point_covariances", &[p, 3, 3])?;
+    let name = "model.descriptors";
+    let t = file.tensor(name)?;
+    let width = kind_and_width(&keyframes[0].descriptors).1;
+    expect_shape(name, t, &[p, width])?;
+    let descriptors = match (&keyframes[0].descriptors, &t.data) {
+        (DescriptorSet::Binary { .. }, TensorData::U8(data)) => DescriptorSet::Binary { data: data.clone(), width },
+        (DescriptorSet::Float { .. }, TensorData::F32(data)) if data.iter().all(|x| x.is_finite()) => {
+            DescriptorSet::Float { data: data.clone(), width }
+        }
+        _ => return Err(format_error(format!("array {name:?} does not hold the keyframes' kind of descriptors"))),
+    };
+    let n: usize = keyframes.iter().map(|k| k.keypoints.len()).sum();
+    let ids = i64_vector(file, "model.keypoint_points")?;
+    if ids.len() != n || ids.iter().any(|&i| i < -1 || i >= p as i64) {
+        return Err(format_error(format!("array \"model.keypoint_points\" must hold {n} ids in -1..{p}")));
+    }
+    let mut rest = ids.as_slice();
+    let mut point_ids = Vec::with_capacity(keyframes.len());
+    for kf in keyframes {
+        let (mine, tail) = rest.split_at(kf.keypoints.len());
+        point_ids.push(mine.iter().map(|&i| usize::try_from(i).ok()).collect());
+        rest = tail;
+    }
+    SceneModel::from_parts(
+        points.chunks_exact(3).map(Vector3::from_column_slice).collect(),
+        covs.chunks_exact(9).map(Matrix3::from_row_slice).collect(),
+        descriptors,
+        point_ids,
+    )
+    .map_err(as_format)
+}
+
 fn i64_vector(file: &MapFile, name: &str) -> Result<Vec<i64>> {
     let t = file.tensor(name)?;
     match (&t.data, t.shape.as_slice()) {
@@ -553,6 +634,42 @@ mod tests {
         let mut bad = file.clone();
         bad.header = bad.header.replace("0.25", "-0.25");
         assert!(Map::from_map_file(&bad).expect_err("negative q").to_string().contains("acceleration_psd"));
+    }
+
+    /// A stored model comes back exactly (re-saved bytes identical); a map without one
+    /// writes the old header and loads with none; bad point ids are refused by array name.
+    #[test]
+    fn the_model_round_trips_and_maps_without_one_still_load() {
+        let mut original = map(true, RetrievalKind::Bow { branching: 4, depth: 2 }, false);
+        let old = original.to_map_file("{}").expect("serializes");
+        assert!(!old.header.contains("\"model\""), "{}", old.header);
+        assert!(Map::from_map_file(&old).expect("valid").0.model.is_none());
+        let point_ids: Vec<Vec<Option<usize>>> = original
+            .keyframes
+            .iter()
+            .map(|kf| (0..kf.keypoints.len()).map(|i| (i < 3).then_some(i)).collect())
+            .collect();
+        let points = vec![Vector3::new(0.5, -1.0, 3.0), Vector3::new(1.0, 2.0, 4.0), Vector3::new(-0.25, 0.0, 5.5)];
+        let covs: Vec<Matrix3<f64>> =
+            (1..4).map(|i| Matrix3::from_fn(|r, c| 1e-4 * (i * (r + c + 1)) as f64)).collect();
+        let descriptors = original.keyframes[0].descriptors.select(&[0, 1, 2]);
+        original.model = Some(SceneModel::from_parts(points, covs, descriptors, point_ids).expect("valid model"));
+        let file = original.to_map_file("{}").expect("serializes");
+        let bytes = file.to_bytes().expect("bytes");
+        let (back, header) = Map::from_map_file(&MapFile::from_bytes(&bytes).expect("reads")).expect("valid");
+        assert_eq!(back.model, original.model);
+        assert_eq!(header.model, Some(ModelHeader { points: 3 }));
+        assert_eq!(back.model.as_ref().map(|m| m.observers(1).len()), Some(6));
+        assert_eq!(back.to_map_file("{}").expect("serializes").to_bytes().expect("bytes"), bytes);
+        let mut bad = file.clone();
+        if let Some(Tensor { data: TensorData::I64(v), .. }) = bad.tensors.get_mut("model.keypoint_points") {
+            v[0] = 3;
+        }
+        let err = Map::from_map_file(&bad).expect_err("id out of range");
+        assert!(err.to_string().contains("model.keypoint_points"), "{err}");
+        let mut missing = file.clone();
+        missing.tensors.remove("model.points");
+        assert!(Map::from_map_file(&missing).expect_err("missing").to_string().contains("model.points"));
     }
 
     #[test]

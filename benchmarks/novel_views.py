@@ -1,0 +1,168 @@
+"""Novel viewpoints (issue 13): the paper's locator vs the map-level 3D model locator.
+
+Cross-validation on the shared 7-Scenes redkitchen frames 0–699: a test block of 100 frames,
+the map trained on the rest minus 15 frames on either side; single-image mode (``reset()``
+before every frame), fx = fy = 525, BoW retrieval, 1000 features. Per fold × locator
+(paper, model) × features (ORB, SIFT): median translation / rotation error, recall within
+5 cm / 5°, median PnP inliers, median per-frame core time (``timings_ms["total"]``), and the
+map build time (features are extracted once, outside the timings): the map itself (BoW
+vocabulary and database) and the 3D model (built when the model localizer is created).
+
+    PYTHONPATH=python python benchmarks/novel_views.py [--folds 6,0] [--features orb,sift] [--json out.json]
+
+Not a test: each fold builds a map of ~570 frames and its model per feature kind. ``GEOLOC_NUM_THREADS``
+defaults to 2 here (the issue's "2 cores").
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "7scenes-redkitchen"
+BLOCK = 100
+MARGIN = 15
+FRAMES = 700
+
+
+def extract(seq: Any, kind: str) -> tuple[list[Any], list[Any]]:
+    """Keypoints and descriptors of every frame (the extractor of ``geoloc.Map.build``)."""
+    from geoloc.features import FeatureExtractor
+
+    ex = FeatureExtractor(kind, 1000)  # type: ignore[arg-type]
+    kps, descs = [], []
+    for i in range(len(seq)):
+        f = ex(seq.gray(i), seq.camera)
+        kps.append(f.keypoints)
+        descs.append(f.descriptors)
+    return kps, descs
+
+
+def errors(pose: Any, truth: Any) -> tuple[float, float]:
+    """Translation (m) and rotation (°) error of ``pose`` against ``truth`` (∞ when lost)."""
+    if pose is None:
+        return float("inf"), float("inf")
+    d = np.linalg.inv(truth) @ pose
+    angle = np.degrees(np.arccos(np.clip((np.trace(d[:3, :3]) - 1) / 2, -1, 1)))
+    return float(np.linalg.norm(d[:3, 3])), float(angle)
+
+
+def bias(poses: list[Any], truth: Any) -> tuple[Any, float]:
+    """The median camera-frame error δ = log(T_label⁻¹ T_est) (translation cm, rotation °) over
+    the frames within 0.5 m, and the median translation error left once it is removed (cm):
+    a small remainder means the locator is consistent and the error is a bias between the
+    labels of the map's and the test block's parts of the trajectory."""
+    from geoloc import lie
+
+    ds = []
+    for p, t in zip(poses, truth):
+        if p is not None:
+            d = np.linalg.inv(t) @ np.asarray(p)
+            if np.linalg.norm(d[:3, 3]) < 0.5:
+                ds.append(np.r_[d[:3, 3], lie.so3_log(lie.so3_project(d[:3, :3]))])
+    if not ds:
+        return None, float("nan")
+    a = np.array(ds)
+    med = np.median(a, axis=0)
+    rest = float(np.median(np.linalg.norm(a[:, :3] - med[:3], axis=1)) * 100)
+    return np.r_[med[:3] * 100, np.degrees(med[3:])], rest
+
+
+def run_fold(seq: Any, feats: tuple[list[Any], list[Any]], b: int) -> dict[str, Any]:
+    from geoloc.localizer import FeatureLocalizer, FeatureMap
+
+    lo, hi = b * BLOCK, min((b + 1) * BLOCK, FRAMES)
+    train = [i for i in range(FRAMES) if i < lo - MARGIN or i >= hi + MARGIN]
+    kps, descs = feats
+    poses = seq.poses[:FRAMES]
+    t0 = time.perf_counter()
+    the_map = FeatureMap(seq.camera, poses[train], [kps[i] for i in train], [descs[i] for i in train])
+    map_build_s = time.perf_counter() - t0
+    localizers = {"paper": FeatureLocalizer(the_map, locator="paper")}
+    t0 = time.perf_counter()
+    localizers["model"] = FeatureLocalizer(the_map, locator="model")  # builds the 3D model here
+    model_build_s = time.perf_counter() - t0
+    out: dict[str, Any] = {"train": len(train), "map_build_s": map_build_s, "model_build_s": model_build_s}
+    for locator in ("paper", "model"):
+        loc = localizers[locator]
+        et, er, inl, ms, raw = [], [], [], [], []
+        for i in range(lo, hi):
+            loc.reset()
+            r = loc.localize(float(i) / 30.0, kps[i], descs[i])
+            t, a = errors(r.pose, poses[i])
+            et.append(t)
+            er.append(a)
+            inl.append(r.inliers)
+            ms.append(r.timings_ms["total"])
+            raw.append(None if r.pose is None else np.asarray(r.pose).tolist())
+        et_a, er_a = np.array(et), np.array(er)
+        out[locator] = {
+            "median_cm": float(np.median(et_a) * 100),
+            "median_deg": float(np.median(er_a)),
+            "recall_5cm_5deg": float(np.mean((et_a < 0.05) & (er_a < 5.0))),
+            "median_inliers": float(np.median(inl)),
+            "median_ms": float(np.median(ms)),
+            "p90_ms": float(np.percentile(ms, 90)),
+            "poses": raw,
+        }
+        b_vec, rest = bias(raw, poses[lo:hi])
+        out[locator]["bias_cm_deg"] = None if b_vec is None else b_vec.tolist()
+        out[locator]["median_cm_without_bias"] = rest
+    return out
+
+
+def main() -> int:
+    import geoloc
+
+    ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
+    ap.add_argument("--folds", default="6,0", help="comma-separated test blocks of 100 frames (0–6)")
+    ap.add_argument("--features", default="orb,sift", help="comma-separated: orb, sift")
+    ap.add_argument("--json", help="write the results (with every pose) here")
+    args = ap.parse_args()
+    if not DATA.is_dir():
+        print(f"no shared data at {DATA}: nothing to measure")
+        return 0
+    seq = geoloc.datasets.load_7scenes(DATA, intrinsics=(525.0, 525.0, 320.0, 240.0))[:FRAMES]
+    report: dict[str, Any] = {}
+    print(f"{'fold':<8} {'feat':<5} {'locator':<7} {'median':>16} {'5cm/5°':>7} {'inliers':>8} {'ms/frame':>9}  map build", flush=True)
+    for kind in args.features.split(","):
+        t0 = time.perf_counter()
+        feats = extract(seq, kind)
+        print(f"({kind}: features of {FRAMES} frames in {time.perf_counter() - t0:.0f} s)", flush=True)
+        for b in (int(x) for x in args.folds.split(",")):
+            r = run_fold(seq, feats, b)
+            name = f"{b * BLOCK}-{min((b + 1) * BLOCK, FRAMES) - 1}"
+            report[f"{name} {kind}"] = r
+            for locator in ("paper", "model"):
+                s = r[locator]
+                build = (
+                    f"{r['map_build_s']:.1f} s ({r['train']} kf)"
+                    if locator == "paper"
+                    else f"+{r['model_build_s']:.1f} s model"
+                )
+                print(
+                    f"{name:<8} {kind:<5} {locator:<7} {s['median_cm']:>7.1f} cm {s['median_deg']:>5.2f}° "
+                    f"{s['recall_5cm_5deg']:>7.0%} {s['median_inliers']:>8.0f} {s['median_ms']:>9.1f}  {build}",
+                    flush=True,
+                )
+                if s["bias_cm_deg"] is not None:
+                    print(
+                        f"{'':<22}camera-frame median error (x y z cm, φx φy φz °) {np.round(s['bias_cm_deg'], 1).tolist()}; "
+                        f"without it the median is {s['median_cm_without_bias']:.1f} cm",
+                        flush=True,
+                    )
+    if args.json:
+        Path(args.json).write_text(json.dumps(report, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("GEOLOC_NUM_THREADS", "2")
+    sys.exit(main())
