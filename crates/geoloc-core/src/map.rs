@@ -60,7 +60,7 @@ pub struct Map {
 
 /// The map's noise, estimated at build time from its own keyframes
 /// ([`Map::with_estimated_noise`]); all zero when not estimated (old maps load so).
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
+#[derive(Clone, Debug, Default, PartialEq)]
 pub struct MapNoise {
     /// C_map: 6×6 covariance (right perturbation of world_from_cam, translation first) of
     /// the pose-label error a query's pose shares with the map (label inconsistency between
@@ -72,6 +72,23 @@ pub struct MapNoise {
     pub acceleration_psd: Vector6<f64>,
     /// Held-out keyframes whose re-localization C_map was estimated from.
     pub holdout_samples: usize,
+    /// The held-out re-localizations themselves (build-time diagnostics, not stored in the
+    /// map file: a loaded map has none).
+    pub holdout: Vec<HoldoutSample>,
+}
+
+/// One held-out keyframe re-localized against the rest of the map ([`Map::with_estimated_noise`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct HoldoutSample {
+    /// The keyframe.
+    pub keyframe: usize,
+    /// δ = log(T_label⁻¹ T_est)^∨ (right perturbation, translation first).
+    pub delta: Vector6<f64>,
+    /// The geometric locator's covariance C_G of T_est.
+    pub covariance: Matrix6<f64>,
+    /// Whether it survived the χ²₆ 99.9 % trim of the C_map estimate (C_map is zero, whatever
+    /// this says, when fewer than 12 did).
+    pub used: bool,
 }
 
 /// How to build the retrieval structure.
