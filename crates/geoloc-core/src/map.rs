@@ -70,7 +70,8 @@ pub struct MapNoise {
     /// q: power spectral density of the white body acceleration per twist axis
     /// ((m/s²)²·s, (rad/s²)²·s), from the keyframes' timestamps and poses; 0 = none.
     pub acceleration_psd: Vector6<f64>,
-    /// Held-out keyframes whose re-localization C_map was estimated from.
+    /// Held-out keyframes placed within the gross-failure bounds (C_map's samples; fewer than
+    /// 12 leave C_map zero).
     pub holdout_samples: usize,
     /// The held-out re-localizations themselves (build-time diagnostics, not stored in the
     /// map file: a loaded map has none).
@@ -86,8 +87,7 @@ pub struct HoldoutSample {
     pub delta: Vector6<f64>,
     /// The geometric locator's covariance C_G of T_est.
     pub covariance: Matrix6<f64>,
-    /// Whether it survived the χ²₆ 99.9 % trim of the C_map estimate (C_map is zero, whatever
-    /// this says, when fewer than 12 did).
+    /// Whether the C_map estimate used it (all do, unless there were too few for one).
     pub used: bool,
 }
 
