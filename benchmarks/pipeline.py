@@ -27,7 +27,6 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "python"))
 
 from geoloc import datasets  # noqa: E402
-from geoloc.commands._common import localize_sequence  # noqa: E402
 from geoloc.features import FeatureExtractor  # noqa: E402
 from geoloc.mapping import Localizer, Map  # noqa: E402
 
@@ -82,7 +81,7 @@ def main() -> int:
     walls = {}
     for mode in ("single", "sequential"):
         start = time.perf_counter()
-        results = localize_sequence(Localizer(the_map), test, mode)
+        results = Localizer(the_map).localize_sequence(test, mode)
         walls[mode] = (time.perf_counter() - start) / len(test)
         stats[mode] = stage_stats(results)
         lost = sum(r.pose is None for r in results)

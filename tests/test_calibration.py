@@ -40,12 +40,7 @@ def test_sequential_is_never_worse_than_single(room: tuple[Any, Any, geoloc.Map]
     _, test, m = room
     summaries = {}
     for mode in ("single", "sequential"):
-        loc = geoloc.Localizer(m)
-        results = []
-        for i in range(len(test)):
-            if mode == "single":
-                loc.reset()
-            results.append(loc.localize(test.gray(i), float(test.timestamps[i])))
+        results = geoloc.Localizer(m).localize_sequence(test, mode)
         summaries[mode] = summarize_results(results, test.poses)
     single, seq = summaries["single"], summaries["sequential"]
     # "no worse": within 10 % of the single mode's median (sub-millimetre on this scene)
@@ -53,3 +48,17 @@ def test_sequential_is_never_worse_than_single(room: tuple[Any, Any, geoloc.Map]
     assert seq["median_rotation_deg"] <= 1.1 * single["median_rotation_deg"]
     assert seq["recall"]["5cm_5deg"] >= single["recall"]["5cm_5deg"]
     assert seq["nees_coverage"] >= 0.85 and single["nees_coverage"] >= 0.85
+
+
+def test_localize_sequence_modes(room: tuple[Any, Any, geoloc.Map]) -> None:
+    """single resets before every frame (every source geometric or lost), sequential keeps the
+    history; an unknown mode is refused by name."""
+    _, test, m = room
+    short = test[:6]
+    single = geoloc.Localizer(m).localize_sequence(short, "single")
+    assert len(single) == 6 and {r.source for r in single} <= {"geometric", "lost"}
+    assert all("decode" in r.timings and r.timings["total"] >= r.timings["decode"] for r in single)
+    sequential = geoloc.Localizer(m).localize_sequence(short, "sequential")
+    assert any(r.source in ("fused", "motion") for r in sequential)
+    with pytest.raises(geoloc.InvalidInputError, match="mode: expected one of single, sequential"):
+        geoloc.Localizer(m).localize_sequence(short, "batch")

@@ -55,6 +55,23 @@ def test_motion_prediction_is_exact_for_constant_velocity_and_calibrated() -> No
     np.testing.assert_allclose(exact.velocity, v, atol=1e-8)
 
 
+def test_motion_process_noise_adds_the_closed_form() -> None:
+    """acceleration_psd q adds Q(τ) = diag(q)(τ³/3 + τ²T_w/3) to the covariance, nothing to the pose."""
+    times = np.array([0.0, 1 / 30, 2 / 30, 4 / 30])
+    poses = lie.se3_exp(np.outer(times, [0.3, 0.0, 0.1, 0.0, 0.2, 0.0]))
+    cov = np.stack([np.eye(6) * 1e-4] * 4)
+    q = np.array([0.5, 0.4, 0.3, 0.02, 0.03, 0.04])
+    plain = geoloc.motion_predict(poses, times, 0.25, covariances=cov)
+    noisy = geoloc.motion_predict(poses, times, 0.25, covariances=cov, acceleration_psd=q)
+    tau, window = 0.25 - 4 / 30, 4 / 30
+    np.testing.assert_allclose(noisy.covariance - plain.covariance, np.diag(q * (tau**3 / 3 + tau**2 * window / 3)), atol=1e-15)
+    np.testing.assert_array_equal(noisy.pose, plain.pose)
+    with pytest.raises(geoloc.InvalidInputError, match="acceleration_psd"):
+        geoloc.motion_predict(poses, times, 0.25, covariances=cov, acceleration_psd=-q)
+    with pytest.raises(geoloc.InvalidInputError, match="acceleration_psd"):
+        geoloc.motion_predict(poses, times, 0.25, covariances=cov, acceleration_psd=q[:5])
+
+
 def test_motion_bad_input() -> None:
     poses = _track(3)
     with pytest.raises(geoloc.InvalidInputError, match=r"timestamps: expected shape \(3,\)"):

@@ -371,7 +371,10 @@ def _add_montecarlo(commands: argparse._SubParsersAction[argparse.ArgumentParser
         "--covariance", choices=("paper", "propagated", "both"), default="both",
         help="covariance model(s) to test (default: both)",
     )
-    mc.add_argument("--scene", choices=("paper", "random"), default="paper", help="fixed paper-like scene or a random one per trial")
+    mc.add_argument(
+        "--scene", choices=("paper", "short", "random"), default="paper",
+        help="fixed paper-like scene, fixed short-baseline scene (keyframes over 0.35 m, points 2.5–6 m) or a random one per trial",
+    )
     mc.add_argument("--seed", type=bounded_int(0, MAX_SEED), default=0, metavar="S", help="random seed (default: 0)")
     mc.add_argument("--json", metavar="FILE", type=output_file, help="also write the columns as JSON")
     mc.add_argument("--no-progress", action="store_true", help="no progress bar")

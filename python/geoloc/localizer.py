@@ -115,9 +115,24 @@ class FeatureMap:
         """What was estimated about the map's noise at build time (all zero when not):
         ``pose_covariance`` C_map (6, 6, right perturbation, translation first; added to every
         returned covariance), ``acceleration_psd`` (6,) of the motion model's process noise,
-        ``holdout_samples`` (held-out keyframes C_map comes from)."""
+        ``holdout_samples`` (held-out keyframes C_map comes from) and, for a map built in this
+        process (not stored in the file), ``holdout``: the held-out re-localizations
+        (``keyframe`` (n,), ``delta`` (n, 6) = log(T_label⁻¹T_est), ``covariance`` (n, 6, 6) C_G,
+        ``used`` (n,) bool)."""
         cov, psd, samples = self._map.map_noise
-        return {"pose_covariance": cov, "acceleration_psd": np.asarray(psd), "holdout_samples": samples}
+        keyframes, deltas, covs, used = self._map.map_noise_holdout
+        holdout = {
+            "keyframe": np.asarray(keyframes, dtype=np.int64),
+            "delta": deltas,
+            "covariance": covs,
+            "used": np.asarray(used, dtype=bool),
+        }
+        return {
+            "pose_covariance": cov,
+            "acceleration_psd": np.asarray(psd),
+            "holdout_samples": samples,
+            "holdout": holdout,
+        }
 
     def __len__(self) -> int:
         return len(self._map)

@@ -33,6 +33,9 @@ from .localizer import FeatureLocalizer, FeatureMap, LocalizationResult
 
 __all__ = ["GlobalDescriptor", "Localizer", "Map", "MapLocalization"]
 
+#: The modes of :meth:`Localizer.localize_sequence`.
+SEQUENCE_MODES = ("single", "sequential")
+
 #: The frontend settings' schema version inside the map file.
 FRONTEND_VERSION = 1
 
@@ -302,3 +305,31 @@ class Localizer:
     def reset(self) -> None:
         """Forget the motion history (the next frame is localized by geometry alone)."""
         self._core.reset()
+
+    def localize_sequence(
+        self, sequence: Any, mode: str = "sequential", progress: ProgressCallback | None = None
+    ) -> list[MapLocalization]:
+        """Localize every frame of ``sequence`` (a :class:`geoloc.datasets.Sequence`) in order,
+        from an empty motion history. ``mode`` ``"sequential"`` keeps the history from frame to
+        frame (motion model + gated fusion); ``"single"`` resets it before every frame (the
+        geometric locator alone). Each result's ``timings`` gets ``decode`` (reading the image
+        as grey — rendering it, for the synthetic room) and its ``total`` includes it.
+        ``progress(done, total)`` is called after every frame."""
+        if mode not in SEQUENCE_MODES:
+            raise InvalidInputError(f"mode: expected one of {', '.join(SEQUENCE_MODES)}, got {mode!r}")
+        self.reset()
+        results = []
+        n = len(sequence)
+        for i in range(n):
+            if mode == "single":
+                self.reset()
+            start = time.perf_counter()
+            gray = sequence.gray(i)
+            decode_ms = 1e3 * (time.perf_counter() - start)
+            r = self.localize(gray, float(sequence.timestamps[i]))
+            r.timings["total"] = r.timings.get("total", 0.0) - r.timings.get("decode", 0.0) + decode_ms
+            r.timings["decode"] = decode_ms
+            results.append(r)
+            if progress is not None:
+                progress(i + 1, n)
+        return results

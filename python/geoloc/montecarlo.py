@@ -32,7 +32,7 @@ from . import geometry, lie
 from .camera import Camera
 from .exceptions import InvalidInputError
 
-__all__ = ["CHI2_6DOF_95", "MAX_TRIALS", "PAPER_TABLE", "MonteCarloColumn", "montecarlo", "format_report"]
+__all__ = ["CHI2_6DOF_95", "MAX_TRIALS", "PAPER_TABLE", "SCENES", "MonteCarloColumn", "montecarlo", "format_report"]
 
 Array = NDArray[np.float64]
 
@@ -48,6 +48,8 @@ PAPER_TABLE = {
     (2.0, 0.03, 1.0): (62.4, 80.6),
 }
 DEFAULT_LABEL_NOISE = ((0.0, 0.0), (0.01, 0.5), (0.03, 1.0))
+#: The scene kinds: the paper's fixed scene, a fixed short-baseline one, a random one per trial.
+SCENES = ("paper", "short", "random")
 N_POINTS = 119
 
 
@@ -91,6 +93,21 @@ def paper_scene() -> tuple[Array, Array, Array]:
     train = np.stack([look_at(c, focus) for c in centres])
     target = look_at(np.array([0.1, -0.1, -0.3]), focus + np.array([0.2, 0.1, 0.0]))
     points = focus + rng.uniform([-2.0, -1.5, -1.0], [2.0, 1.5, 1.0], size=(N_POINTS, 3))
+    return train, target, points
+
+
+def short_baseline_scene() -> tuple[Array, Array, Array]:
+    """The short-baseline scene (issue 8): 4 training cameras spread over 0.35 m, the target
+    among them and a little behind, 119 points 2.5–6 m away — triangulation angles of a few
+    degrees, so the points' depth is poorly known and strongly correlated with the labels.
+    Returns (training poses (4, 4, 4), target pose (4, 4), points (119, 3))."""
+    rng = np.random.default_rng(2035)
+    focus = np.array([0.0, 0.0, 4.25])
+    centres = [np.array([x, 0.02 * i, 0.0]) for i, x in enumerate((-0.175, -0.058, 0.058, 0.175))]
+    train = np.stack([look_at(c, focus) for c in centres])
+    target = look_at(np.array([0.03, -0.04, -0.15]), focus + np.array([0.1, 0.05, 0.0]))
+    points = rng.uniform([-1.4, -1.0, 2.5], [1.4, 1.0, 6.0], size=(N_POINTS, 3))
+    points[:, :2] *= points[:, 2:] / focus[2]  # inside the view frustum at every depth
     return train, target, points
 
 
@@ -197,7 +214,8 @@ def montecarlo(
     """Run the experiment; one :class:`MonteCarloColumn` per (label noise, σ, model).
 
     ``label_noise`` entries are (metres, degrees) standard deviations per axis; ``scene`` is
-    ``"paper"`` (one fixed scene) or ``"random"`` (a new random scene every trial).
+    ``"paper"`` (one fixed scene), ``"short"`` (one fixed short-baseline scene: keyframes over
+    0.35 m, points 2.5–6 m away) or ``"random"`` (a new random scene every trial).
     ``trials`` is at most :data:`MAX_TRIALS`; ``seed`` a non-negative integer below 2⁶⁴.
     Invalid arguments raise :class:`geoloc.InvalidInputError` (a ``ValueError``).
     """
@@ -205,14 +223,14 @@ def montecarlo(
         raise InvalidInputError(f"trials: expected an integer in [1, {MAX_TRIALS}], got {trials!r}")
     if not isinstance(seed, (int, np.integer)) or not 0 <= seed < 2**64:
         raise InvalidInputError(f"seed: expected a non-negative integer below 2**64, got {seed!r}")
-    if scene not in ("paper", "random"):
-        raise InvalidInputError(f"scene: expected 'paper' or 'random', got {scene!r}")
+    if scene not in SCENES:
+        raise InvalidInputError(f"scene: expected one of {', '.join(map(repr, SCENES))}, got {scene!r}")
     for m in models:
         if m not in ("paper", "propagated"):
             raise InvalidInputError(f"models: expected 'paper' or 'propagated', got {m!r}")
     cam = Camera(525.0, 525.0, 320.0, 240.0)
     rng = np.random.default_rng(seed)
-    fixed = paper_scene()
+    fixed = short_baseline_scene() if scene == "short" else paper_scene()
     columns: list[MonteCarloColumn] = []
     total = trials * len(sigmas) * len(label_noise)
     done = 0
@@ -220,7 +238,7 @@ def montecarlo(
         for sigma in sigmas:
             outcomes: dict[str, list[tuple[Array, Array, geometry.PnPResult] | None]] = {m: [] for m in models}
             for _ in range(trials):
-                s = fixed if scene == "paper" else random_scene(rng)
+                s = random_scene(rng) if scene == "random" else fixed
                 for m, o in _trial(rng, cam, s, sigma, label, models).items():
                     outcomes[m].append(o)
                 done += 1

@@ -22,7 +22,11 @@ MotionPrediction = _core.MotionPrediction
 
 
 def motion_predict(
-    poses: ArrayLike, timestamps: ArrayLike, t_query: float, covariances: ArrayLike | None = None
+    poses: ArrayLike,
+    timestamps: ArrayLike,
+    t_query: float,
+    covariances: ArrayLike | None = None,
+    acceleration_psd: ArrayLike | None = None,
 ) -> MotionPrediction:
     """Fit T(t) = T_r exp((t − t_r) ξ^) to the last poses (world_from_cam, (m, 4, 4)) at
     ``timestamps`` (seconds; irregular spacing and dropped frames are fine) and predict the
@@ -33,6 +37,11 @@ def motion_predict(
     per-axis noise is estimated from the fit residuals, which needs m ≥ 3. ``t_query`` and
     the timestamps must lie within 1e9 s of the latest timestamp; covariances must be
     symmetric positive definite (invalid input raises :class:`geoloc.InvalidInputError`).
+
+    ``acceleration_psd`` (6,) — the power spectral density q of white body acceleration per
+    twist axis (translation first; m²/s³, rad²/s³), as a map estimates it (``map_noise``) —
+    adds the process noise Q(τ) = diag(q)(|τ|³/3 + τ²T_w/3) for the horizon τ = t_query −
+    latest timestamp and the fit window T_w, so the predicted covariance grows with τ.
     """
     flat, lead = as_batch(poses, "poses", (4, 4))
     if len(lead) != 1:
@@ -49,4 +58,10 @@ def motion_predict(
         if c.shape != (flat.shape[0], 6, 6):
             raise InvalidInputError(f"covariances: expected shape ({flat.shape[0]}, 6, 6), got {c.shape}")
         covs = np.ascontiguousarray(c.reshape(-1, 36))
-    return _core.motion_predict(flat, np.ascontiguousarray(t), float(tq), covariances=covs)
+    q = None
+    if acceleration_psd is not None:
+        q = as_float64(acceleration_psd, "acceleration_psd")
+        if q.shape != (6,) or not np.all(np.isfinite(q)) or np.any(q < 0):
+            raise InvalidInputError(f"acceleration_psd: expected 6 finite values ≥ 0, got shape {q.shape}")
+        q = np.ascontiguousarray(q)
+    return _core.motion_predict(flat, np.ascontiguousarray(t), float(tq), covariances=covs, acceleration_psd=q)

@@ -117,6 +117,28 @@ pub fn fuse(
     gate_sigma: f64,
     gate: Gate,
 ) -> Result<Fusion> {
+    fuse_gated_with(pose_m, cov_m, pose_g, cov_g, &Matrix6::zeros(), gate_sigma, gate)
+}
+
+/// [`fuse`] whose gate also allows for an error `gate_extra` that T_G and T_M do not share
+/// but the fusion must not weight by: the gate tests T_G − T_M against C_M + C_G + C_extra,
+/// the fusion weights by C_M and C_G alone. The localizer passes the map-frame covariance
+/// C_map here: the motion history was measured against other keyframe groups than T_G, and
+/// the groups' label errors differ by up to C_map (the group-level error), while the
+/// fusion, on the measurement parts, must not count C_map at all (it is added once, to
+/// the output).
+///
+/// # Errors
+/// As [`fuse`]; `gate_extra` not symmetric positive semi-definite (named "gate_extra").
+pub fn fuse_gated_with(
+    pose_m: &SE3,
+    cov_m: &Matrix6<f64>,
+    pose_g: &SE3,
+    cov_g: &Matrix6<f64>,
+    gate_extra: &Matrix6<f64>,
+    gate_sigma: f64,
+    gate: Gate,
+) -> Result<Fusion> {
     if !(gate_sigma.is_finite() && gate_sigma > 0.0) {
         return Err(GeolocError::invalid("gate_sigma", format!("must be finite and > 0, got {gate_sigma}")));
     }
@@ -124,7 +146,8 @@ pub fn fuse(
     check_covariance("cov_g", cov_g)?;
     let info_m = spd_inverse(cov_m, "cov_m")?;
     let info_g = spd_inverse(cov_g, "cov_g")?;
-    if gate_rejects(pose_m, cov_m, pose_g, cov_g, gate_sigma, gate)? {
+    check_covariance("gate_extra", gate_extra)?;
+    if gate_rejects(pose_m, cov_m, pose_g, &(cov_g + gate_extra), gate_sigma, gate)? {
         return Ok(Fusion { world_from_cam: *pose_m, covariance: *cov_m, report: None, details: FusionSource::Motion });
     }
     // start at the information-weighted average in the tangent space of T_M
@@ -292,6 +315,32 @@ mod tests {
         // equal covariances: the midpoint, with half the covariance
         assert!((f.world_from_cam.translation.x - 0.005).abs() < 1e-9);
         assert!((f.covariance - cm * 0.5).abs().max() < 1e-9);
+    }
+
+    /// The gate's extra covariance widens the gate only: a 10σ pose that `fuse` rejects is
+    /// accepted with C_extra = 100·C (the gate's σ is then √102 cm ≈ 10.1 cm: 0.1 m is inside
+    /// 3σ), and the fused pose and covariance
+    /// are those of the two covariances alone (`fuse` with an open gate; the midpoint);
+    /// zero extra is `fuse`.
+    #[test]
+    fn gate_extra_widens_the_gate_not_the_weights() {
+        let pm = SE3::identity();
+        let cm = Matrix6::identity() * 1e-4;
+        let pg = SE3::exp(&Twist::new(0.1, 0.0, 0.0, 0.0, 0.0, 0.0));
+        for gate in [Gate::Isometric, Gate::ChiSquared] {
+            let plain = fuse(&pm, &cm, &pg, &cm, 3.0, gate).expect("valid");
+            let zero = fuse_gated_with(&pm, &cm, &pg, &cm, &Matrix6::zeros(), 3.0, gate).expect("valid");
+            assert_eq!(plain, zero);
+            let wide = fuse_gated_with(&pm, &cm, &pg, &cm, &(cm * 100.0), 3.0, gate).expect("valid");
+            assert_eq!(wide.details, FusionSource::Fused, "{gate:?}");
+            let open = fuse(&pm, &cm, &pg, &cm, 1e6, gate).expect("valid");
+            assert_eq!(open.details, FusionSource::Fused);
+            assert_eq!((wide.world_from_cam, wide.covariance), (open.world_from_cam, open.covariance));
+            assert!((wide.world_from_cam.translation.x - 0.05).abs() < 1e-9, "{:?}", wide.world_from_cam.translation);
+        }
+        let bad = Matrix6::identity() * -1.0;
+        let err = fuse_gated_with(&pm, &cm, &pg, &cm, &bad, 3.0, Gate::Isometric).expect_err("negative");
+        assert!(err.to_string().contains("gate_extra"), "{err}");
     }
 
     #[test]

@@ -64,7 +64,7 @@ pub struct Map {
 
 /// The map's noise, estimated at build time from its own keyframes
 /// ([`Map::with_estimated_noise`]); all zero when not estimated (old maps load so).
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
+#[derive(Clone, Debug, Default, PartialEq)]
 pub struct MapNoise {
     /// C_map: 6×6 covariance (right perturbation of world_from_cam, translation first) of
     /// the pose-label error a query's pose shares with the map (label inconsistency between
@@ -74,8 +74,25 @@ pub struct MapNoise {
     /// q: power spectral density of the white body acceleration per twist axis
     /// ((m/s²)²·s, (rad/s²)²·s), from the keyframes' timestamps and poses; 0 = none.
     pub acceleration_psd: Vector6<f64>,
-    /// Held-out keyframes whose re-localization C_map was estimated from.
+    /// Held-out keyframes placed within the gross-failure bounds (C_map's samples; fewer than
+    /// 12 leave C_map zero).
     pub holdout_samples: usize,
+    /// The held-out re-localizations themselves (build-time diagnostics, not stored in the
+    /// map file: a loaded map has none).
+    pub holdout: Vec<HoldoutSample>,
+}
+
+/// One held-out keyframe re-localized against the rest of the map ([`Map::with_estimated_noise`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct HoldoutSample {
+    /// The keyframe.
+    pub keyframe: usize,
+    /// δ = log(T_label⁻¹ T_est)^∨ (right perturbation, translation first).
+    pub delta: Vector6<f64>,
+    /// The geometric locator's covariance C_G of T_est.
+    pub covariance: Matrix6<f64>,
+    /// Whether the C_map estimate used it (all do, unless there were too few for one).
+    pub used: bool,
 }
 
 /// How to build the retrieval structure.

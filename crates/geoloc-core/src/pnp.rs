@@ -28,6 +28,9 @@
 //!      Sⱼ = σ²I + J_X,j Σⱼ^marg J_X,jᵀ), where Sⱼ^ind holds the errors independent between
 //!      points and the M_k terms those all points share.
 //!
+//!    The propagated covariance is then scaled by max(1, s²), s² = Σⱼ rⱼᵀSⱼ⁻¹rⱼ/(2n − 6) the
+//!    variance factor of the inliers ([`PnpResult::variance_factor`]): it only inflates.
+//!
 //! Geometry that is merely bad (too few points, no consensus, a singular information
 //! matrix) gives `success = false` with a reason, never an error.
 
@@ -170,6 +173,11 @@ pub struct PnpResult {
     pub inliers: Vec<bool>,
     /// RMS reprojection error of the inliers (pixels).
     pub rms_px: f64,
+    /// The variance factor of the inliers, s² = Σⱼ rⱼᵀSⱼ⁻¹rⱼ / (2n − 6) (honest degrees
+    /// of freedom: 2 per inlier, 6 taken by the pose); the propagated covariance is scaled by
+    /// max(1, s²) — residuals larger than the noise model says inflate it, smaller ones never
+    /// shrink it below the model (NaN when nothing was found or n ≤ 3).
+    pub variance_factor: f64,
     /// The paper's isometric position σ: mean of √diag(C_ρ) (m).
     pub sigma_p: f64,
     /// The paper's isometric rotation σ: Θ(exp(√diag(C_φ))) (rad).
@@ -189,6 +197,7 @@ impl PnpResult {
             covariance: Matrix6::zeros(),
             inliers: vec![false; n],
             rms_px: f64::NAN,
+            variance_factor: f64::NAN,
             sigma_p: f64::NAN,
             sigma_r: f64::NAN,
             ransac_iterations,
@@ -455,6 +464,11 @@ impl Correspondences<'_> {
             None => Some("degenerate geometry: the pose is not observable from these points".to_string()),
             Some(_) => self.chance_rejection(subset, ransac_iterations),
         };
+        let variance_factor = self.variance_factor(&pose, subset);
+        let covariance = match o.covariance {
+            CovarianceModel::Propagated => covariance.map(|c| c * variance_factor.max(1.0)),
+            CovarianceModel::Paper => covariance,
+        };
         let (Some(covariance), None) = (covariance, &rejection) else {
             let mut failed = PnpResult::failure(n, rejection.unwrap_or_default(), ransac_iterations);
             failed.world_from_cam = pose;
@@ -471,11 +485,34 @@ impl Correspondences<'_> {
             covariance,
             inliers,
             rms_px: (sum_sq / subset.len() as f64).sqrt(),
+            variance_factor,
             sigma_p,
             sigma_r,
             ransac_iterations,
             lm: report,
         }
+    }
+
+    /// s² = Σⱼ rⱼᵀSⱼ⁻¹rⱼ / (2n − 6) over the inliers at `pose`, rⱼ = π(T, Xⱼ) − bⱼ − zⱼ and
+    /// Sⱼ = σ²I + J_X,j Σⱼ J_X,jᵀ the predicted residual covariance with the points' marginal
+    /// uncertainty (σ²I for exact points). Under the model E[Σ rᵀS⁻¹r] = 2n − 6 (the pose
+    /// absorbs 6 of the 2n dimensions), so s² estimates how much larger the real noise is;
+    /// NaN for n ≤ 3.
+    fn variance_factor(&self, pose: &SE3, subset: &[usize]) -> f64 {
+        let dof = 2.0 * subset.len() as f64 - 6.0;
+        if dof <= 0.0 {
+            return f64::NAN;
+        }
+        let sigma = self.options.pixel_sigma;
+        let chi2: f64 = subset
+            .iter()
+            .map(|&j| {
+                let (s, bias) = residual_moments(self.camera, self.points, pose, j, self.uncertainty, sigma, true);
+                let r = project(self.camera, pose, &self.points[j]).uv - bias - self.pixels[j];
+                s.try_inverse().map_or(r.norm_squared() / (sigma * sigma), |s_inv| r.dot(&(s_inv * r)))
+            })
+            .sum();
+        chi2 / dof
     }
 
     /// Why the inlier set cannot be told from chance, if it cannot: fewer than
@@ -989,6 +1026,51 @@ mod tests {
         assert!((chance_probability(&pixels, radii, 6, 1) - expected).abs() < 1e-12 * expected);
         assert!((chance_probability(&pixels, radii, 6, 10) - 10.0 * expected).abs() < 1e-11 * expected);
         assert!((chance_probability(&pixels, radii, 3, 1) - 1.0).abs() < f64::EPSILON);
+    }
+
+    /// Monte-Carlo: the variance factor s² estimates (σ_true/σ)² — ≈ 1 when the model is
+    /// right (exact points, and uncertain points with their true covariances), ≈ 4 when the
+    /// pixel noise is twice what PnP is told; the inflated covariance then covers the truth at
+    /// the χ²₆ 95 % level, and a right model is not shrunk below itself.
+    #[test]
+    fn variance_factor_estimates_the_noise_ratio() {
+        let camera = Camera::new(525.0, 525.0, 320.0, 240.0).expect("valid");
+        let options = PnpOptions { max_residual_px: 20.0, ..PnpOptions::default() };
+        let chi2_6_95 = 12.591_586_820_429_4;
+        let cases: [(f64, f64, f64); 3] = [(1.0, 0.0, 1.0), (2.0, 0.0, 4.0), (1.0, 0.01, 1.0)];
+        for (sigma_true, point_sigma, want) in cases {
+            let mut rng = SplitMix64::new(11);
+            let (trials, mut sum, mut inside) = (300, 0.0, 0);
+            for _ in 0..trials {
+                let truth = rng.pose(2.0);
+                let local = |rng: &mut SplitMix64| {
+                    Vector3::new(rng.uniform_in(-2.0, 2.0), rng.uniform_in(-1.5, 1.5), rng.uniform_in(3.0, 8.0))
+                };
+                let exact: Vec<Vector3<f64>> = (0..60).map(|_| truth * local(&mut rng)).collect();
+                let pixels: Vec<Vector2<f64>> = exact
+                    .iter()
+                    .map(|x| project(&camera, &truth, x).uv + Vector2::new(rng.normal(), rng.normal()) * sigma_true)
+                    .collect();
+                let noisy: Vec<Vector3<f64>> = exact
+                    .iter()
+                    .map(|x| x + Vector3::new(rng.normal(), rng.normal(), rng.normal()) * point_sigma)
+                    .collect();
+                let covs = vec![Matrix3::identity() * point_sigma * point_sigma; exact.len()];
+                let u = PointUncertainty { covariances: &covs, shared: None };
+                let unc = (point_sigma > 0.0).then_some(&u);
+                let res = solve_pnp(&camera, &noisy, &pixels, Some(&truth), unc, &options).expect("valid input");
+                assert!(res.success, "{}", res.reason);
+                sum += res.variance_factor;
+                let e = (truth.inverse() * res.world_from_cam).log();
+                let info = res.covariance.try_inverse().expect("invertible");
+                inside += usize::from((e.transpose() * info * e)[0] <= chi2_6_95);
+            }
+            let mean = sum / trials as f64;
+            // the mean of 300 factors with 114 degrees of freedom: σ ≈ want·0.0076
+            assert!((mean - want).abs() < 0.04 * want, "σ_true {sigma_true}, σ_X {point_sigma}: mean s² {mean}");
+            let coverage = inside as f64 / trials as f64;
+            assert!((0.92..=0.985).contains(&coverage), "σ_true {sigma_true}, σ_X {point_sigma}: coverage {coverage}");
+        }
     }
 
     /// The one-step shortcut lands where the full LM does (to far below the noise).

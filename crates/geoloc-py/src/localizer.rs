@@ -14,7 +14,9 @@ use numpy::{PyArray2, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2, PyUnty
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
-use crate::convert::{BorrowedDescriptors, count_arg, matrices, matrices_to_array, poses, rows, u64_arg};
+use crate::convert::{
+    BorrowedDescriptors, count_arg, matrices, matrices_to_array, matrices_to_array3, poses, rows, u64_arg,
+};
 use crate::errors::{invalid, to_py_err};
 
 fn keypoints(name: &str, a: &PyReadonlyArray2<'_, f64>) -> PyResult<Vec<Vector2<f64>>> {
@@ -129,6 +131,20 @@ impl FeatureMap {
     fn map_noise<'py>(&self, py: Python<'py>) -> PyResult<(Bound<'py, PyArray2<f64>>, Vec<f64>, usize)> {
         let n = &self.inner.noise;
         Ok((square(py, &n.pose_covariance)?, n.acceleration_psd.iter().copied().collect(), n.holdout_samples))
+    }
+
+    /// The build's held-out re-localizations: (keyframes, δ (n, 6), C_G (n, 6, 6), used).
+    #[getter]
+    #[allow(clippy::type_complexity)]
+    fn map_noise_holdout<'py>(
+        &self,
+        py: Python<'py>,
+    ) -> (Vec<usize>, Bound<'py, PyArray2<f64>>, Bound<'py, numpy::PyArray3<f64>>, Vec<bool>) {
+        let h = &self.inner.noise.holdout;
+        let deltas: Vec<_> = h.iter().map(|s| s.delta.transpose()).collect();
+        let covs: Vec<_> = h.iter().map(|s| s.covariance).collect();
+        let keyframes = h.iter().map(|s| s.keyframe).collect();
+        (keyframes, matrices_to_array(py, &deltas), matrices_to_array3(py, &covs), h.iter().map(|s| s.used).collect())
     }
 
     /// Writes the map to `path` atomically; `frontend` is the caller's settings (JSON object text).

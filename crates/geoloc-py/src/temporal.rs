@@ -2,7 +2,8 @@
 
 use geoloc_core::fusion::{Gate, fuse as core_fuse};
 use geoloc_core::keyframes::{KeyframeOptions, keyframe_score as core_score, select_keyframes as core_select};
-use geoloc_core::motion::motion_predict as core_motion_predict;
+use geoloc_core::motion::motion_predict_with_noise as core_motion_predict;
+use nalgebra::Vector6;
 use numpy::{IntoPyArray, PyArray1, PyArray2, PyReadonlyArray1, PyReadonlyArray2};
 use pyo3::prelude::*;
 
@@ -135,20 +136,29 @@ pose_estimate_methods!(FusionResult {
     }
 });
 
-/// Constant-velocity prediction at `t_query`.
+/// Constant-velocity prediction at `t_query`, plus the process noise of white body
+/// acceleration of PSD `acceleration_psd` (6,) (zero: none).
 #[pyfunction]
-#[pyo3(signature = (poses_wc, timestamps, t_query, *, covariances=None))]
+#[pyo3(signature = (poses_wc, timestamps, t_query, *, covariances=None, acceleration_psd=None))]
 pub fn motion_predict(
     py: Python<'_>,
     poses_wc: PyReadonlyArray2<'_, f64>,
     timestamps: PyReadonlyArray1<'_, f64>,
     t_query: f64,
     covariances: Option<PyReadonlyArray2<'_, f64>>,
+    acceleration_psd: Option<PyReadonlyArray1<'_, f64>>,
 ) -> PyResult<MotionPrediction> {
     let p = poses("poses", &poses_wc)?;
     let t = timestamps.as_slice().map_err(|_| invalid("timestamps", "must be contiguous"))?;
     let c = covariances.as_ref().map(|c| matrices::<6, 6, 36>("covariances", c)).transpose()?;
-    let inner = py.detach(|| core_motion_predict(&p, t, t_query, c.as_deref())).map_err(to_py_err)?;
+    let q = match &acceleration_psd {
+        Some(q) => match q.as_slice() {
+            Ok(s) if s.len() == 6 => Vector6::from_column_slice(s),
+            _ => return Err(invalid("acceleration_psd", "must be 6 contiguous values")),
+        },
+        None => Vector6::zeros(),
+    };
+    let inner = py.detach(|| core_motion_predict(&p, t, t_query, c.as_deref(), &q)).map_err(to_py_err)?;
     Ok(MotionPrediction { inner })
 }
 

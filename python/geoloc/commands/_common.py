@@ -15,6 +15,7 @@ from typing import Any, Callable
 
 
 from ..exceptions import DatasetError, InvalidInputError
+from ..mapping import SEQUENCE_MODES
 
 __all__ = [
     "FORMATS",
@@ -30,7 +31,7 @@ __all__ = [
 FORMATS = ("7scenes", "tum", "folder", "synthetic")
 #: Localization modes: ``single`` forgets the motion history before every frame (the
 #: paper's single-image row); ``sequential`` keeps it (motion model + fusion).
-MODES = ("single", "sequential")
+MODES = SEQUENCE_MODES
 #: What the map's progress bar says once every keyframe's features are extracted.
 MAP_DONE = "features done; training the vocabulary and indexing the keyframes"
 #: Frames of the built-in room when ``--format synthetic`` (two laps).
@@ -176,26 +177,10 @@ class Progress:
 def localize_sequence(
     localizer: Any, sequence: Any, mode: str, progress: Callable[[int, int], None] | None = None
 ) -> list[Any]:
-    """Localize every frame of ``sequence`` in order; ``single`` resets the motion history
-    before each frame. Each result's ``timings`` gets ``decode`` (reading the image as grey —
-    rendering it, for the synthetic room) and its ``total`` includes it."""
+    """:meth:`geoloc.Localizer.localize_sequence` with the error named as the option ``--mode``."""
     if mode not in MODES:
         raise InvalidInputError(f"--mode: expected one of {', '.join(MODES)}, got {mode!r}")
-    localizer.reset()
-    results = []
-    n = len(sequence)
-    for i in range(n):
-        if mode == "single":
-            localizer.reset()
-        start = time.perf_counter()
-        gray = sequence.gray(i)
-        decode_ms = 1e3 * (time.perf_counter() - start)
-        r = localizer.localize(gray, float(sequence.timestamps[i]))
-        r.timings["total"] = r.timings.get("total", 0.0) - r.timings.get("decode", 0.0) + decode_ms
-        r.timings["decode"] = decode_ms
-        results.append(r)
-        if progress is not None:
-            progress(i + 1, n)
+    results: list[Any] = localizer.localize_sequence(sequence, mode, progress)
     return results
 
 

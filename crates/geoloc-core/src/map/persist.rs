@@ -138,7 +138,7 @@ impl NoiseHeader {
         if q.iter().any(|v| !(v.is_finite() && *v >= 0.0)) {
             return Err(format_error("map_noise.acceleration_psd: must be finite and ≥ 0"));
         }
-        Ok(MapNoise { pose_covariance: c, acceleration_psd: q, holdout_samples: self.holdout_samples })
+        Ok(MapNoise { pose_covariance: c, acceleration_psd: q, holdout_samples: self.holdout_samples, holdout: vec![] })
     }
 }
 
@@ -626,7 +626,12 @@ mod tests {
         assert_eq!(back.noise, MapNoise::default());
         assert!(header.map_noise.is_none());
         let a = Matrix6::from_fn(|r, c| 1e-4 * ((r + 1) * (c + 1)) as f64) + Matrix6::identity() * 1e-3;
-        original.noise = MapNoise { pose_covariance: a, acceleration_psd: Vector6::repeat(0.25), holdout_samples: 57 };
+        original.noise = MapNoise {
+            pose_covariance: a,
+            acceleration_psd: Vector6::repeat(0.25),
+            holdout_samples: 57,
+            holdout: vec![],
+        };
         let file = original.to_map_file("{}").expect("serializes");
         let (back, header) = Map::from_map_file(&file).expect("valid");
         assert_eq!(back.noise, original.noise);
