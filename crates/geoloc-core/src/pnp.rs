@@ -504,6 +504,14 @@ impl Correspondences<'_> {
             return f64::NAN;
         }
         let sigma = self.options.pixel_sigma;
+        if self.uncertainty.is_none() {
+            // exact points: S = σ²I and no bias, one projection per inlier
+            let sum_sq: f64 = subset
+                .iter()
+                .map(|&j| (project(self.camera, pose, &self.points[j]).uv - self.pixels[j]).norm_squared())
+                .sum();
+            return sum_sq / (sigma * sigma) / dof;
+        }
         let chi2: f64 = subset
             .iter()
             .map(|&j| {

@@ -58,8 +58,12 @@ pub struct NoiseOptions {
     pub max_error_m: f64,
     /// ... or beyond this rotation (rad, default 15°).
     pub max_error_rad: f64,
-    /// The localizer used for the held-out keyframes.
+    /// The localizer used for the held-out keyframes ...
     pub localizer: LocalizerOptions,
+    /// ... with this locator; None (default): the one the map is built for — the model
+    /// locator when the map holds a map-level model, the paper's otherwise (C_map is the
+    /// noise the queries will see, so it is measured with the locator they will use).
+    pub locator: Option<Locator>,
 }
 
 impl Default for NoiseOptions {
@@ -71,6 +75,7 @@ impl Default for NoiseOptions {
             max_error_m: 0.5,
             max_error_rad: 15f64.to_radians(),
             localizer: LocalizerOptions::default(),
+            locator: None,
         }
     }
 }
@@ -102,7 +107,10 @@ impl Map {
         };
         let map = Arc::new(self);
         let samples = {
-            let mut loc = Localizer::new(Arc::clone(&map), options.localizer)?;
+            let default_locator = if map.model.is_some() { Locator::Model } else { Locator::Paper };
+            let localizer =
+                LocalizerOptions { locator: options.locator.unwrap_or(default_locator), ..options.localizer };
+            let mut loc = Localizer::new(Arc::clone(&map), localizer)?;
             holdout_residuals(&mut loc, options)?
         };
         let mut map = Arc::try_unwrap(map).map_err(|_| GeolocError::invalid("map", "is shared"))?;
