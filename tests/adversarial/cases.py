@@ -408,7 +408,7 @@ def temporal_specs() -> list[Spec]:
     return [
         Spec("motion", "geoloc.motion_predict",
              {"poses": a(_track(4)), "timestamps": a(np.array([0.0, 0.1, 0.2, 0.3])), "t_query": ("float", 0.4),
-              "covariances": a(np.repeat(COV6[None], 4, axis=0))},
+              "covariances": a(np.repeat(COV6[None], 4, axis=0)), "acceleration_psd": a(np.full(6, 0.1))},
              ("poses", "timestamps", "t_query"), "motion",
              aliases={"poses": ["timestamps", "covariances"], "timestamps": ["poses", "t_query"],
                       "t_query": ["timestamps"], "covariances": ["poses"]}),
@@ -544,7 +544,8 @@ def map_specs() -> list[Spec]:
     return [
         Spec("mapping", "geoloc.Localizer",
              {"map": ("any", m), "camera": ("camera", room_cam), "pixel_sigma": ("float", 1.0), "max_residual": ("float", 5.0),
-              "gate_sigma": ("float", 3.0), "history": ("int", 4)}, ("map",), "any", timeout=60,
+              "gate_sigma": ("float", 3.0), "history": ("int", 4), "locator": ("str:paper|model", "paper"),
+              "top_k": ("int", 5)}, ("map",), "any", timeout=60,
              aliases={"camera": ["fx", "camera"], "map": ["map"]}),
         Spec("mapping", attr(loc, "localize"), {"image": a(np.resize(IMG, (480, 640, 3))), "timestamp": ("float", 1.0)},
              ("image", "timestamp"), "localization", timeout=60, huge=300),
@@ -575,7 +576,7 @@ def feature_localizer_specs() -> list[Spec]:
              aliases={"keypoints": ["descriptors"], "descriptors": ["keypoints"]}),
         Spec("localizer", "geoloc.localizer.FeatureLocalizer",
              {"map": ("any", fm), "pixel_sigma": ("float", 1.0), "max_residual": ("float", 5.0), "gate_sigma": ("float", 3.0),
-              "history": ("int", 4)}, ("map",), "any"),
+              "history": ("int", 4), "locator": ("str:paper|model", "paper"), "top_k": ("int", 5)}, ("map",), "any"),
     ]
 
 
