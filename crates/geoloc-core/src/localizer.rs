@@ -27,6 +27,7 @@ use crate::matching::{Descriptors, MatchOptions, epipolar_filter, match_descript
 use crate::motion::motion_predict_with_noise;
 use crate::optim::covariance::{isometric_sigmas, spd_inverse};
 
+mod grid;
 mod model;
 mod noise;
 use crate::pnp::{PnpOptions, PointUncertainty, SharedPoseUncertainty, solve_pnp};

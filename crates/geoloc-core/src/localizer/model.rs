@@ -29,6 +29,7 @@ use std::time::Instant;
 
 use nalgebra::{Matrix3, Vector2, Vector3};
 
+use super::grid::KeypointGrid;
 use super::{Estimate, Frame, GeometricPose, Localizer, Timings, ms};
 use crate::error::{GeolocError, Result};
 use crate::lie::SE3;
@@ -41,6 +42,9 @@ use crate::pnp::{PnpResult, PointUncertainty, solve_pnp};
 pub const GUIDED_KEYFRAME_DISTANCE_M: f64 = 1.0;
 /// ... and whose orientation is within this angle of it (degrees).
 pub const GUIDED_KEYFRAME_ANGLE_DEG: f64 = 45.0;
+
+/// Candidate points below which guided matching stays on the calling thread.
+const GUIDED_PARALLEL_MIN_POINTS: usize = 2048;
 
 /// One 2D–3D correspondence: query keypoint, model point, descriptor distance.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -78,9 +82,18 @@ impl Localizer {
         }
         let tau = first.iter().zip(&res.inliers).filter(|(_, i)| **i).map(|(c, _)| c.distance).fold(0.0, f32::max);
         let mut best = res;
-        for _ in 0..self.options.guided_rounds {
+        let t = Instant::now();
+        let grid = KeypointGrid::new(frame.keypoints, self.options.guided_radius_px);
+        timings.matching_ms += ms(t);
+        // (near keyframes, their points) of the last round: a pose that moved little keeps them
+        let mut nearby: (Vec<usize>, Vec<usize>) = (Vec::new(), Vec::new());
+        for round in 0..self.options.guided_rounds {
             let t = Instant::now();
-            let guided = self.guided_matches(frame, model, &best.world_from_cam, tau, usable.as_deref(), &excluded);
+            let keyframes = near_keyframes(self, &best.world_from_cam, &excluded);
+            if round == 0 || keyframes != nearby.0 {
+                nearby = (keyframes.clone(), points_seen_by(model, &keyframes, usable.as_deref()));
+            }
+            let guided = self.guided_matches(frame, &grid, model, &best.world_from_cam, tau, &nearby.1);
             timings.matching_ms += ms(t);
             let t = Instant::now();
             let next = if guided.len() >= self.options.min_correspondences {
@@ -125,38 +138,34 @@ impl Localizer {
         Ok(one_to_one(all))
     }
 
-    /// Step 4: the guided correspondences at `pose` (see the module doc).
+    /// Step 4: the guided correspondences of the `candidates` points at `pose` (see the
+    /// module doc); `grid` holds the frame's keypoints.
     fn guided_matches(
         &self,
         frame: &Frame<'_>,
+        grid: &KeypointGrid<'_>,
         model: &SceneModel,
         pose: &SE3,
         tau: f32,
-        usable: Option<&[bool]>,
-        excluded: &Range<usize>,
+        candidates: &[usize],
     ) -> Vec<Correspondence> {
-        let candidates = nearby_points(self, model, pose, usable, excluded);
         let inverse = pose.inverse();
-        let r = self.options.guided_radius_px;
-        let mut by_x: Vec<usize> = (0..frame.keypoints.len()).collect();
-        by_x.sort_by(|&a, &b| frame.keypoints[a].x.total_cmp(&frame.keypoints[b].x).then(a.cmp(&b)));
-        let xs: Vec<f64> = by_x.iter().map(|&i| frame.keypoints[i].x).collect();
-        let mut found = Vec::new();
-        for p in candidates {
-            let Some(uv) = project_in_front(&self.map.camera, &inverse, &model.points[p]) else { continue };
-            let (lo, hi) = (xs.partition_point(|&x| x < uv.x - r), xs.partition_point(|&x| x <= uv.x + r));
+        let (r, camera) = (self.options.guided_radius_px, &self.map.camera);
+        let best_for = |&p: &usize| {
+            let uv = project_in_front(camera, &inverse, &model.points[p])?;
             let mut best: Option<Correspondence> = None;
-            for &q in &by_x[lo..hi] {
-                if (frame.keypoints[q] - uv).norm() > r {
-                    continue;
-                }
+            for q in grid.within(&uv, r) {
                 let d = model.descriptors.view().distance(p, &frame.descriptors, q);
                 if d <= tau && best.is_none_or(|b| (d, q) < (b.distance, b.query)) {
                     best = Some(Correspondence { query: q, point: p, distance: d });
                 }
             }
-            found.extend(best);
-        }
+            best
+        };
+        let found = crate::parallel::map_slice(candidates, GUIDED_PARALLEL_MIN_POINTS, best_for)
+            .into_iter()
+            .flatten()
+            .collect();
         one_to_one(found)
     }
 
@@ -189,23 +198,26 @@ fn usable_points(model: &SceneModel, excluded: &Range<usize>) -> Option<Vec<bool
     Some((0..model.len()).map(|p| !model.observers(p).iter().any(|k| excluded.contains(k))).collect())
 }
 
-/// The usable points observed by the keyframes near `pose` (not excluded), increasing.
-fn nearby_points(
-    loc: &Localizer,
-    model: &SceneModel,
-    pose: &SE3,
-    usable: Option<&[bool]>,
-    excluded: &Range<usize>,
-) -> Vec<usize> {
+/// The keyframes near `pose` (centre within [`GUIDED_KEYFRAME_DISTANCE_M`], rotation within
+/// [`GUIDED_KEYFRAME_ANGLE_DEG`]) and not excluded, increasing.
+fn near_keyframes(loc: &Localizer, pose: &SE3, excluded: &Range<usize>) -> Vec<usize> {
     let max_angle = GUIDED_KEYFRAME_ANGLE_DEG.to_radians();
+    (0..loc.map.keyframes.len())
+        .filter(|k| !excluded.contains(k))
+        .filter(|&k| {
+            let kf = &loc.map.keyframes[k].world_from_cam;
+            (kf.translation - pose.translation).norm() < GUIDED_KEYFRAME_DISTANCE_M
+                && kf.rotation.distance(&pose.rotation) < max_angle
+        })
+        .collect()
+}
+
+/// The usable points observed by `keyframes`, increasing.
+fn points_seen_by(model: &SceneModel, keyframes: &[usize], usable: Option<&[bool]>) -> Vec<usize> {
     let mut seen = vec![false; model.len()];
-    for (k, kf) in loc.map.keyframes.iter().enumerate() {
-        let near = (kf.world_from_cam.translation - pose.translation).norm() < GUIDED_KEYFRAME_DISTANCE_M
-            && kf.world_from_cam.rotation.distance(&pose.rotation) < max_angle;
-        if near && !excluded.contains(&k) {
-            for p in model.point_ids[k].iter().flatten() {
-                seen[*p] = usable.is_none_or(|u| u[*p]);
-            }
+    for &k in keyframes {
+        for &p in model.observed(k) {
+            seen[p] = usable.is_none_or(|u| u[p]);
         }
     }
     seen.iter().enumerate().filter(|(_, s)| **s).map(|(p, _)| p).collect()
@@ -318,7 +330,9 @@ mod scene_tests {
         let top = map.retrieve_top(&frame.descriptors, None, 5, excluded.clone()).expect("retrieves");
         assert!(top.iter().all(|t| !excluded.contains(t)));
         let first = loc.retrieved_matches(&frame, model, &top, Some(&usable)).expect("matches");
-        let guided = loc.guided_matches(&frame, model, &kf.world_from_cam, 64.0, Some(&usable), &excluded);
+        let grid = KeypointGrid::new(frame.keypoints, loc.options.guided_radius_px);
+        let nearby = points_seen_by(model, &near_keyframes(&loc, &kf.world_from_cam, &excluded), Some(&usable));
+        let guided = loc.guided_matches(&frame, &grid, model, &kf.world_from_cam, 64.0, &nearby);
         assert!(!first.is_empty() && !guided.is_empty(), "{} {}", first.len(), guided.len());
         for c in first.iter().chain(&guided) {
             assert!(model.observers(c.point).iter().all(|o| !excluded.contains(o)), "point {} leaks", c.point);

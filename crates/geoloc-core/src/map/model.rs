@@ -127,6 +127,8 @@ pub struct SceneModel {
     pub point_ids: Vec<Vec<Option<usize>>>,
     /// Per point: the keyframes observing it (sorted, derived from `point_ids`).
     observers: Vec<Vec<usize>>,
+    /// Per keyframe: the points it observes, in keypoint order (derived from `point_ids`).
+    observed: Vec<Vec<usize>>,
 }
 
 impl SceneModel {
@@ -169,7 +171,8 @@ impl SceneModel {
         if let Some(i) = observers.iter().position(Vec::is_empty) {
             return Err(GeolocError::invalid("model.point_ids", format!("point {i} has no observation")));
         }
-        Ok(Self { points, covariances, descriptors, point_ids, observers })
+        let observed = point_ids.iter().map(|ids| ids.iter().flatten().copied().collect()).collect();
+        Ok(Self { points, covariances, descriptors, point_ids, observers, observed })
     }
 
     /// Number of points.
@@ -185,6 +188,12 @@ impl SceneModel {
     /// The keyframes observing point `i` (sorted).
     pub fn observers(&self, i: usize) -> &[usize] {
         &self.observers[i]
+    }
+
+    /// The points keyframe `k` observes, in keypoint order (the `Some` entries of
+    /// `point_ids[k]`).
+    pub fn observed(&self, k: usize) -> &[usize] {
+        &self.observed[k]
     }
 
     /// Builds the model from `keyframes` (with their known poses); see the module doc.

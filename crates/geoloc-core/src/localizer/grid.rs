@@ -1,0 +1,121 @@
+//! A uniform grid over an image's keypoints for radius queries (guided matching).
+//!
+//! Cells are squares of side `cell` px, indexed (⌊x/cell⌋, ⌊y/cell⌋) after shifting by the
+//! keypoints' minimum; the keypoints of a cell are contiguous in one array (counting sort by
+//! cell, then by index inside a cell). [`KeypointGrid::within`] visits the cells overlapping
+//! the disc's bounding square and keeps the keypoints with ‖k − c‖ ≤ r — exactly the set a
+//! scan of all keypoints keeps, in increasing index order per cell.
+
+use nalgebra::Vector2;
+
+/// Most cells along one side of the grid.
+const MAX_SIDE: usize = 512;
+
+/// Keypoints bucketed by cell (see the module doc).
+#[derive(Clone, Debug)]
+pub(super) struct KeypointGrid<'a> {
+    keypoints: &'a [Vector2<f64>],
+    origin: Vector2<f64>,
+    cell: f64,
+    cols: usize,
+    rows: usize,
+    /// Start of each cell's run in `order` (cols·rows + 1 entries).
+    starts: Vec<usize>,
+    /// Keypoint indices sorted by (cell, index).
+    order: Vec<usize>,
+}
+
+impl<'a> KeypointGrid<'a> {
+    /// Grid of `keypoints` with square cells of side `cell` px (> 0, finite).
+    pub(super) fn new(keypoints: &'a [Vector2<f64>], cell: f64) -> Self {
+        let finite = || keypoints.iter().filter(|k| k.x.is_finite() && k.y.is_finite());
+        let origin = finite().fold(Vector2::repeat(f64::INFINITY), |m, k| m.inf(k));
+        let far = finite().fold(Vector2::repeat(f64::NEG_INFINITY), |m, k| m.sup(k));
+        let spread = if origin.x.is_finite() { far - origin } else { Vector2::zeros() };
+        // at most MAX_SIDE cells a side: a huge spread only coarsens the grid, never breaks it
+        let cell = cell.max(spread.x.max(spread.y) / (MAX_SIDE - 1) as f64);
+        let (cols, rows) = ((spread.x / cell).floor() as usize + 1, (spread.y / cell).floor() as usize + 1);
+        let mut grid =
+            Self { keypoints, origin, cell, cols, rows, starts: vec![0; cols * rows + 1], order: Vec::new() };
+        let cells: Vec<Option<usize>> = keypoints.iter().map(|k| grid.cell_of(k)).collect();
+        for c in cells.iter().flatten() {
+            grid.starts[c + 1] += 1;
+        }
+        for i in 0..cols * rows {
+            grid.starts[i + 1] += grid.starts[i];
+        }
+        let mut next = grid.starts.clone();
+        grid.order = vec![0; grid.starts[cols * rows]];
+        for (i, c) in cells.iter().enumerate() {
+            if let Some(c) = c {
+                grid.order[next[*c]] = i;
+                next[*c] += 1;
+            }
+        }
+        grid
+    }
+
+    /// The cell of a finite point inside the grid (None outside or not finite).
+    fn cell_of(&self, p: &Vector2<f64>) -> Option<usize> {
+        let (cx, cy) = ((p.x - self.origin.x) / self.cell, (p.y - self.origin.y) / self.cell);
+        let inside = cx >= 0.0 && cy >= 0.0 && cx < self.cols as f64 && cy < self.rows as f64;
+        inside.then(|| cy as usize * self.cols + cx as usize)
+    }
+
+    /// The keypoints within `r` px of `centre` (‖k − centre‖ ≤ r).
+    pub(super) fn within(&self, centre: &Vector2<f64>, r: f64) -> impl Iterator<Item = usize> + '_ {
+        let span = |lo: f64, hi: f64, n: usize| {
+            let (a, b) = ((lo / self.cell).floor().max(0.0), (hi / self.cell).floor().min(n as f64 - 1.0));
+            if a <= b { a as usize..b as usize + 1 } else { 0..0 }
+        };
+        let d = centre - self.origin;
+        let xs = span(d.x - r, d.x + r, self.cols);
+        let ys = span(d.y - r, d.y + r, self.rows);
+        let centre = *centre;
+        ys.flat_map(move |y| {
+            let row = y * self.cols;
+            let (a, b) = (self.starts[row + xs.start], self.starts[row + xs.end]);
+            self.order[a..b].iter().copied()
+        })
+        .filter(move |&i| (self.keypoints[i] - centre).norm() <= r)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use proptest::prelude::*;
+
+    use super::*;
+
+    proptest! {
+        /// The grid's radius query is the brute-force scan, for clustered, spread and
+        /// out-of-image centres, radii below and above the cell size.
+        #[test]
+        fn within_equals_a_scan(
+            pts in prop::collection::vec((-50.0f64..700.0, -50.0f64..520.0), 0..300),
+            centres in prop::collection::vec((-80.0f64..760.0, -80.0f64..560.0), 1..20),
+            cell in 0.5f64..40.0,
+            r in 0.0f64..60.0,
+        ) {
+            let keypoints: Vec<Vector2<f64>> = pts.iter().map(|&(x, y)| Vector2::new(x, y)).collect();
+            let grid = KeypointGrid::new(&keypoints, cell);
+            for &(x, y) in &centres {
+                let c = Vector2::new(x, y);
+                let mut got: Vec<usize> = grid.within(&c, r).collect();
+                got.sort_unstable();
+                let want: Vec<usize> = (0..keypoints.len()).filter(|&i| (keypoints[i] - c).norm() <= r).collect();
+                prop_assert_eq!(got, want);
+            }
+        }
+    }
+
+    #[test]
+    fn degenerate_inputs() {
+        let none: Vec<Vector2<f64>> = Vec::new();
+        assert_eq!(KeypointGrid::new(&none, 6.0).within(&Vector2::zeros(), 10.0).count(), 0);
+        let odd = vec![Vector2::new(f64::NAN, 1.0), Vector2::new(3.0, 4.0), Vector2::new(1e12, -1e12)];
+        let grid = KeypointGrid::new(&odd, 6.0);
+        assert_eq!(grid.within(&Vector2::new(3.0, 4.0), 1.0).collect::<Vec<_>>(), vec![1]);
+        assert_eq!(grid.within(&Vector2::new(1e12, -1e12), 1.0).collect::<Vec<_>>(), vec![2]);
+    }
+}
