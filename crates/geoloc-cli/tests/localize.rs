@@ -10,7 +10,7 @@ use std::time::{Duration, Instant};
 
 use geoloc_core::frames::{FrameRecord, write_json_header, write_json_record, write_record, write_stream_header};
 use geoloc_core::lie::SE3;
-use geoloc_core::localizer::{Frame, Localizer, LocalizerOptions};
+use geoloc_core::localizer::{Frame, Localizer, LocalizerOptions, Locator};
 use geoloc_core::map::{DescriptorSet, Keyframe, Map, RetrievalKind};
 use geoloc_core::testing::{self, LandmarkScene, SplitMix64};
 
@@ -114,10 +114,15 @@ fn lines(out: &Output) -> Vec<String> {
     String::from_utf8_lossy(&out.stdout).lines().map(str::to_owned).collect()
 }
 
-/// The core localizer in-process, formatted as the binary formats it.
+/// The core localizer in-process with the default options, formatted as the binary formats it.
 fn expected(map_path: &Path, records: &[FrameRecord]) -> Vec<Vec<u64>> {
+    expected_with(map_path, records, LocalizerOptions::default())
+}
+
+/// [`expected`] with `options`.
+fn expected_with(map_path: &Path, records: &[FrameRecord], options: LocalizerOptions) -> Vec<Vec<u64>> {
     let (map, _) = Map::load(map_path).expect("loads");
-    let mut loc = Localizer::new(Arc::new(map), LocalizerOptions::default()).expect("options");
+    let mut loc = Localizer::new(Arc::new(map), options).expect("options");
     records
         .iter()
         .map(|r| {
@@ -180,6 +185,25 @@ fn localize_matches_the_core_in_process_bit_for_bit_from_a_file_and_from_stdin()
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(stderr.contains("12 frames") && stderr.contains("frames/s") && stderr.contains("peak RSS"), "{stderr}");
     assert!(stderr.contains("median ms per stage: retrieval"), "{stderr}");
+}
+
+/// `--locator model` on a map saved without a 3D model: the binary builds the model as the
+/// core does and gives the core's model-locator poses and covariances bit for bit, which
+/// differ from the paper locator's (so the flag reaches the localizer).
+#[test]
+fn model_locator_matches_the_core_in_process_bit_for_bit() {
+    let d = dir("e2e-model");
+    let (map, records) = scene(&d, 8);
+    let options = LocalizerOptions { locator: Locator::Model, ..LocalizerOptions::default() };
+    let want = expected_with(&map, &records, options);
+    assert_ne!(want, expected(&map, &records));
+    let map_s = map.to_str().expect("utf-8");
+    let (out, hung) = run(&["localize", "--map", map_s, "--input", "-", "--locator", "model"], &stream(&records));
+    assert!(!hung && out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let got = lines(&out);
+    assert_eq!(got[1..].iter().map(|l| parsed_bits(l)).collect::<Vec<_>>(), want);
+    let (out, _) = run(&["localize", "--map", map_s, "--input", "-", "--locator", "nearest"], &stream(&records));
+    assert!(!out.status.success() && String::from_utf8_lossy(&out.stderr).contains("locator"));
 }
 
 #[test]
