@@ -35,7 +35,10 @@ Measured (branch calib2, 2026-11-23, GEOLOC_NUM_THREADS=2; NEES = fraction insid
 What keeps 300-399 and 400-499 below 88 %: runs of gross geometric failures (300-399: 37 of
 98 frames 12-47 cm / 3-10° off along the weakly constrained x/φy direction, 29 inliers
 median against 46, the retrieved keyframe 0.40 m away against 0.23 m) with a PnP covariance
-of 1-4 cm — a locator failure, not label noise; no C_map model fixes it (offline on these
+of 1-4 cm. Not only the locator's: ``label_consistency.py --probe`` localizes three of them
+against a map recorded ≈ 40 frames earlier (2.7 / 11.8 / 3.7 cm off their labels) and one
+recorded ≈ 150 frames later (9.9 / 11.0 / 24.6 cm) — the labels of the two visits disagree.
+No C_map model fixes it (offline on these
 runs: leave-one-block-out scaling, full 6×6 with shrinkage, position-kernel C_map all stay
 at 60-76 % there).
 """
