@@ -83,6 +83,46 @@ def test_bow_retrieves_noisy_redraws_of_each_image(binary: bool) -> None:
     assert np.all(np.diff(scores) <= 0)
 
 
+@pytest.mark.parametrize("binary", [False, True])
+def test_bow_scores_match_a_numpy_tfidf_per_descriptor_kind(binary: bool) -> None:
+    """Scores against a dense numpy TF-IDF with DBoW2's L1 score: tf = the count for binary
+    descriptors (ORB), tf = presence for float ones (SIFT; bursts of one word, repetitive
+    texture, must not dominate), on bursty images where the two differ."""
+    from geoloc.retrieval import BowDatabase, Vocabulary
+
+    rng = np.random.default_rng(8)
+    protos = rng.normal(size=(40, 32)) * 3
+
+    def draw(ids: list[int]) -> np.ndarray:
+        d = protos[ids] + 0.2 * rng.normal(size=(len(ids), 32))
+        return np.packbits(d > 0, axis=1) if binary else d.astype(np.float32)
+
+    # each image: 12 prototypes once, one of them repeated 25 more times (a burst)
+    layout = [list(rng.choice(40, 12, replace=False)) for _ in range(15)]
+    images = [draw(ids + [ids[0]] * 25) for ids in layout]
+    vocab = Vocabulary.train(np.vstack(images), branching=8, depth=2, seed=2)
+    db = BowDatabase(vocab, images)
+    counts = np.zeros((len(images), len(vocab)))
+    for i, im in enumerate(images):
+        np.add.at(counts[i], vocab.words(im).astype(np.int64), 1)
+    df = (counts > 0).sum(0)
+    idf = np.where(df > 0, np.log(len(images) / np.maximum(df, 1)), 0.0)
+
+    def score(q: np.ndarray, c: np.ndarray, presence: bool) -> float:
+        vq, vc = ((q > 0) if presence else q) * idf, ((c > 0) if presence else c) * idf
+        return float(np.minimum(vq / vq.sum(), vc / vc.sum()).sum())
+
+    query = draw(layout[3][:8] + [layout[3][0]] * 10 + layout[7][:4])
+    qc = np.zeros(len(vocab))
+    np.add.at(qc, vocab.words(query).astype(np.int64), 1)
+    want = np.array([score(qc, c, presence=not binary) for c in counts])
+    scores, ids = db.query(query, k=len(images))
+    np.testing.assert_allclose(scores, want[ids], atol=1e-6)
+    # the other kind's weighting gives other scores here (the test can tell them apart)
+    other = np.array([score(qc, c, presence=binary) for c in counts])
+    assert np.abs(other - want).max() > 1e-3
+
+
 def test_bow_bad_input() -> None:
     from geoloc.retrieval import BowDatabase, Vocabulary
 

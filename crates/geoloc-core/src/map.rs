@@ -372,6 +372,6 @@ fn bow_retrieval(keyframes: &[Keyframe], branching: usize, depth: usize, seed: u
     let vocabulary = Vocabulary::train(&all.view(), branching, depth, seed)?;
     let words: Vec<Vec<u32>> =
         keyframes.iter().map(|k| vocabulary.words_of(&k.descriptors.view())).collect::<Result<_>>()?;
-    let database = BowDatabase::new(vocabulary.len(), &words)?;
+    let database = BowDatabase::with_weighting(vocabulary.len(), &words, vocabulary.term_weighting())?;
     Ok(Retrieval::Bow { vocabulary, database })
 }

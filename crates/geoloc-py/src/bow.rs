@@ -69,7 +69,8 @@ impl BowDatabase {
             .enumerate()
             .map(|(i, d)| vocabulary.get().words_of(py, d, &format!("images[{i}]")))
             .collect::<PyResult<_>>()?;
-        let inner = CoreDatabase::new(vocabulary.get().inner.len(), &words).map_err(to_py_err)?;
+        let v = &vocabulary.get().inner;
+        let inner = CoreDatabase::with_weighting(v.len(), &words, v.term_weighting()).map_err(to_py_err)?;
         Ok(Self { vocabulary: vocabulary.unbind(), inner })
     }
 

@@ -400,7 +400,7 @@ fn bow_database(vocabulary: &Vocabulary, keyframes: &[Keyframe]) -> Result<BowDa
         .map(|kf| vocabulary.words_of(&kf.descriptors.view()))
         .collect::<Result<_>>()
         .map_err(as_format)?;
-    BowDatabase::new(vocabulary.len(), &words).map_err(as_format)
+    BowDatabase::with_weighting(vocabulary.len(), &words, vocabulary.term_weighting()).map_err(as_format)
 }
 
 fn kind_and_width(d: &DescriptorSet) -> (bool, usize) {
