@@ -73,6 +73,33 @@ def test_bad_frames_and_maps(feature_map: tuple[FeatureMap, np.ndarray, np.ndarr
         FeatureLocalizer(m, history=1)
 
 
+def test_pixel_sigmas_are_checked_by_name_and_used(feature_map: tuple[FeatureMap, np.ndarray, np.ndarray]) -> None:
+    m, pts, desc = feature_map
+    rng = np.random.default_rng(5)
+    kp, d = _observe(rng, _walk(0.5, 0.1), pts, desc)
+    loc = FeatureLocalizer(m)
+    n = len(kp)
+    for bad, match in [
+        (np.ones(n - 1), r"pixel_sigmas: expected shape"),
+        (np.ones((n, 1)), r"pixel_sigmas: expected shape"),
+        (np.r_[np.ones(n - 1), np.nan], r"pixel_sigmas\[\d+\] is not finite"),
+        (np.r_[np.ones(n - 1), 0.0], r"pixel_sigmas: entry \d+ must be finite and > 0"),
+        (np.r_[-np.ones(n - 1), 1.0], r"pixel_sigmas: entry 0 must be finite and > 0"),
+        (np.array(["a"] * n), r"pixel_sigmas: expected real numbers"),
+    ]:
+        with pytest.raises(geoloc.InvalidInputError, match=match):
+            loc.localize(0.5, kp, d, pixel_sigmas=bad)
+    # ones are the uniform solve; 4 px on every query keypoint widens the covariance
+    plain = FeatureLocalizer(m).localize(0.5, kp, d)
+    ones = FeatureLocalizer(m).localize(0.5, kp, d, pixel_sigmas=np.ones(n))
+    fours = FeatureLocalizer(m).localize(0.5, kp, d, pixel_sigmas=np.full(n, 4.0))
+    assert plain.covariance is not None and ones.covariance is not None and fours.covariance is not None
+    assert ones.pose is not None and plain.pose is not None
+    np.testing.assert_allclose(ones.pose, plain.pose, atol=1e-9)
+    np.testing.assert_allclose(ones.covariance, plain.covariance, rtol=1e-6, atol=1e-14)
+    assert np.all(np.diag(fours.covariance) > 1.5 * np.diag(plain.covariance))
+
+
 def test_timestamps_must_increase(feature_map: tuple[FeatureMap, np.ndarray, np.ndarray]) -> None:
     m, pts, desc = feature_map
     rng = np.random.default_rng(2)

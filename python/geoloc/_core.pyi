@@ -115,6 +115,7 @@ def solve_pnp(
     point_covariances: NDArray[np.float64] | None = None,
     point_pose_jacobians: NDArray[np.float64] | None = None,
     pose_covariances: NDArray[np.float64] | None = None,
+    pixel_sigmas: NDArray[np.float64] | None = None,
     loss: str = "huber",
     huber: float = 1.0,
     pixel_sigma: float = 1.0,
@@ -312,6 +313,7 @@ class FeatureLocalizer:
         keypoints: NDArray[np.float64],
         descriptors: NDArray[Any],
         global_descriptor: NDArray[np.float32] | None = None,
+        pixel_sigmas: NDArray[np.float64] | None = None,
     ) -> Localization: ...
     def reset(self) -> None: ...
 

@@ -13,6 +13,9 @@ distortion), with each keypoint's positional uncertainty from its detector scale
   ``pixel_sigma = 2 ** (o + (l - 1) / nOctaveLayers)`` (0.5 for the finest keypoints) and
   ``octaves`` = o. (``KeyPoint.size`` ≈ 2·1.6·2^(o + l/nOctaveLayers) is consistent with it.)
 
+The localizer weights each query keypoint by this σ in PnP (times its ``pixel_sigma``):
+weighted least squares is the efficient estimator when the noise differs between keypoints.
+
 Descriptors: ORB (N, 32) uint8 (binary, Hamming); SIFT (N, 128) float32 (L2), or RootSIFT
 (Arandjelović & Zisserman 2012: L1-normalize, square root) with ``root_sift=True``.
 Extraction is deterministic (OpenCV's detectors are, for a given image and options).

@@ -232,6 +232,7 @@ def solve_pnp(
     covariance: Literal["propagated", "paper"] = "propagated",
     uncertainty: PointUncertainty | None = None,
     point_covariances: ArrayLike | None = None,
+    pixel_sigmas: ArrayLike | None = None,
     min_iterations: int = 100,
     max_iterations: int = 10_000,
     confidence: float = 0.9999,
@@ -251,6 +252,10 @@ def solve_pnp(
     points' uncertainty (``uncertainty`` from :meth:`TriangulationResult.uncertainty`, or
     independent ``point_covariances`` (N, 3, 3), symmetric positive semi-definite);
     ``"paper"`` is the paper's σ̂²(ΣJᵀJ)⁻¹ with σ̂² = ‖r‖²/(2p − 1), for comparison.
+    ``pixel_sigmas`` (N,), finite and > 0: a pixel noise per correspondence,
+    σⱼ = ``pixel_sigma`` × ``pixel_sigmas[j]`` (e.g. a keypoint's σ from its detector scale,
+    :attr:`geoloc.features.Features.pixel_sigmas`), in the weights, the η_r gate (widened to
+    4.29σⱼ), the covariance and the variance factor.
 
     Geometry that cannot give a pose returns ``success=False`` with a ``reason``: too few
     points, no consensus, collinear points, or an inlier set that chance explains (fewer than
@@ -282,9 +287,14 @@ def solve_pnp(
             jacs = _matrix_stack(uncertainty.pose_jacobians, "pose_jacobians", (n, k, 3, 6)).reshape(n * k, 18)
         elif (uncertainty.pose_jacobians is None) != (uncertainty.pose_covariances is None):
             raise InvalidInputError("uncertainty: pose_jacobians and pose_covariances go together")
+    sig = None
+    if pixel_sigmas is not None:
+        sig = np.ascontiguousarray(_real_array(pixel_sigmas, "pixel_sigmas"))
+        if sig.shape != (n,):
+            raise InvalidInputError(f"pixel_sigmas: expected shape ({n},) like points3d, got {sig.shape}")
     return _core.solve_pnp(
         pts, px, cam.intrinsics, init_pose=init, point_covariances=covs, point_pose_jacobians=jacs,
-        pose_covariances=pose_covs, loss=choice(loss, "loss", _LOSSES), huber=real_scalar(huber, "huber"),
+        pose_covariances=pose_covs, pixel_sigmas=sig, loss=choice(loss, "loss", _LOSSES), huber=real_scalar(huber, "huber"),
         pixel_sigma=real_scalar(pixel_sigma, "pixel_sigma"), max_residual=real_scalar(max_residual, "max_residual"),
         covariance=choice(covariance, "covariance", ("propagated", "paper")), ransac=_flag(ransac, "ransac"),
         min_iterations=min_iterations, max_iterations=max_iterations,

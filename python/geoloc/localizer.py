@@ -195,10 +195,18 @@ class FeatureLocalizer:
         )
 
     def localize(
-        self, timestamp: float, keypoints: ArrayLike, descriptors: ArrayLike, global_descriptor: ArrayLike | None = None
+        self,
+        timestamp: float,
+        keypoints: ArrayLike,
+        descriptors: ArrayLike,
+        global_descriptor: ArrayLike | None = None,
+        pixel_sigmas: ArrayLike | None = None,
     ) -> LocalizationResult:
         """Localize one frame taken at ``timestamp`` (seconds, increasing); ``global_descriptor``
-        is one (D,) vector when the map retrieves by global descriptor."""
+        is one (D,) vector when the map retrieves by global descriptor. ``pixel_sigmas`` (N,):
+        each keypoint's positional σ from its detector scale (:attr:`geoloc.features.Features.pixel_sigmas`,
+        finite and > 0); keypoint i's pixel noise in PnP is then ``pixel_sigma`` × ``pixel_sigmas[i]``
+        (None: ``pixel_sigma`` for all)."""
         d = _local_descriptors(descriptors, "descriptors")
         k = _keypoints(keypoints, "keypoints", len(d))
         g = None
@@ -207,7 +215,13 @@ class FeatureLocalizer:
             if g.ndim != 1:
                 raise InvalidInputError(f"global_descriptor: expected shape (D,), got {g.shape}")
             g = _f32_rows(g[None], "global_descriptor")[0]
-        return self._loc.localize(real_scalar(timestamp, "timestamp"), k, d, g)
+        s = None
+        if pixel_sigmas is not None:
+            s = as_float64(pixel_sigmas, "pixel_sigmas")
+            if s.shape != (len(k),):
+                raise InvalidInputError(f"pixel_sigmas: expected shape ({len(k)},), got {s.shape}")
+            s = np.ascontiguousarray(s)
+        return self._loc.localize(real_scalar(timestamp, "timestamp"), k, d, g, s)
 
     def reset(self) -> None:
         """Forget the motion history."""

@@ -232,7 +232,9 @@ class Localizer:
     """Localizes images frame after frame against a :class:`Map`, keeping the motion history.
 
     ``locator``: "paper" (the paper's: one retrieved keyframe and its co-visible group) or
-    "model" (top-``top_k`` retrieval against the map-level 3D model, PnP, guided matching)."""
+    "model" (top-``top_k`` retrieval against the map-level 3D model, PnP, guided matching).
+    Each query keypoint's pixel noise in PnP is ``pixel_sigma`` × its own σ from the detector
+    scale (:attr:`geoloc.features.Features.pixel_sigmas`: 1.2^level for ORB)."""
 
     def __init__(
         self,
@@ -295,7 +297,9 @@ class Localizer:
         g = None
         if self._global is not None:
             g = np.asarray(self._global([pixels]), dtype=np.float32)[0]
-        r: LocalizationResult = self._core.localize(real_scalar(timestamp, "timestamp"), f.keypoints, f.descriptors, g)
+        r: LocalizationResult = self._core.localize(
+            real_scalar(timestamp, "timestamp"), f.keypoints, f.descriptors, g, pixel_sigmas=f.pixel_sigmas
+        )
         end = time.perf_counter()
         timings = {"decode": 1e3 * (decoded - start), "features": 1e3 * (described - decoded)}
         timings.update(r.timings_ms)

@@ -104,6 +104,7 @@ fn localize(args: &Args) -> Result<(), String> {
             keypoints: &record.keypoints,
             descriptors: record.descriptors.view(),
             global: record.global.as_deref(),
+            pixel_sigmas: Some(&record.pixel_sigmas),
         };
         let result = localizer.localize(&frame).map_err(|e| format!("{}: frame {index}: {e}", args.input))?;
         writeln!(out, "{}", output::line(record.timestamp, &result)).and_then(|()| out.flush()).map_err(write_err)?;

@@ -131,6 +131,7 @@ fn expected_with(map_path: &Path, records: &[FrameRecord], options: LocalizerOpt
                 keypoints: &r.keypoints,
                 descriptors: r.descriptors.view(),
                 global: None,
+                pixel_sigmas: Some(&r.pixel_sigmas),
             };
             let res = loc.localize(&frame).expect("valid frame");
             let e = res.estimate.expect("this scene localizes");
@@ -357,6 +358,7 @@ fn resealed_mutations_reach_the_localizer_and_never_panic_or_hang() {
                 keypoints: &r.keypoints,
                 descriptors: r.descriptors.view(),
                 global: None,
+                pixel_sigmas: Some(&r.pixel_sigmas),
             };
             if loc.localize(&frame).is_ok() {
                 localized += 1;

@@ -63,7 +63,8 @@ pub struct FrameRecord {
     pub timestamp: f64,
     /// Undistorted keypoints (px).
     pub keypoints: Vec<Vector2<f64>>,
-    /// Positional σ of each keypoint (px).
+    /// Positional σ of each keypoint (px, from its detector scale): its pixel noise in PnP is
+    /// the localizer's `pixel_sigma` × this ([`crate::localizer::Frame::pixel_sigmas`]).
     pub pixel_sigmas: Vec<f64>,
     /// One descriptor per keypoint.
     pub descriptors: DescriptorSet,

@@ -30,7 +30,7 @@ use crate::optim::covariance::{isometric_sigmas, spd_inverse};
 mod grid;
 mod model;
 mod noise;
-use crate::pnp::{PnpOptions, PointUncertainty, SharedPoseUncertainty, solve_pnp};
+use crate::pnp::{PnpOptions, PointUncertainty, SharedPoseUncertainty, solve_pnp_with_pixel_sigmas};
 use crate::triangulate::{TrackStatus, TriangulationOptions, triangulate};
 pub use noise::NoiseOptions;
 
@@ -182,6 +182,10 @@ pub struct Frame<'a> {
     pub descriptors: Descriptors<'a>,
     /// Global descriptor, when the map retrieves by one.
     pub global: Option<&'a [f32]>,
+    /// Each keypoint's positional σ from its detector scale (px; e.g. 1.2^level for ORB,
+    /// [`crate::frames::FrameRecord::pixel_sigmas`]): keypoint i's pixel noise in PnP is
+    /// `pnp.pixel_sigma` × `pixel_sigmas[i]`. None: `pnp.pixel_sigma` for every keypoint.
+    pub pixel_sigmas: Option<&'a [f64]>,
 }
 
 /// Which path produced a result.
@@ -422,6 +426,17 @@ impl Localizer {
         if let Some(i) = frame.keypoints.iter().position(|k| !(k.x.is_finite() && k.y.is_finite())) {
             return Err(GeolocError::NonFinite { name: "keypoints".into(), index: i });
         }
+        if let Some(sigmas) = frame.pixel_sigmas {
+            if sigmas.len() != frame.keypoints.len() {
+                return Err(GeolocError::invalid(
+                    "pixel_sigmas",
+                    format!("{} pixel_sigmas for {} keypoints", sigmas.len(), frame.keypoints.len()),
+                ));
+            }
+            if let Some(i) = sigmas.iter().position(|s| !(s.is_finite() && *s > 0.0)) {
+                return Err(GeolocError::invalid("pixel_sigmas", format!("entry {i} must be finite and > 0")));
+            }
+        }
         if !frame.timestamp.is_finite() || self.last_timestamp.is_some_and(|t| frame.timestamp <= t) {
             return Err(GeolocError::invalid(
                 "timestamp",
@@ -461,7 +476,16 @@ impl Localizer {
             _ => None,
         };
         let uncertainty = PointUncertainty { covariances: &covs, shared };
-        let res = solve_pnp(&self.map.camera, &pts, &px, None, Some(&uncertainty), &self.options.pnp)?;
+        let sigmas: Option<Vec<f64>> = frame.pixel_sigmas.map(|s| matches.iter().map(|m| s[m.a]).collect());
+        let res = solve_pnp_with_pixel_sigmas(
+            &self.map.camera,
+            &pts,
+            &px,
+            sigmas.as_deref(),
+            None,
+            Some(&uncertainty),
+            &self.options.pnp,
+        )?;
         timings.pnp_ms = ms(t);
         let inliers = res.inliers.iter().filter(|b| **b).count();
         let pose = if res.success {

@@ -243,8 +243,40 @@ pub fn solve_pnp(
     uncertainty: Option<&PointUncertainty<'_>>,
     options: &PnpOptions,
 ) -> Result<PnpResult> {
+    solve_pnp_with_pixel_sigmas(camera, points, pixels, None, init, uncertainty, options)
+}
+
+/// [`solve_pnp`] with a pixel noise of its own for each correspondence:
+/// σⱼ = `options.pixel_sigma` × `pixel_sigmas[j]` (e.g. a keypoint's σ from its detector
+/// scale, 1.2^level for ORB), everywhere σ enters — the weights Sⱼ = σⱼ²I + J_X Σⱼ J_Xᵀ,
+/// the gate (η_r widened to 4.29σⱼ), the covariance and the variance factor. `None` is
+/// [`solve_pnp`] exactly.
+///
+/// # Errors
+/// As [`solve_pnp`], and `pixel_sigmas` of the wrong length or not finite and > 0.
+pub fn solve_pnp_with_pixel_sigmas(
+    camera: &Camera,
+    points: &[Vector3<f64>],
+    pixels: &[Vector2<f64>],
+    pixel_sigmas: Option<&[f64]>,
+    init: Option<&SE3>,
+    uncertainty: Option<&PointUncertainty<'_>>,
+    options: &PnpOptions,
+) -> Result<PnpResult> {
     validate(points, pixels, uncertainty, options)?;
-    let data = Correspondences { camera, points, pixels, uncertainty, options };
+    if let Some(scales) = pixel_sigmas {
+        if scales.len() != points.len() {
+            return Err(GeolocError::invalid(
+                "pixel_sigmas",
+                format!("has {} entries but points3d has {}", scales.len(), points.len()),
+            ));
+        }
+        if let Some(j) = scales.iter().position(|v| !(v.is_finite() && *v > 0.0)) {
+            return Err(GeolocError::invalid("pixel_sigmas", format!("entry {j} must be finite and > 0")));
+        }
+    }
+    let noise = PixelNoise { sigma: options.pixel_sigma, scales: pixel_sigmas };
+    let data = Correspondences { camera, points, pixels, uncertainty, options, noise };
     let start = match data.start(init) {
         Ok(start) => start,
         Err(failed) => return Ok(*failed),
@@ -258,6 +290,21 @@ pub fn solve_pnp(
     Ok(data.finish(last, report, &subset, start.ransac_iterations))
 }
 
+/// The query's pixel noise: σⱼ = `sigma` × `scales[j]`, or `sigma` for every correspondence.
+#[derive(Clone, Copy, Debug)]
+struct PixelNoise<'a> {
+    sigma: f64,
+    scales: Option<&'a [f64]>,
+}
+
+impl PixelNoise<'_> {
+    /// σⱼ of correspondence `j`.
+    #[inline]
+    fn at(&self, j: usize) -> f64 {
+        self.scales.map_or(self.sigma, |s| self.sigma * s[j])
+    }
+}
+
 /// The inputs of one PnP, shared by its steps.
 struct Correspondences<'a> {
     camera: &'a Camera,
@@ -265,6 +312,7 @@ struct Correspondences<'a> {
     pixels: &'a [Vector2<f64>],
     uncertainty: Option<&'a PointUncertainty<'a>>,
     options: &'a PnpOptions,
+    noise: PixelNoise<'a>,
 }
 
 /// Where the refits start: a pose, the correspondences of the first round, RANSAC's count.
@@ -360,12 +408,13 @@ impl Correspondences<'_> {
             if subset.len() < MIN_INLIERS {
                 break;
             }
-            let w = weighting(self.camera, self.points, &pose, &subset, self.uncertainty, o.pixel_sigma);
+            let w = weighting(self.camera, self.points, &pose, &subset, self.uncertainty, self.noise);
             let problem = w.problem(self.camera, self.points, self.pixels, &subset, o.loss);
             let (next, r) = levenberg_marquardt(&problem, pose, &lm);
             pose = next;
             report = Some(r);
-            let next_subset = gated_indices(self.camera, self.points, self.pixels, &pose, self.uncertainty, o);
+            let next_subset =
+                gated_indices(self.camera, self.points, self.pixels, &pose, self.uncertainty, self.noise, o);
             if next_subset == subset {
                 break;
             }
@@ -394,7 +443,7 @@ impl Correspondences<'_> {
                 self.pixels,
                 subset,
                 u,
-                o.pixel_sigma,
+                self.noise,
                 shared_weights.as_deref(),
             );
             let (pose, cov, r) = problem.solve(pose, &o.lm);
@@ -404,7 +453,7 @@ impl Correspondences<'_> {
         if o.loss == RobustLoss::None {
             return propagate;
         }
-        let w = weighting(self.camera, self.points, &pose, subset, None, o.pixel_sigma);
+        let w = weighting(self.camera, self.points, &pose, subset, None, self.noise);
         let problem = w.problem(self.camera, self.points, self.pixels, subset, RobustLoss::None);
         let (pose, r, h) = final_least_squares(&problem, pose, &o.lm);
         // exact points: C = (Σ JⱼᵀJⱼ/σ²)⁻¹ is the information of this very solve, and its cost
@@ -414,10 +463,10 @@ impl Correspondences<'_> {
 
     /// Wⱼ = (σ²I + J_X,j Σⱼ^shared J_X,jᵀ)⁻¹ over `subset` at `pose`.
     fn shared_weights(&self, pose: &SE3, subset: &[usize], u: &PointUncertainty<'_>) -> Vec<Matrix2<f64>> {
-        let var = self.options.pixel_sigma * self.options.pixel_sigma;
         subset
             .iter()
             .map(|&j| {
+                let var = self.noise.at(j) * self.noise.at(j);
                 let p = project(self.camera, pose, &self.points[j]);
                 let j_x = j_uv_point(self.camera, pose, &p);
                 let shared = point_covariance(j, Some(u), true).unwrap_or_else(Matrix3::zeros) - u.covariances[j];
@@ -444,7 +493,7 @@ impl Correspondences<'_> {
             inliers[j] = true;
         }
         let sum_sq: f64 = match last.information {
-            Information::LeastSquares(_, cost) => cost * o.pixel_sigma * o.pixel_sigma,
+            Information::LeastSquares(_, cost) if self.noise.scales.is_none() => cost * o.pixel_sigma * o.pixel_sigma,
             _ => subset
                 .iter()
                 .map(|&j| (project(self.camera, &pose, &self.points[j]).uv - self.pixels[j]).norm_squared())
@@ -457,7 +506,7 @@ impl Correspondences<'_> {
             (CovarianceModel::Propagated, Information::Joint(cov)) => cov.filter(|c| inverse_information(c).is_some()),
             (CovarianceModel::Propagated, Information::LeastSquares(h, _)) => inverse_information(&h),
             (CovarianceModel::Propagated, Information::Propagate) => {
-                propagated_covariance(self.camera, self.points, &pose, subset, self.uncertainty, o.pixel_sigma)
+                propagated_covariance(self.camera, self.points, &pose, subset, self.uncertainty, self.noise)
             }
         };
         let rejection = match covariance {
@@ -504,7 +553,7 @@ impl Correspondences<'_> {
             return f64::NAN;
         }
         let sigma = self.options.pixel_sigma;
-        if self.uncertainty.is_none() {
+        if self.uncertainty.is_none() && self.noise.scales.is_none() {
             // exact points: S = σ²I and no bias, one projection per inlier
             let sum_sq: f64 = subset
                 .iter()
@@ -515,6 +564,7 @@ impl Correspondences<'_> {
         let chi2: f64 = subset
             .iter()
             .map(|&j| {
+                let sigma = self.noise.at(j);
                 let (s, bias) = residual_moments(self.camera, self.points, pose, j, self.uncertainty, sigma, true);
                 let r = project(self.camera, pose, &self.points[j]).uv - bias - self.pixels[j];
                 s.try_inverse().map_or(r.norm_squared() / (sigma * sigma), |s_inv| r.dot(&(s_inv * r)))
@@ -532,13 +582,20 @@ impl Correspondences<'_> {
         }
         let o = self.options;
         let gate = gate_px(o.max_residual_px, o.pixel_sigma);
+        let mean_gate_sq = match self.noise.scales {
+            None => gate * gate,
+            Some(_) => {
+                (0..self.points.len()).map(|j| gate_px(o.max_residual_px, self.noise.at(j)).powi(2)).sum::<f64>()
+                    / self.points.len() as f64
+            }
+        };
         // The area within the gate of a projection, π·gate², gate = η_r (widened to 4.29σ):
         // exactly the inlier region for exact points. Uncertain points are gated in the
         // Mahalanobis metric of S = σ²I + J_X Σ J_Xᵀ, a wider region; measured against it,
         // well-determined poses from poorly triangulated points (label noise of 3 cm / 1°, σ
         // of the projected points ≈ 12 px) read as chance, so the test uses the pixel-noise
         // gate for them too: it is lenient for uncertain points, exact for exact ones.
-        let mean_radius_sq = gate * gate;
+        let mean_radius_sq = mean_gate_sq;
         let hypotheses = 1 + 4 * ransac_iterations;
         let p = chance_probability(self.pixels, mean_radius_sq, k, hypotheses);
         (p > MAX_CHANCE_PROBABILITY).then(|| {
@@ -713,20 +770,20 @@ fn gated_indices(
     pixels: &[Vector2<f64>],
     pose: &SE3,
     uncertainty: Option<&PointUncertainty<'_>>,
+    noise: PixelNoise<'_>,
     options: &PnpOptions,
 ) -> Vec<usize> {
-    let sigma = options.pixel_sigma;
-    let eta = gate_px(options.max_residual_px, sigma);
-    if uncertainty.is_none() {
-        return inlier_indices(camera, points, pixels, pose, eta);
+    if uncertainty.is_none() && noise.scales.is_none() {
+        return inlier_indices(camera, points, pixels, pose, gate_px(options.max_residual_px, noise.sigma));
     }
-    let gate = (eta / sigma).powi(2);
     (0..points.len())
         .filter(|&j| {
             let p = project(camera, pose, &points[j]);
             if p.p_cam.z <= 0.0 {
                 return false;
             }
+            let sigma = noise.at(j);
+            let gate = (gate_px(options.max_residual_px, sigma) / sigma).powi(2);
             let (s, bias) = residual_moments(camera, points, pose, j, uncertainty, sigma, true);
             let r = p.uv - bias - pixels[j];
             s.try_inverse().is_some_and(|s_inv| r.dot(&(s_inv * r)) <= gate)
@@ -777,11 +834,12 @@ fn weighting(
     pose: &SE3,
     subset: &[usize],
     uncertainty: Option<&PointUncertainty<'_>>,
-    sigma: f64,
+    noise: PixelNoise<'_>,
 ) -> Weighting {
     let (weights, biases) = subset
         .iter()
         .map(|&j| {
+            let sigma = noise.at(j);
             let (s, bias) = residual_moments(camera, points, pose, j, uncertainty, sigma, true);
             (s.try_inverse().unwrap_or_else(|| Matrix2::identity() / (sigma * sigma)), bias)
         })
@@ -939,7 +997,7 @@ fn propagated_covariance(
     pose: &SE3,
     subset: &[usize],
     uncertainty: Option<&PointUncertainty<'_>>,
-    sigma: f64,
+    noise: PixelNoise<'_>,
 ) -> Option<Matrix6<f64>> {
     let mut h = Matrix6::zeros();
     let mut meat = Matrix6::zeros();
@@ -947,6 +1005,7 @@ fn propagated_covariance(
     let mut couplings: Vec<(usize, nalgebra::Matrix6x3<f64>)> = Vec::new();
     for &j in subset {
         let p = project(camera, pose, &points[j]);
+        let sigma = noise.at(j);
         let (s_marginal, _) = residual_moments(camera, points, pose, j, uncertainty, sigma, true);
         let w = s_marginal.try_inverse()?;
         let jac = j_uv_pose(camera, &p);

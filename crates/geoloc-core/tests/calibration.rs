@@ -81,6 +81,7 @@ fn map_noise_covers_injected_label_noise() {
             keypoints: &keypoints,
             descriptors: Descriptors::Binary { data: &data, width: WIDTH },
             global: None,
+            pixel_sigmas: None,
         };
         let Some(e) = loc.localize(&frame).expect("valid").estimate else { continue };
         let d = (label.inverse() * e.world_from_cam).log();
@@ -118,6 +119,7 @@ fn a_jump_reinitializes_and_a_long_failure_is_lost_then_recovers() {
             keypoints: &keypoints,
             descriptors: Descriptors::Binary { data: &data, width: WIDTH },
             global: None,
+            pixel_sigmas: None,
         };
         let r = loc.localize(&frame).expect("valid");
         errors.push(r.estimate.map_or(f64::INFINITY, |e| (e.world_from_cam.translation - truth.translation).norm()));

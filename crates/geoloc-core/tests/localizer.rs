@@ -89,6 +89,7 @@ fn run_frames(corrupt_fraction: f64, frames: usize) -> Run {
             keypoints: &keypoints,
             descriptors: Descriptors::Binary { data: &data, width: WIDTH },
             global: None,
+            pixel_sigmas: None,
         };
         let r = localizer.localize(&frame).expect("valid frame");
         out.sources.push(r.source);
@@ -216,6 +217,7 @@ fn bad_maps_and_frames_are_refused_by_name() {
         keypoints: &kp,
         descriptors: Descriptors::Float { data: &d, width: 4 },
         global,
+        pixel_sigmas: None,
     };
     assert_eq!(name_of(loc.localize(&frame(Some(&[1.0, 2.0, 3.0])))), "global_descriptor");
     assert_eq!(name_of(loc.localize(&frame(None))), "global_descriptor");

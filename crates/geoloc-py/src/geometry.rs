@@ -7,7 +7,7 @@ use geoloc_core::camera::Camera;
 use geoloc_core::optim::RobustLoss;
 use geoloc_core::pnp::{
     CovarianceModel, PnpOptions, PnpResult, PointUncertainty, RansacOptions, SharedPoseUncertainty,
-    solve_pnp as core_solve_pnp,
+    solve_pnp_with_pixel_sigmas,
 };
 use geoloc_core::triangulate::{TrackStatus, Triangulation, TriangulationOptions, triangulate as core_triangulate};
 use nalgebra::{Matrix3, Matrix3x6, Matrix6, Vector2, Vector3};
@@ -287,7 +287,7 @@ fn uncertainty_arrays(
 
 /// Backward intersection; see `geoloc.geometry.solve_pnp`.
 #[pyfunction]
-#[pyo3(signature = (points3d, pixels, intrinsics, *, init_pose=None, point_covariances=None, point_pose_jacobians=None, pose_covariances=None, loss="huber", huber=1.0, pixel_sigma=1.0, max_residual=5.0, covariance="propagated", ransac=None, min_iterations=None, max_iterations=None, confidence=0.9999, seed=None))]
+#[pyo3(signature = (points3d, pixels, intrinsics, *, init_pose=None, point_covariances=None, point_pose_jacobians=None, pose_covariances=None, pixel_sigmas=None, loss="huber", huber=1.0, pixel_sigma=1.0, max_residual=5.0, covariance="propagated", ransac=None, min_iterations=None, max_iterations=None, confidence=0.9999, seed=None))]
 #[allow(clippy::too_many_arguments)]
 pub fn solve_pnp<'py>(
     py: Python<'py>,
@@ -298,6 +298,7 @@ pub fn solve_pnp<'py>(
     point_covariances: Option<PyReadonlyArray2<'py, f64>>,
     point_pose_jacobians: Option<PyReadonlyArray2<'py, f64>>,
     pose_covariances: Option<PyReadonlyArray2<'py, f64>>,
+    pixel_sigmas: Option<PyReadonlyArray1<'py, f64>>,
     loss: &str,
     huber: f64,
     pixel_sigma: f64,
@@ -316,6 +317,10 @@ pub fn solve_pnp<'py>(
     }
     let ransac_with_init = ransac == Some(true) && init.is_some();
     let unc = uncertainty_arrays(point_covariances.as_ref(), point_pose_jacobians.as_ref(), pose_covariances.as_ref())?;
+    let sigmas = pixel_sigmas
+        .as_ref()
+        .map(|s| s.as_slice().map_err(|_| invalid("pixel_sigmas", "must be contiguous")))
+        .transpose()?;
     let (min_iterations, max_iterations, seed) = (min_iterations.as_ref(), max_iterations.as_ref(), seed.as_ref());
     let keywords = PnpKeywords {
         loss,
@@ -337,7 +342,7 @@ pub fn solve_pnp<'py>(
                 .and_then(|(_, s)| s.as_ref())
                 .map(|(j, c)| SharedPoseUncertainty { jacobians: j, pose_covariances: c });
             let uncertainty = unc.as_ref().map(|(c, _)| PointUncertainty { covariances: c, shared });
-            core_solve_pnp(&cam, &points, &pixels, init.as_ref(), uncertainty.as_ref(), &options)
+            solve_pnp_with_pixel_sigmas(&cam, &points, &pixels, sigmas, init.as_ref(), uncertainty.as_ref(), &options)
         })
         .map_err(to_py_err)?;
     Ok(PnPResult { inner })

@@ -277,8 +277,9 @@ impl FeatureLocalizer {
         Ok(Self { inner: Mutex::new(inner) })
     }
 
-    /// Localizes one frame (keypoints (N, 2) undistorted pixels, descriptors (N, W)).
-    #[pyo3(signature = (timestamp, keypoints, descriptors, global_descriptor=None))]
+    /// Localizes one frame (keypoints (N, 2) undistorted pixels, descriptors (N, W), optional
+    /// per-keypoint pixel σ (N,)).
+    #[pyo3(signature = (timestamp, keypoints, descriptors, global_descriptor=None, pixel_sigmas=None))]
     fn localize(
         &self,
         py: Python<'_>,
@@ -286,6 +287,7 @@ impl FeatureLocalizer {
         keypoints: PyReadonlyArray2<'_, f64>,
         descriptors: Bound<'_, PyAny>,
         global_descriptor: Option<Bound<'_, PyAny>>,
+        pixel_sigmas: Option<Bound<'_, PyAny>>,
     ) -> PyResult<Localization> {
         let kps = self::keypoints("keypoints", &keypoints)?;
         let borrowed = BorrowedDescriptors::extract(&descriptors, "descriptors")?;
@@ -298,7 +300,20 @@ impl FeatureLocalizer {
             .as_ref()
             .map(|g| g.as_slice().map_err(|_| invalid("global_descriptor", "must be contiguous")))
             .transpose()?;
-        let frame = Frame { timestamp, keypoints: &kps, descriptors: borrowed.view("descriptors")?, global };
+        let sigmas: Option<PyReadonlyArray1<'_, f64>> = pixel_sigmas
+            .map(|s| s.extract().map_err(|_| invalid("pixel_sigmas", "expected a 1-D float64 array of shape (N,)")))
+            .transpose()?;
+        let sigmas = sigmas
+            .as_ref()
+            .map(|s| s.as_slice().map_err(|_| invalid("pixel_sigmas", "must be contiguous")))
+            .transpose()?;
+        let frame = Frame {
+            timestamp,
+            keypoints: &kps,
+            descriptors: borrowed.view("descriptors")?,
+            global,
+            pixel_sigmas: sigmas,
+        };
         let inner = py
             .detach(|| self.inner.lock().ok().map(|mut loc| loc.localize(&frame)))
             .ok_or_else(|| invalid("localizer", "a previous call panicked; create a new localizer"))?

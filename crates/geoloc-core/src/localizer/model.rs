@@ -7,7 +7,7 @@
 //!    names (query keypoint q, point p, distance d). Over the union: one point per query
 //!    keypoint (smallest d, then lowest p), then one keypoint per point (smallest d, then
 //!    lowest q).
-//! 3. **PnP** ([`solve_pnp`], P3P-RANSAC then robust LM) on the union, each point with its
+//! 3. **PnP** ([`solve_pnp_with_pixel_sigmas`], P3P-RANSAC then robust LM) on the union, each point with its
 //!    model covariance Σ_X (independent per point: the shared pose-label part is not split
 //!    out as the paper's group triangulation does).
 //! 4. **Guided matching**, `guided_rounds` times: the points observed by the keyframes near
@@ -36,7 +36,7 @@ use crate::lie::SE3;
 use crate::map::SceneModel;
 use crate::map::model::project_in_front;
 use crate::matching::{MatchOptions, match_descriptors};
-use crate::pnp::{PnpResult, PointUncertainty, solve_pnp};
+use crate::pnp::{PnpResult, PointUncertainty, solve_pnp_with_pixel_sigmas};
 
 /// Guided matching uses the points of keyframes whose centre is this close to the pose (m).
 pub const GUIDED_KEYFRAME_DISTANCE_M: f64 = 1.0;
@@ -181,7 +181,16 @@ impl Localizer {
         let px: Vec<Vector2<f64>> = matches.iter().map(|c| frame.keypoints[c.query]).collect();
         let covs: Vec<Matrix3<f64>> = matches.iter().map(|c| model.covariances[c.point]).collect();
         let uncertainty = PointUncertainty { covariances: &covs, shared: None };
-        solve_pnp(&self.map.camera, &pts, &px, init, Some(&uncertainty), &self.options.pnp)
+        let sigmas: Option<Vec<f64>> = frame.pixel_sigmas.map(|s| matches.iter().map(|c| s[c.query]).collect());
+        solve_pnp_with_pixel_sigmas(
+            &self.map.camera,
+            &pts,
+            &px,
+            sigmas.as_deref(),
+            init,
+            Some(&uncertainty),
+            &self.options.pnp,
+        )
     }
 }
 
@@ -270,7 +279,8 @@ mod scene_tests {
                 let truth = walk(0.3 + i as f64 * 0.27, 0.15, -1.5);
                 let (keypoints, data) = world.observe(&mut rng, &truth, 5);
                 let descriptors = crate::matching::Descriptors::Binary { data: &data, width: 32 };
-                let frame = Frame { timestamp: i as f64, keypoints: &keypoints, descriptors, global: None };
+                let frame =
+                    Frame { timestamp: i as f64, keypoints: &keypoints, descriptors, global: None, pixel_sigmas: None };
                 loc.reset();
                 let out = loc.localize(&frame).expect("valid frame");
                 let err =
@@ -323,8 +333,13 @@ mod scene_tests {
         let model = map.model.as_ref().expect("model");
         let (k, excluded) = (15, 9..22);
         let kf = &map.keyframes[k];
-        let frame =
-            Frame { timestamp: 0.0, keypoints: &kf.keypoints, descriptors: kf.descriptors.view(), global: None };
+        let frame = Frame {
+            timestamp: 0.0,
+            keypoints: &kf.keypoints,
+            descriptors: kf.descriptors.view(),
+            global: None,
+            pixel_sigmas: None,
+        };
         let usable = usable_points(model, &excluded).expect("some excluded");
         assert!(usable.iter().any(|u| !u) && usable.iter().any(|u| *u));
         let top = map.retrieve_top(&frame.descriptors, None, 5, excluded.clone()).expect("retrieves");

@@ -30,7 +30,7 @@ use crate::camera::{Camera, j_uv_point, j_uv_pose, project};
 use crate::lie::SE3;
 use crate::optim::{DampedStep, Evaluation, LeastSquares, Linearization, LmOptions, LmReport, solve};
 
-use super::PointUncertainty;
+use super::{PixelNoise, PointUncertainty};
 
 /// One correspondence: X̂ⱼ, zⱼ and Σⱼ⁻¹ (None for an exact point, which gets no ε).
 struct Correspondence {
@@ -68,10 +68,9 @@ impl<'a> JointProblem<'a> {
         pixels: &[Vector2<f64>],
         subset: &[usize],
         uncertainty: &PointUncertainty<'_>,
-        sigma: f64,
+        noise: PixelNoise<'_>,
         shared_weights: Option<&[Matrix2<f64>]>,
     ) -> Self {
-        let isotropic = Matrix2::identity() / (sigma * sigma);
         let items = subset
             .iter()
             .enumerate()
@@ -79,7 +78,7 @@ impl<'a> JointProblem<'a> {
                 point: points[j],
                 pixel: pixels[j],
                 information: uncertainty.covariances[j].cholesky().map(|c| c.inverse()),
-                weight: shared_weights.map_or(isotropic, |w| w[i]),
+                weight: shared_weights.map_or_else(|| Matrix2::identity() / (noise.at(j) * noise.at(j)), |w| w[i]),
             })
             .collect();
         Self { camera, items }
