@@ -9,6 +9,10 @@ map build time (features are extracted once, outside the timings): the map itsel
 vocabulary and database) and the 3D model (built when the model localizer is created).
 
     PYTHONPATH=python python benchmarks/novel_views.py [--folds 6,0] [--features orb,sift] [--json out.json]
+        [--uniform-sigma]
+
+Each query keypoint is weighted by its detector-scale σ (``Features.pixel_sigmas``), as
+``geoloc.Localizer`` does; ``--uniform-sigma`` weights them all alike (1 px).
 
 Not a test: each fold builds a map of ~570 frames and its model per feature kind. ``GEOLOC_NUM_THREADS``
 defaults to 2 here (the issue's "2 cores").
@@ -32,17 +36,18 @@ MARGIN = 15
 FRAMES = 700
 
 
-def extract(seq: Any, kind: str) -> tuple[list[Any], list[Any]]:
-    """Keypoints and descriptors of every frame (the extractor of ``geoloc.Map.build``)."""
+def extract(seq: Any, kind: str) -> tuple[list[Any], list[Any], list[Any]]:
+    """Keypoints, descriptors and pixel σ of every frame (the extractor of ``geoloc.Map.build``)."""
     from geoloc.features import FeatureExtractor
 
     ex = FeatureExtractor(kind, 1000)  # type: ignore[arg-type]
-    kps, descs = [], []
+    kps, descs, sigmas = [], [], []
     for i in range(len(seq)):
         f = ex(seq.gray(i), seq.camera)
         kps.append(f.keypoints)
         descs.append(f.descriptors)
-    return kps, descs
+        sigmas.append(f.pixel_sigmas)
+    return kps, descs, sigmas
 
 
 def errors(pose: Any, truth: Any) -> tuple[float, float]:
@@ -75,12 +80,12 @@ def bias(poses: list[Any], truth: Any) -> tuple[Any, float]:
     return np.r_[med[:3] * 100, np.degrees(med[3:])], rest
 
 
-def run_fold(seq: Any, feats: tuple[list[Any], list[Any]], b: int) -> dict[str, Any]:
+def run_fold(seq: Any, feats: tuple[list[Any], list[Any], list[Any]], b: int, uniform: bool = False) -> dict[str, Any]:
     from geoloc.localizer import FeatureLocalizer, FeatureMap
 
     lo, hi = b * BLOCK, min((b + 1) * BLOCK, FRAMES)
     train = [i for i in range(FRAMES) if i < lo - MARGIN or i >= hi + MARGIN]
-    kps, descs = feats
+    kps, descs, sigmas = feats
     poses = seq.poses[:FRAMES]
     t0 = time.perf_counter()
     the_map = FeatureMap(seq.camera, poses[train], [kps[i] for i in train], [descs[i] for i in train])
@@ -95,7 +100,7 @@ def run_fold(seq: Any, feats: tuple[list[Any], list[Any]], b: int) -> dict[str, 
         et, er, inl, ms, raw = [], [], [], [], []
         for i in range(lo, hi):
             loc.reset()
-            r = loc.localize(float(i) / 30.0, kps[i], descs[i])
+            r = loc.localize(float(i) / 30.0, kps[i], descs[i], pixel_sigmas=None if uniform else sigmas[i])
             t, a = errors(r.pose, poses[i])
             et.append(t)
             er.append(a)
@@ -125,6 +130,7 @@ def main() -> int:
     ap.add_argument("--folds", default="6,0", help="comma-separated test blocks of 100 frames (0–6)")
     ap.add_argument("--features", default="orb,sift", help="comma-separated: orb, sift")
     ap.add_argument("--json", help="write the results (with every pose) here")
+    ap.add_argument("--uniform-sigma", action="store_true", help="no per-keypoint pixel σ (every keypoint 1 px)")
     args = ap.parse_args()
     if not DATA.is_dir():
         print(f"no shared data at {DATA}: nothing to measure")
@@ -137,7 +143,7 @@ def main() -> int:
         feats = extract(seq, kind)
         print(f"({kind}: features of {FRAMES} frames in {time.perf_counter() - t0:.0f} s)", flush=True)
         for b in (int(x) for x in args.folds.split(",")):
-            r = run_fold(seq, feats, b)
+            r = run_fold(seq, feats, b, uniform=args.uniform_sigma)
             name = f"{b * BLOCK}-{min((b + 1) * BLOCK, FRAMES) - 1}"
             report[f"{name} {kind}"] = r
             for locator in ("paper", "model"):
