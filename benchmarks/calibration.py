@@ -14,23 +14,42 @@ Not a test: a full run takes several minutes (7 map builds of ~600 frames). ``--
 records the held-out samples of each map and every frame's error, covariance and source, so
 C_map models can be compared offline on one run.
 
-Measured (branch calib2, 2026-11-23, GEOLOC_NUM_THREADS=2; NEES = fraction inside χ²₆ 95 %):
+Measured (2026-11-24, GEOLOC_NUM_THREADS=2, query keypoints weighted by their detector-scale σ;
+NEES = fraction inside χ²₆ 95 %; axis min = the lowest per-axis 1.96σ coverage):
 
-    fold     mode        median          5cm/5°  NEES  axis min  med NEES  σ_p med
-    0-99     single      8.0 cm / 2.05°   13 %   87 %   88 %      2.0     8.1 cm
-    0-99     sequential  7.6 cm / 1.98°   15 %   94 %   96 %      1.7     8.1 cm
-    100-199  single      4.8 cm / 1.69°   51 %   98 %   92 %      1.5     7.2 cm
-    100-199  sequential  4.7 cm / 1.70°   55 %  100 %   92 %      1.6     7.2 cm
-    200-299  single      2.8 cm / 1.13°   89 %  100 %  100 %      0.7     7.0 cm
-    200-299  sequential  2.8 cm / 1.13°   90 %  100 %  100 %      0.8     7.0 cm
-    300-399  single      5.2 cm / 2.07°   47 %   70 %   69 %      3.9     4.7 cm
-    300-399  sequential  5.1 cm / 1.98°   48 %   80 %   74 %      2.5     4.7 cm
-    400-499  single      5.0 cm / 1.52°   52 %   79 %   76 %      2.0     5.3 cm
-    400-499  sequential  4.4 cm / 1.45°   56 %   85 %   81 %      1.7     5.3 cm
-    500-599  single      2.8 cm / 1.23°   90 %   99 %   99 %      0.7     7.5 cm
-    500-599  sequential  2.8 cm / 1.22°   90 %  100 %  100 %      0.7     7.5 cm
-    600-699  single      6.5 cm / 1.80°   42 %   87 %   90 %      2.0     6.8 cm
-    600-699  sequential  6.5 cm / 1.86°   41 %   92 %   92 %      2.0     6.8 cm
+    fold       mode                   median  5cm/5°   NEES axis min med NEES  σ_p med  sources
+    0-99       single         8.3 cm / 2.04°     15%    89%      89%      2.0   8.1 cm  geo85 los15
+    0-99       sequential     8.4 cm / 1.94°     16%    86%      89%      1.7   8.2 cm  fus72 geo4 los1 mot23
+    100-199    single         4.5 cm / 1.50°     58%    97%      96%      1.4   7.2 cm  geo98 los2
+    100-199    sequential     4.5 cm / 1.50°     63%    99%      96%      1.3   7.2 cm  fus96 geo2 mot2
+    200-299    single         2.8 cm / 1.16°     87%   100%      99%      0.7   7.0 cm  geo95 los5
+    200-299    sequential     2.8 cm / 1.17°     87%   100%      99%      0.8   7.0 cm  fus93 geo2 los5
+    300-399    single         5.4 cm / 1.87°     47%    67%      67%      3.1   4.8 cm  geo98 los2
+    300-399    sequential     5.4 cm / 1.98°     45%    72%      67%      3.5   4.8 cm  fus72 geo3 mot25
+    400-499    single         4.7 cm / 1.47°     52%    82%      79%      1.7   5.3 cm  geo100
+    400-499    sequential     4.4 cm / 1.43°     58%    89%      84%      1.5   5.3 cm  fus84 geo3 mot13
+    500-599    single         3.0 cm / 1.30°     89%    99%      99%      0.7   7.5 cm  geo100
+    500-599    sequential     2.9 cm / 1.27°     90%   100%     100%      0.7   7.5 cm  fus97 geo2 mot1
+    600-699    single         6.4 cm / 1.74°     45%    90%      91%      2.1   6.8 cm  geo100
+    600-699    sequential     6.2 cm / 1.77°     41%    94%      93%      1.8   6.8 cm  fus92 geo3 mot5
+
+``--locator model``:
+
+    fold       mode                   median  5cm/5°   NEES axis min med NEES  σ_p med  sources
+    0-99       single         5.9 cm / 1.70°      9%    88%      92%      2.0   6.3 cm  geo93 los7
+    0-99       sequential     5.9 cm / 1.68°     13%    86%      87%      2.0   6.3 cm  fus74 geo4 los1 mot21
+    100-199    single         4.8 cm / 1.65°     52%    90%      83%      3.3   5.8 cm  geo100
+    100-199    sequential     4.8 cm / 1.66°     51%    91%      84%      3.3   5.8 cm  fus96 geo2 mot2
+    200-299    single         3.2 cm / 1.28°     98%   100%     100%      1.1   7.2 cm  geo100
+    200-299    sequential     3.2 cm / 1.27°     98%   100%     100%      1.1   7.2 cm  fus98 geo2
+    300-399    single         6.2 cm / 2.24°     37%    70%      70%      5.9   4.4 cm  geo96 los4
+    300-399    sequential     6.5 cm / 2.24°     39%    76%      75%      4.3   4.4 cm  fus78 geo3 mot19
+    400-499    single         3.8 cm / 1.59°     60%    66%      66%      1.9   5.3 cm  geo100
+    400-499    sequential     3.8 cm / 1.58°     62%    76%      75%      1.9   5.3 cm  fus84 geo4 mot12
+    500-599    single         2.8 cm / 1.11°     85%   100%     100%      0.5   8.2 cm  geo100
+    500-599    sequential     2.8 cm / 1.11°     85%   100%     100%      0.5   8.2 cm  fus98 geo2
+    600-699    single         4.3 cm / 1.57°     59%   100%      96%      1.6   7.3 cm  geo100
+    600-699    sequential     4.8 cm / 1.73°     52%    90%      89%      2.5   7.3 cm  fus86 geo3 mot11
 
 What keeps 300-399 and 400-499 below 88 %: runs of gross geometric failures (300-399: 37 of
 98 frames 12-47 cm / 3-10° off along the weakly constrained x/φy direction, 29 inliers
@@ -104,6 +123,8 @@ def evaluate(train: Any, test: Any, locator: str = "paper") -> dict[str, Any]:
                 "delta": None if r.pose is None else se3_log(se3_inverse(gt[i]) @ r.pose).tolist(),
                 "covariance": None if r.covariance is None else np.asarray(r.covariance).tolist(),
                 "position": gt[i][:3, 3].tolist(),
+                "inliers": int(r.inliers),
+                "keyframe": int(r.keyframe),
             }
             for i, r in enumerate(results)
         ]
