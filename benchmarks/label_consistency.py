@@ -27,6 +27,7 @@ explain.
 
     PYTHONPATH=python python benchmarks/label_consistency.py [--folds 0,3,6] [--json out.json]
     PYTHONPATH=python python benchmarks/label_consistency.py --probe
+    PYTHONPATH=python python benchmarks/label_consistency.py --two-view
 
 Not a test (≈ 10 minutes). See the README's "Relocalizing away from the training path".
 
@@ -61,6 +62,21 @@ against a small map recorded ≈ 150 frames later and one ≈ 40 frames earlier:
 With the same or worse geometry (356: 0.50 m against 0.35 m) the map recorded close in time
 agrees with the label and the later one does not: the failures of that fold are
 disagreements between the labels of two visits, not only the locator's.
+
+``--two-view`` (half a minute) takes no map and no locator at all: the relative rotation of
+two frames from their images alone (essential matrix, 5-point RANSAC) against the one their
+labels give. Measured 2026-11-25 (median angle of R_imageᵀR_label over the pairs):
+
+    control: frames 5 / 20 apart in time         0.80° / 1.36°   (the check's own noise)
+    frames 300-328 vs 250-284                      0.90°
+    frames 500-599 vs 415-484, 200-284 vs 415-599  1.55°, 1.45°
+    frames 329-369 vs 420-474                      5.53°
+    frames 430-450 vs 345-369                      6.92°
+
+The two visits of the part of the kitchen seen at frames ≈ 330-370 and ≈ 420-470 carry
+labels whose relative rotation is 5-7° off what their images say, four times the check's
+noise; ``benchmarks/label_runs.py`` finds the same two visits as the runs of 20-30 cm /
+5-7° errors of folds 300-399 and 400-499, with opposite signs.
 """
 
 from __future__ import annotations
@@ -181,6 +197,58 @@ def probe(seq: Any, feats: Any) -> None:
                   f"nearest keyframe {near:.2f} m", flush=True)
 
 
+#: ``--two-view``: (queries, map frames) ranges whose relative rotations are checked, and
+#: the control of pairs 5-20 frames apart in time (the check's own noise).
+TWO_VIEW_PAIRS = (((329, 370), (420, 475)), ((430, 451), (345, 370)), ((300, 329), (250, 285)),
+                  ((500, 600), (415, 485)), ((200, 285), (415, 600)))
+
+
+def two_view(seq: Any, feats: Any) -> None:
+    """The ``--two-view`` table (see the module doc): no map, no PnP — the relative rotation
+    of two frames from their images (essential matrix, 5-point RANSAC, 1 px, fx = 525) against
+    the one their labels give, as the angle of R_imageᵀR_label; median over the pairs of each
+    range (each query with its 3 nearest map frames by label position, ≥ 40 inliers)."""
+    import cv2
+
+    poses = seq.poses[:FRAMES]
+    K = np.array([[525.0, 0, 320.0], [0, 525.0, 240.0], [0, 0, 1]])
+    matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
+
+    def discrepancy(a: int, b: int) -> float | None:
+        knn = matcher.knnMatch(feats[a].descriptors, feats[b].descriptors, k=2)
+        good = [m[0] for m in knn if len(m) == 2 and m[0].distance < 0.8 * m[1].distance]
+        if len(good) < 40:
+            return None
+        pa = np.array([feats[a].keypoints[g.queryIdx] for g in good], dtype=np.float64)
+        pb = np.array([feats[b].keypoints[g.trainIdx] for g in good], dtype=np.float64)
+        E, mask = cv2.findEssentialMat(pa, pb, K, cv2.RANSAC, 0.9999, 1.0)
+        if E is None or E.shape != (3, 3):
+            return None
+        inliers, R, _, _ = cv2.recoverPose(E, pa, pb, K, mask=mask)
+        if inliers < 40:
+            return None
+        label = (np.linalg.inv(poses[b]) @ poses[a])[:3, :3]  # cam_b from cam_a, as R
+        return float(np.degrees(np.arccos(np.clip((np.trace(R.T @ label) - 1) / 2, -1, 1))))
+
+    def report(name: str, pairs: list[tuple[int, int]]) -> None:
+        d = [v for v in (discrepancy(a, b) for a, b in pairs) if v is not None]
+        if d:
+            print(f"{name}: {len(d)} pairs, median {np.median(d):.2f}° (quartiles {np.percentile(d, 25):.2f}-"
+                  f"{np.percentile(d, 75):.2f}°)", flush=True)
+        else:
+            print(f"{name}: no pair with enough inliers", flush=True)
+
+    for gap in (5, 20):
+        report(f"control: frames {gap} apart in time", [(a, a + gap) for a in range(0, FRAMES - gap, 7)])
+    for (qa, qb), (ka, kb) in TWO_VIEW_PAIRS:
+        frames = np.arange(ka, kb)
+        pairs: list[tuple[int, int]] = []
+        for q in range(qa, qb, 2):
+            near = np.argsort(np.linalg.norm(poses[frames, :3, 3] - poses[q, :3, 3], axis=1))[:3]
+            pairs.extend((q, int(frames[j])) for j in near)
+        report(f"frames {qa}-{qb - 1} vs {ka}-{kb - 1}", pairs)
+
+
 def main() -> int:
     import geoloc
     from geoloc.features import FeatureExtractor
@@ -192,6 +260,7 @@ def main() -> int:
     ap.add_argument("--locator", choices=("paper", "model"), default="model")
     ap.add_argument("--json", help="write every (frame, segment) pair here")
     ap.add_argument("--probe", action="store_true", help="only the fold 300-399 probe (see the module doc)")
+    ap.add_argument("--two-view", action="store_true", help="only the map-free relative-rotation check (module doc)")
     args = ap.parse_args()
     if not DATA.is_dir():
         print(f"no shared data at {DATA}: nothing to measure")
@@ -201,6 +270,9 @@ def main() -> int:
     feats = [ex(seq.gray(i), seq.camera) for i in range(FRAMES)]
     if args.probe:
         probe(seq, feats)
+        return 0
+    if args.two_view:
+        two_view(seq, feats)
         return 0
     bins = " ".join(f"{f'gap {a}-{c}':>17}" for a, c in zip(GAP_BINS[:-1], GAP_BINS[1:]))
     print(f"median error vs label (cm, n) of (frame, segment) pairs within {args.near} m, by time gap (frames); "
