@@ -172,14 +172,14 @@ impl Localizer {
         let map = Arc::clone(&self.map);
         let kf = &map.keyframes[k];
         let descriptors = kf.descriptors.view();
+        let frame = Frame {
+            timestamp: 0.0,
+            keypoints: &kf.keypoints,
+            descriptors,
+            global: kf.global.as_deref(),
+            pixel_sigmas: None,
+        };
         if self.options.locator == Locator::Model {
-            let frame = Frame {
-                timestamp: 0.0,
-                keypoints: &kf.keypoints,
-                descriptors,
-                global: kf.global.as_deref(),
-                pixel_sigmas: None,
-            };
             let (_, pose, _) = self.model_pose(&frame, excluded, &mut Timings::default())?;
             return Ok(pose.ok());
         }
@@ -190,13 +190,6 @@ impl Localizer {
         let group: Vec<usize> =
             select_keyframes(&poses, local, &self.options.keyframes)?.into_iter().map(|j| allowed[j]).collect();
         let points = self.map_points(seed, &group)?;
-        let frame = Frame {
-            timestamp: 0.0,
-            keypoints: &kf.keypoints,
-            descriptors,
-            global: kf.global.as_deref(),
-            pixel_sigmas: None,
-        };
         let (pose, _) = self.geometric_pose(&frame, &points, group.len(), &mut Timings::default())?;
         Ok(pose.ok())
     }
