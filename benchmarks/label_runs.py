@@ -28,8 +28,8 @@ Measured 2026-11-25 on ``calibration.py`` (paper locator, ORB, per-keypoint σ),
                   frames: median 3.1 cm
     fold 400-499  run 431-450: 11 of 20 frames, median (-28, +18, +1) cm (+4.0, +5.4, +0.9)°,
                   localized against frames 349-368; the other 65 frames: median 3.6 cm
-    held out      frames 340-375 and 440-475 are 20-48 cm off in every map that holds them
-                  (folds 0-99, 100-199, 200-299, 500-599, 600-699)
+    held out      5-6 keyframes of 340-375 and 440-475 are 16-48 cm off in each of the five
+                  maps that hold both visits (folds 0-99, 100-199, 200-299, 500-599, 600-699)
 
 The two runs are the same disagreement seen from either side — queries of ≈ 330-370
 against a map of ≈ 420-470 and queries of ≈ 430-450 against a map of ≈ 350-370 — with
