@@ -12,6 +12,9 @@
 
 use nalgebra::{Matrix2x3, Matrix2x6, Vector2, Vector3};
 
+mod distortion;
+pub use distortion::Distortion;
+
 use crate::error::{GeolocError, Result};
 use crate::lie::{SE3, so3};
 

@@ -24,6 +24,7 @@ pub mod parallel;
 pub mod pnp;
 pub mod retrieval;
 pub mod rng;
+pub mod selfcal;
 pub mod testing;
 pub mod triangulate;
 
