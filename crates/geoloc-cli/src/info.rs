@@ -24,6 +24,7 @@ fn summary(path: &Path, bytes: u64, map: &Map, h: &MapHeader) -> String {
     let _ = writeln!(s, "format            {FORMAT_NAME} version {FORMAT_VERSION}");
     let c = h.camera;
     let _ = writeln!(s, "camera            fx {} fy {} cx {} cy {}{}", c.fx, c.fy, c.cx, c.cy, image_size(f));
+    let _ = writeln!(s, "camera estimate   {}", self_calibration(h));
     let per = h.keypoints as f64 / h.keyframes.max(1) as f64;
     let _ = writeln!(s, "keyframes         {}", h.keyframes);
     let _ = writeln!(s, "keypoints         {} ({per:.1} per keyframe)", h.keypoints);
@@ -51,6 +52,29 @@ fn image_size(f: &Value) -> String {
             format!(", {w}×{h} px, distortion {d} (keypoints are stored undistorted)")
         }
         _ => String::new(),
+    }
+}
+
+/// What the map estimated about its camera (the localizer corrects every frame's keypoints with it).
+fn self_calibration(h: &MapHeader) -> String {
+    let Some(sc) = &h.self_calibration else { return "none (the given intrinsics are used as they are)".to_string() };
+    match (&sc.camera, &sc.distortion) {
+        (Some(c), Some(d)) => format!(
+            "fx {:.2} fy {:.2} cx {:.2} cy {:.2}, distortion k1 {:+.5} k2 {:+.5} p1 {:+.6} p2 {:+.6}; \
+             track residuals {} -> {} px rms ({} observations); frames' keypoints are corrected with it",
+            c.fx,
+            c.fy,
+            c.cx,
+            c.cy,
+            d[0],
+            d[1],
+            d[2],
+            d[3],
+            sc.rms_before_px.map_or("?".to_string(), |v| format!("{v:.3}")),
+            sc.rms_after_px.map_or("?".to_string(), |v| format!("{v:.3}")),
+            sc.observations
+        ),
+        _ => format!("not applied ({})", sc.reason),
     }
 }
 

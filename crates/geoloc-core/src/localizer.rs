@@ -373,11 +373,20 @@ impl Localizer {
     /// # Errors
     /// Invalid frames: keypoints and descriptors of different counts, non-finite keypoints or
     /// descriptors, a non-increasing timestamp, descriptors the map cannot compare with, a
-    /// missing or wrongly sized global descriptor. A frame that cannot be localized is not
-    /// an error: it comes back with source `Lost` and the reason.
+    /// missing or wrongly sized global descriptor, a keypoint where the map's lens
+    /// correction does not invert. A frame that cannot be localized is not an error: it
+    /// comes back with source `Lost` and the reason.
+    ///
+    /// When the map estimated its camera ([`Map::with_refined_intrinsics`]) the frame's
+    /// keypoints are corrected first, as the keyframes' were (u_c = K d⁻¹(K′⁻¹u)).
     pub fn localize(&mut self, frame: &Frame<'_>) -> Result<Localization> {
         let start = Instant::now();
         self.check_frame(frame)?;
+        let corrected = match self.map.intrinsics_correction() {
+            Some(c) => Some(c.correct_all(&self.map.camera, "keypoints", frame.keypoints)?),
+            None => None,
+        };
+        let frame = &Frame { keypoints: corrected.as_deref().unwrap_or(frame.keypoints), ..*frame };
         let mut timings = Timings::default();
         let (keyframe, geometric, inliers) = match self.options.locator {
             Locator::Paper => self.paper_pose(frame, &mut timings)?,

@@ -2,13 +2,17 @@
 //! keypoints (undistorted pixels) and local descriptors, optional global descriptors, the
 //! camera, and the retrieval structure built from them (a descriptor index when a network
 //! provides global descriptors, else a bag-of-words vocabulary and database).
+//!
+//! [`Map::with_refined_intrinsics`] estimates the camera from the keyframes themselves
+//! ([`crate::selfcal`]); the keyframes' keypoints are then stored corrected, and the
+//! localizer corrects every query's keypoints the same way before using them.
 
 pub mod file;
 pub mod model;
 mod persist;
 
 pub use model::{ModelOptions, SceneModel};
-pub use persist::{CameraHeader, MapHeader, ModelHeader, NoiseHeader, RetrievalHeader};
+pub use persist::{CameraHeader, MapHeader, ModelHeader, NoiseHeader, RetrievalHeader, SelfCalibrationHeader};
 
 use nalgebra::{Matrix6, Vector2, Vector6};
 
@@ -19,6 +23,8 @@ use crate::lie::SE3;
 pub use crate::matching::DescriptorSet;
 use crate::matching::Descriptors;
 use crate::retrieval::DescriptorIndex;
+use crate::selfcal::{IntrinsicsCorrection, SelfCalibration, SelfCalibrationOptions, TrackObservation, self_calibrate};
+use crate::triangulate::TriangulationOptions;
 
 /// One keyframe of the map.
 #[derive(Clone, Debug, PartialEq)]
@@ -60,6 +66,10 @@ pub struct Map {
     pub noise: MapNoise,
     /// The map-level 3D model of the model locator ([`Map::with_model`]), if built.
     pub model: Option<SceneModel>,
+    /// The camera estimated from the keyframes ([`Map::with_refined_intrinsics`]), if tried;
+    /// with a correction, the keyframes' keypoints are stored corrected and queries'
+    /// keypoints are corrected by the localizer.
+    pub self_calibration: Option<SelfCalibration>,
 }
 
 /// The map's noise, estimated at build time from its own keyframes
@@ -215,7 +225,76 @@ impl Map {
             RetrievalKind::Global => Retrieval::Global(global_index(&keyframes)?),
             RetrievalKind::Bow { branching, depth } => bow_retrieval(&keyframes, branching, depth, seed)?,
         };
-        Ok(Self { camera, keyframes, pose_covariances, retrieval, noise: MapNoise::default(), model: None })
+        Ok(Self {
+            camera,
+            keyframes,
+            pose_covariances,
+            retrieval,
+            noise: MapNoise::default(),
+            model: None,
+            self_calibration: None,
+        })
+    }
+
+    /// The map with its camera estimated from its own keyframes ([`crate::selfcal`]): tracks
+    /// built as for the 3D model ([`SceneModel::build`] with [`calibration_tracks`]'s looser
+    /// thresholds), the camera fitted to them with the keyframe poses fixed, then every
+    /// keyframe keypoint u replaced by the corrected u_c = K d⁻¹(K′⁻¹u). When the tracks give
+    /// no correction (too few, or one that does not invert at some keypoint) the keypoints
+    /// stay as they were and [`Map::self_calibration`] says why. A 3D model built before is
+    /// dropped (its points belong to the uncorrected keypoints): build it after.
+    ///
+    /// # Errors
+    /// The map was refined already (`intrinsics`); as [`SceneModel::build`] and
+    /// [`self_calibrate`].
+    pub fn with_refined_intrinsics(mut self, options: &SelfCalibrationOptions) -> Result<Self> {
+        if self.self_calibration.as_ref().is_some_and(|s| s.correction.is_some()) {
+            return Err(GeolocError::invalid("intrinsics", "the map's keypoints are corrected already"));
+        }
+        let model =
+            SceneModel::build(&self.camera, &self.keyframes, self.pose_covariances.as_deref(), &calibration_tracks())?;
+        let observations: Vec<TrackObservation> = model
+            .point_ids
+            .iter()
+            .enumerate()
+            .flat_map(|(k, ids)| {
+                let keypoints = &self.keyframes[k].keypoints;
+                ids.iter()
+                    .zip(keypoints)
+                    .filter_map(move |(id, px)| id.map(|point| TrackObservation { keyframe: k, point, pixel: *px }))
+            })
+            .collect();
+        let mut calibration = self_calibrate(&self.camera, &self.poses(), &model.points, &observations, options)?;
+        if let Some(correction) = calibration.correction {
+            match self.corrected_keypoints(&correction) {
+                Ok(corrected) => {
+                    for (kf, keypoints) in self.keyframes.iter_mut().zip(corrected) {
+                        kf.keypoints = keypoints;
+                    }
+                }
+                Err(e) => {
+                    calibration.correction = None;
+                    calibration.reason = format!("not applied: {e}");
+                }
+            }
+        }
+        self.model = None;
+        self.self_calibration = Some(calibration);
+        Ok(self)
+    }
+
+    /// The camera correction the map applies to keypoints, if any.
+    pub fn intrinsics_correction(&self) -> Option<&IntrinsicsCorrection> {
+        self.self_calibration.as_ref().and_then(|s| s.correction.as_ref())
+    }
+
+    /// Every keyframe's keypoints corrected by `correction`.
+    fn corrected_keypoints(&self, correction: &IntrinsicsCorrection) -> Result<Vec<Vec<Vector2<f64>>>> {
+        self.keyframes
+            .iter()
+            .enumerate()
+            .map(|(k, kf)| correction.correct_all(&self.camera, &format!("keypoints[{k}]"), &kf.keypoints))
+            .collect()
     }
 
     /// The map with its 3D model built from all keyframes ([`SceneModel::build`]).
@@ -302,6 +381,20 @@ impl Map {
             return Err(GeolocError::invalid("descriptors", "the map has no keyframes outside the excluded ones"));
         }
         Ok(top)
+    }
+}
+
+/// The tracks [`Map::with_refined_intrinsics`] fits the camera to: the 3D model's, with the
+/// epipolar check and the reprojection limit widened (4 and 8 px: the nominal camera may be
+/// off by more than the model's 2 / 4 px at the image borders) and at least three
+/// observations per track (two views fit any camera).
+pub fn calibration_tracks() -> ModelOptions {
+    let model = ModelOptions::default();
+    ModelOptions {
+        epipolar_px: 4.0,
+        triangulation: TriangulationOptions { max_residual_px: 8.0, ..model.triangulation },
+        min_track_length: 3,
+        ..model
     }
 }
 

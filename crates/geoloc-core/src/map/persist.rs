@@ -7,7 +7,7 @@
 //! |---|---|---|
 //! | `keyframes.world_from_cam` | f64 (K, 4, 4) | pose labels, camera-to-world |
 //! | `keyframes.keypoint_offsets` | i64 (K + 1) | keyframe k's keypoints are rows `offsets[k]..offsets[k+1]` |
-//! | `keypoints` | f64 (N, 2) | undistorted pixels |
+//! | `keypoints` | f64 (N, 2) | undistorted pixels (corrected by the self-calibration, if any) |
 //! | `descriptors` | u8 (N, W) or f32 (N, W) | local descriptors (binary or float) |
 //! | `keyframes.global_descriptors` | f32 (K, D) | only for global-descriptor retrieval |
 //! | `keyframes.pose_covariances` | f64 (K, 6, 6) | optional; right perturbation, translation first |
@@ -37,11 +37,12 @@ use serde::{Deserialize, Serialize};
 use super::file::{self, MapFile, Tensor, TensorData};
 use super::{Keyframe, Map, MapNoise, Retrieval, SceneModel};
 use crate::bow::{BowDatabase, Vocabulary, VocabularyArrays};
-use crate::camera::Camera;
+use crate::camera::{Camera, Distortion};
 use crate::error::{GeolocError, Result};
 use crate::lie::SE3;
 use crate::matching::DescriptorSet;
 use crate::retrieval::DescriptorIndex;
+use crate::selfcal::{IntrinsicsCorrection, SelfCalibration};
 
 /// The intrinsics as stored.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -98,6 +99,93 @@ pub struct MapHeader {
     /// The 3D model's size, when the map stores one (absent in maps without a model).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub model: Option<ModelHeader>,
+    /// The camera estimated from the keyframes, when it was tried (absent otherwise and in
+    /// maps written before it existed). With a correction, `keypoints` are stored corrected.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub self_calibration: Option<SelfCalibrationHeader>,
+}
+
+/// [`SelfCalibration`] in the header: the estimated camera (absent when there is no
+/// correction), why, and the residuals before and after.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SelfCalibrationHeader {
+    /// K′ = (f_x′, f_y′, c_x′, c_y′) and the distortion (k1, k2, p1, p2, k3), if estimated.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub camera: Option<CameraHeader>,
+    /// OpenCV's order.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub distortion: Option<Vec<f64>>,
+    /// "ok", or why there is no correction.
+    pub reason: String,
+    /// RMS pixel residual of the tracks under the nominal camera (null without tracks).
+    pub rms_before_px: Option<f64>,
+    /// ... under the estimated one (null without one).
+    pub rms_after_px: Option<f64>,
+    /// Median pixel residual before (null without tracks).
+    pub median_before_px: Option<f64>,
+    /// ... after (null without one).
+    pub median_after_px: Option<f64>,
+    /// Track observations used.
+    pub observations: usize,
+    /// Points they observe.
+    pub points: usize,
+    /// RMS of the correction's 1σ over the tracks' pixels (px; null when not computed).
+    pub correction_sigma_px: Option<f64>,
+}
+
+impl SelfCalibrationHeader {
+    /// The header object of a self-calibration.
+    pub fn from_self_calibration(s: &SelfCalibration) -> Self {
+        let finite = |v: f64| v.is_finite().then_some(v);
+        Self {
+            camera: s.correction.map(|c| CameraHeader {
+                fx: c.camera.fx,
+                fy: c.camera.fy,
+                cx: c.camera.cx,
+                cy: c.camera.cy,
+            }),
+            distortion: s.correction.map(|c| c.distortion.to_opencv().to_vec()),
+            reason: s.reason.clone(),
+            rms_before_px: finite(s.rms_before_px),
+            rms_after_px: finite(s.rms_after_px),
+            median_before_px: finite(s.median_before_px),
+            median_after_px: finite(s.median_after_px),
+            observations: s.observations,
+            points: s.points,
+            correction_sigma_px: finite(s.correction_sigma_px),
+        }
+    }
+
+    /// Checks and converts: camera and distortion both or neither, a valid camera, five
+    /// finite coefficients.
+    fn to_self_calibration(&self) -> Result<SelfCalibration> {
+        let correction = match (&self.camera, &self.distortion) {
+            (None, None) => None,
+            (Some(c), Some(d)) => {
+                let camera = Camera::new(c.fx, c.fy, c.cx, c.cy)
+                    .map_err(|e| format_error(format!("self_calibration.camera: {e}")))?;
+                if d.len() != 5 {
+                    return Err(format_error("self_calibration.distortion: expected 5 coefficients"));
+                }
+                let distortion = Distortion::from_opencv(d)
+                    .map_err(|e| format_error(format!("self_calibration.distortion: {e}")))?;
+                Some(IntrinsicsCorrection { camera, distortion })
+            }
+            _ => return Err(format_error("self_calibration: camera and distortion go together")),
+        };
+        Ok(SelfCalibration {
+            correction,
+            reason: self.reason.clone(),
+            rms_before_px: self.rms_before_px.unwrap_or(f64::NAN),
+            rms_after_px: self.rms_after_px.unwrap_or(f64::NAN),
+            median_before_px: self.median_before_px.unwrap_or(f64::NAN),
+            median_after_px: self.median_after_px.unwrap_or(f64::NAN),
+            observations: self.observations,
+            points: self.points,
+            correction_sigma_px: self.correction_sigma_px.unwrap_or(f64::NAN),
+            report: None,
+        })
+    }
 }
 
 /// The stored 3D model ([`SceneModel`]): its number of points.
@@ -205,6 +293,7 @@ impl Map {
             frontend,
             map_noise: NoiseHeader::from_noise(&self.noise),
             model: self.model.as_ref().map(|m| ModelHeader { points: m.len() }),
+            self_calibration: self.self_calibration.as_ref().map(SelfCalibrationHeader::from_self_calibration),
         };
         if let Some(model) = &self.model {
             tensors.extend(model_tensors(model)?);
@@ -274,7 +363,9 @@ impl Map {
         };
         let noise = header.map_noise.as_ref().map(NoiseHeader::to_noise).transpose()?.unwrap_or_default();
         let model = header.model.map(|h| read_model(file, h.points, &keyframes)).transpose()?;
-        Ok((Self { camera, keyframes, pose_covariances, retrieval, noise, model }, header))
+        let self_calibration =
+            header.self_calibration.as_ref().map(SelfCalibrationHeader::to_self_calibration).transpose()?;
+        Ok((Self { camera, keyframes, pose_covariances, retrieval, noise, model, self_calibration }, header))
     }
 
     /// Saves the map to `path` atomically (see [`file::write`]).
@@ -615,6 +706,84 @@ mod tests {
         assert!(err.to_string().contains("vocabulary.children"), "{err}");
         let err = original.to_map_file("[1, 2]").expect_err("frontend must be an object");
         assert!(matches!(err, GeolocError::InvalidInput { ref name, .. } if name == "frontend"), "{err:?}");
+    }
+
+    #[test]
+    fn self_calibration_round_trips_with_or_without_a_correction() {
+        use crate::selfcal::{IntrinsicsCorrection, SelfCalibration};
+        let with = SelfCalibration {
+            correction: Some(IntrinsicsCorrection {
+                camera: Camera::new(516.25, 529.5, 314.125, 243.0625).expect("valid"),
+                distortion: Distortion { k1: -0.06, k2: 0.02, p1: 0.004, p2: -0.003, k3: 0.0 },
+            }),
+            reason: "ok".into(),
+            rms_before_px: 2.5,
+            rms_after_px: 0.75,
+            median_before_px: 1.5,
+            median_after_px: 0.5,
+            observations: 1234,
+            points: 321,
+            correction_sigma_px: 0.125,
+            report: None,
+        };
+        // no tracks at all: every statistic NaN, stored as null
+        let without = SelfCalibration {
+            correction: None,
+            reason: "0 observations of 0 points (needs 200 of 50)".into(),
+            rms_before_px: f64::NAN,
+            rms_after_px: f64::NAN,
+            median_before_px: f64::NAN,
+            median_after_px: f64::NAN,
+            observations: 0,
+            points: 0,
+            correction_sigma_px: f64::NAN,
+            report: None,
+        };
+        for calibration in [with, without] {
+            let mut original = map(true, RetrievalKind::Bow { branching: 4, depth: 2 }, false);
+            original.self_calibration = Some(calibration.clone());
+            let bytes = original.to_map_file("{}").expect("serializes").to_bytes().expect("bytes");
+            let (back, header) = Map::from_map_file(&MapFile::from_bytes(&bytes).expect("reads")).expect("valid map");
+            let got = back.self_calibration.expect("stored");
+            assert_eq!(got.correction, calibration.correction);
+            assert_eq!(got.reason, calibration.reason);
+            assert_eq!((got.observations, got.points), (calibration.observations, calibration.points));
+            for (a, b) in [
+                (got.rms_before_px, calibration.rms_before_px),
+                (got.median_after_px, calibration.median_after_px),
+                (got.correction_sigma_px, calibration.correction_sigma_px),
+            ] {
+                assert!(a.to_bits() == b.to_bits() || (a.is_nan() && b.is_nan()), "{a} vs {b}");
+            }
+            assert_eq!(header.self_calibration.is_some_and(|h| h.camera.is_some()), calibration.correction.is_some());
+        }
+        // a camera without its distortion is refused
+        let mut original = map(true, RetrievalKind::Bow { branching: 4, depth: 2 }, false);
+        original.self_calibration = Some(with_camera_only());
+        let file = original.to_map_file("{}").expect("serializes");
+        let mut header: serde_json::Value = serde_json::from_str(&file.header).expect("json");
+        header["self_calibration"]["distortion"] = serde_json::Value::Null;
+        let broken = MapFile { header: header.to_string(), tensors: file.tensors.clone() };
+        let err = Map::from_map_file(&broken).expect_err("half a correction");
+        assert!(err.to_string().contains("self_calibration"), "{err}");
+    }
+
+    fn with_camera_only() -> crate::selfcal::SelfCalibration {
+        crate::selfcal::SelfCalibration {
+            correction: Some(crate::selfcal::IntrinsicsCorrection {
+                camera: Camera::new(520.0, 520.0, 320.0, 240.0).expect("valid"),
+                distortion: Distortion::default(),
+            }),
+            reason: "ok".into(),
+            rms_before_px: 1.0,
+            rms_after_px: 1.0,
+            median_before_px: 1.0,
+            median_after_px: 1.0,
+            observations: 500,
+            points: 100,
+            correction_sigma_px: 0.1,
+            report: None,
+        }
     }
 
     #[test]
