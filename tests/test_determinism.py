@@ -1,4 +1,5 @@
-"""Same input, same bytes (issue 8 item 3): the feature-level map and localizer on a seeded
+"""Same input, same bytes (issue 8 item 3): the feature-level map (with its camera estimated
+from the keyframes) and localizer on a seeded
 synthetic scene — with a stopped camera, i.e. a run of identical keyframes and of identical
 query frames, where BoW scores tie exactly — give byte-identical poses, covariances and
 sources in separate processes, with GEOLOC_NUM_THREADS=1 and 2, and with parallelism off.
@@ -44,9 +45,10 @@ for i in range(30):
     else:
         k, d = observe(rng, pose)
     poses.append(pose); kps.append(k); descs.append(d)
-m = FeatureMap(cam, np.stack(poses), kps, descs, branching=8, depth=3, seed=1)
+m = FeatureMap(cam, np.stack(poses), kps, descs, branching=8, depth=3, seed=1, refine_intrinsics=True)
 loc = FeatureLocalizer(m)
 h = hashlib.sha256()
+h.update(repr(sorted(m.self_calibration.items())).encode())  # the camera estimate too
 frame = None
 for f in range(40):
     t = 0.3 + f / 30

@@ -177,3 +177,80 @@ def test_result_is_a_typed_class(feature_map: tuple[FeatureMap, np.ndarray, np.n
     assert isinstance(r, LocalizationResult)
     assert r.pose is not None and r.pose.shape == (4, 4) and r.covariance is not None and r.covariance.shape == (6, 6)
     assert r.source == "geometric" and r.inliers > 0 and isinstance(r.keyframe, int)
+
+
+# the camera that really took the pictures of test_refine_intrinsics: 1-3 % off the nominal CAM,
+# with a lens distortion (OpenCV's k1, k2, p1, p2, k3)
+_REAL_K = (516.0, 529.0, 314.0, 243.0)
+_REAL_DIST = np.array([-0.06, 0.02, 0.004, -0.003, 0.0])
+
+
+def _turning(t: float, offset: float) -> np.ndarray:
+    """Walking along x while looking ±20° left and right (the turns make the focal length observable)."""
+    c = np.array([-2.0 + 0.6 * t, offset, 0.0])
+    yaw, pitch = 0.35 * np.sin(1.3 * t), 0.12 * np.cos(0.7 * t)
+    return look_at(c, c + np.array([5 * np.tan(yaw), 5 * np.tan(pitch), 5.0]))
+
+
+def _observe_real(rng: np.random.Generator, pose: np.ndarray, pts: np.ndarray, desc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """What the real camera records (cv2.projectPoints with its distortion), 0.5 px noise."""
+    import cv2
+
+    p = lie.se3_transform_points(lie.se3_inverse(pose), pts)
+    front = p[:, 2] > 0.5
+    fx, fy, cx, cy = _REAL_K
+    K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+    uv = cv2.projectPoints(p[front], np.zeros(3), np.zeros(3), K, _REAL_DIST)[0].reshape(-1, 2)
+    ok = (uv[:, 0] >= 0) & (uv[:, 0] < 640) & (uv[:, 1] >= 0) & (uv[:, 1] < 480)
+    return uv[ok] + 0.5 * rng.normal(size=(ok.sum(), 2)), desc[front][ok].copy()
+
+
+def test_refine_intrinsics_finds_the_real_camera_and_localizes_better() -> None:
+    rng = np.random.default_rng(3)
+    pts = rng.uniform([-10, -1.5, 3], [10, 1.5, 6], (3000, 3))
+    desc = rng.integers(0, 256, (3000, 32), dtype=np.uint8)
+    poses = np.stack([_turning(0.1 * i, 0.0) for i in range(90)])
+    obs = [_observe_real(rng, p, pts, desc) for p in poses]
+    maps = {
+        refine: FeatureMap(CAM, poses, [o[0] for o in obs], [o[1] for o in obs], branching=8, depth=3, refine_intrinsics=refine)
+        for refine in (False, True)
+    }
+    assert maps[False].self_calibration is None
+    sc = maps[True].self_calibration
+    assert sc is not None and sc["reason"] == "ok", sc
+    got = [sc["camera"][k] for k in ("fx", "fy", "cx", "cy")]
+    np.testing.assert_allclose(got, _REAL_K, atol=2.0)
+    assert sc["rms_after_px"] < 0.5 * sc["rms_before_px"] and sc["correction_sigma_px"] < 0.5
+    errors = {}
+    for refine, m in maps.items():
+        loc = FeatureLocalizer(m)
+        e = []
+        for i in range(30):
+            truth = _turning(0.35 + 0.25 * i, 0.15)
+            kp, d = _observe_real(rng, truth, pts, desc)
+            loc.reset()
+            r = loc.localize(float(i), kp, d)
+            e.append(np.inf if r.pose is None else np.linalg.norm(r.pose[:3, 3] - truth[:3, 3]))
+        errors[refine] = float(np.median(e))
+    assert errors[True] < 0.5 * errors[False], errors
+
+
+def test_refine_intrinsics_options_are_checked_and_a_weak_map_says_why(
+    feature_map: tuple[FeatureMap, np.ndarray, np.ndarray], tmp_path: pytest.TempPathFactory
+) -> None:
+    rng = np.random.default_rng(4)
+    pts = rng.uniform([-4, -1.5, 3], [4, 1.5, 7], (300, 3))
+    desc = rng.integers(0, 256, (300, 32), dtype=np.uint8)
+    poses = np.stack([_walk(0.1 * i, 0.0) for i in range(5)])
+    obs = [_observe(rng, p, pts, desc) for p in poses]
+    args = (CAM, poses, [o[0] for o in obs], [o[1] for o in obs])
+    for bad in ("fisheye", None, 3):
+        with pytest.raises(geoloc.InvalidInputError, match="intrinsics_model: expected one of"):
+            FeatureMap(*args, branching=4, depth=2, refine_intrinsics=True, intrinsics_model=bad)  # type: ignore[arg-type]
+    weak = FeatureMap(*args, branching=4, depth=2, refine_intrinsics=True)
+    sc = weak.self_calibration
+    assert sc is not None and "camera" not in sc and sc["reason"] != "ok", sc
+    # what was found is stored in the map file
+    path = tmp_path / "weak.geoloc"  # type: ignore[operator]
+    weak.save(path)
+    assert FeatureMap.load(path).self_calibration == sc

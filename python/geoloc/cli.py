@@ -186,6 +186,14 @@ def _feature_options(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def _calibration_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--nominal-intrinsics", action="store_true",
+        help="use --intrinsics as they are; by default the map estimates the real camera (focal lengths, "
+        "principal point, lens distortion) from its own keyframes and corrects every keypoint with it",
+    )
+
+
 def _add_demo(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> Handler:
     demo = commands.add_parser(
         "demo",
@@ -234,6 +242,7 @@ def _add_build_map(commands: argparse._SubParsersAction[argparse.ArgumentParser]
         "--step", type=bounded_int(1, 10_000), default=1, metavar="K", help="every K-th selected frame becomes a keyframe (default: 1)"
     )
     _feature_options(build)
+    _calibration_option(build)
     build.add_argument(
         "--model", action="store_true",
         help="also build and store the map-level 3D model of `localize --locator model` (else built when such a localizer starts)",
@@ -313,6 +322,7 @@ def _add_evaluate(commands: argparse._SubParsersAction[argparse.ArgumentParser])
         help="single: history forgotten before every frame; sequential: motion model + fusion (default: both)",
     )
     _feature_options(ev)
+    _calibration_option(ev)
     ev.add_argument(
         "--locator", choices=("paper", "model"), default="paper",
         help="paper: one retrieved keyframe and its group; model: top-5 retrieval against the map's 3D model (default: paper)",

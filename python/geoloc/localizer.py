@@ -21,10 +21,14 @@ from numpy.typing import ArrayLike, NDArray
 
 from . import _core
 from ._core import Localization as LocalizationResult
-from ._validation import as_batch, as_float64, real_scalar
+from ._validation import as_batch, as_float64, choice, real_scalar
 from .camera import Camera
 from .exceptions import InvalidInputError
 from .retrieval import _f32_rows, _local_descriptors
+
+#: The camera models ``FeatureMap(refine_intrinsics=True)`` can estimate (geoloc-core's
+#: ``IntrinsicsModel``): focal lengths and principal point, + radial k1 k2, + tangential p1 p2.
+INTRINSICS_MODELS = ("pinhole", "radial", "radial-tangential")
 
 __all__ = ["FeatureLocalizer", "FeatureMap", "LocalizationResult"]
 
@@ -54,7 +58,15 @@ class FeatureMap:
 
     ``model=True`` builds the map-level 3D model of the model locator (``locator="model"``)
     once, here, and stores it with the map (:attr:`model_points`); without it a model
-    localizer builds it when it is created."""
+    localizer builds it when it is created.
+
+    ``refine_intrinsics=True`` first estimates the camera from the keyframes themselves —
+    their tracks, with the poses known, fix the focal lengths, the principal point and (per
+    ``intrinsics_model``) a radial and tangential distortion the nominal ``camera`` lacks —
+    and corrects the keyframes' keypoints and, in the localizer, every query's keypoints with
+    it; :attr:`self_calibration` reports what was found, and why not when the tracks do not
+    determine the camera (too short or too straight a recording: the keypoints are then left
+    as they are)."""
 
     def __init__(
         self,
@@ -71,6 +83,8 @@ class FeatureMap:
         timestamps: ArrayLike | None = None,
         estimate_noise: bool = False,
         model: bool = False,
+        refine_intrinsics: bool = False,
+        intrinsics_model: Literal["pinhole", "radial", "radial-tangential"] = "radial-tangential",
     ) -> None:
         if not isinstance(camera, Camera):
             raise InvalidInputError(f"camera: expected a geoloc.Camera, got {type(camera).__name__}")
@@ -103,7 +117,22 @@ class FeatureMap:
             camera.intrinsics, flat, kps, descs, global_descriptors=g, pose_covariances=covs,
             retrieval=retrieval, branching=branching, depth=depth, seed=seed,
             timestamps=ts, estimate_noise=bool(estimate_noise), model=bool(model),
+            refine_intrinsics=bool(refine_intrinsics),
+            intrinsics_model=choice(intrinsics_model, "intrinsics_model", INTRINSICS_MODELS),
         )
+
+    @property
+    def self_calibration(self) -> dict[str, Any] | None:
+        """The camera the map estimated from its keyframes (``refine_intrinsics=True``), or
+        None when it was not tried: ``camera`` {fx, fy, cx, cy} and ``distortion`` (OpenCV's
+        k1, k2, p1, p2, k3) when there is a correction — the keyframes' keypoints are then
+        stored corrected and every query's keypoints are corrected the same way by the
+        localizer — else absent; ``reason`` ("ok" or why not); the tracks' pixel residuals
+        ``rms_before_px`` / ``rms_after_px`` and ``median_before_px`` / ``median_after_px``;
+        ``observations`` and ``points`` used; ``correction_sigma_px``, the RMS 1σ of the
+        correction over the tracks' pixels (applied only below 0.5 px)."""
+        text = self._map.self_calibration_json
+        return None if text is None else dict(json.loads(text))
 
     @property
     def model_points(self) -> int | None:

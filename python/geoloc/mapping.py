@@ -93,6 +93,7 @@ class Map:
         seed: int = 0,
         estimate_noise: bool = True,
         model: bool = False,
+        refine_intrinsics: bool = True,
         progress: ProgressCallback | None = None,
     ) -> Map:
         """Build a map from ``sequence`` (every ``keyframe_step``-th frame becomes a keyframe).
@@ -105,7 +106,12 @@ class Map:
         from held-out keyframes and the motion model's process noise from the frames'
         timestamps (:attr:`map_noise`); it is stored in the map file. ``model`` (default False)
         builds the map-level 3D model of ``Localizer(..., locator="model")`` and stores it too
-        (a map without one builds it when such a localizer starts).
+        (a map without one builds it when such a localizer starts). ``refine_intrinsics``
+        (default True) first estimates the real camera from the keyframes' own tracks — focal
+        lengths, principal point and lens distortion, with the poses known — and corrects the
+        keyframes' and every query's keypoints with it (:attr:`self_calibration`; it says why
+        not when the recording does not determine the camera, and the sequence's camera is
+        then used as it is).
         """
         from .datasets import Sequence
 
@@ -145,6 +151,7 @@ class Map:
             timestamps=_increasing(sequence.timestamps[indices]),
             estimate_noise=bool(estimate_noise),
             model=bool(model),
+            refine_intrinsics=bool(refine_intrinsics),
         )
         frontend = {
             "version": FRONTEND_VERSION,
@@ -164,6 +171,11 @@ class Map:
     def map_noise(self) -> dict[str, Any]:
         """The noise estimated at build time; see :attr:`geoloc.localizer.FeatureMap.map_noise`."""
         return self._feature_map.map_noise
+
+    @property
+    def self_calibration(self) -> dict[str, Any] | None:
+        """The camera estimated from the keyframes; see :attr:`geoloc.localizer.FeatureMap.self_calibration`."""
+        return self._feature_map.self_calibration
 
     @property
     def features(self) -> FeatureExtractor:

@@ -8,7 +8,8 @@ use geoloc_core::camera::Camera;
 use geoloc_core::localizer::{
     Frame, Localization as CoreLocalization, Localizer as CoreLocalizer, LocalizerOptions, Locator, NoiseOptions,
 };
-use geoloc_core::map::{Keyframe, Map as CoreMap, ModelOptions, RetrievalMethod};
+use geoloc_core::map::{Keyframe, Map as CoreMap, ModelOptions, RetrievalMethod, SelfCalibrationHeader};
+use geoloc_core::selfcal::SelfCalibrationOptions;
 use nalgebra::Vector2;
 use numpy::{PyArray2, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2, PyUntypedArrayMethods};
 use pyo3::prelude::*;
@@ -70,7 +71,7 @@ pub struct FeatureMap {
 #[pymethods]
 impl FeatureMap {
     #[new]
-    #[pyo3(signature = (intrinsics, poses_wc, keypoints_list, descriptors_list, *, global_descriptors=None, pose_covariances=None, retrieval="bow", branching=None, depth=None, seed=None, timestamps=None, estimate_noise=false, model=false))]
+    #[pyo3(signature = (intrinsics, poses_wc, keypoints_list, descriptors_list, *, global_descriptors=None, pose_covariances=None, retrieval="bow", branching=None, depth=None, seed=None, timestamps=None, estimate_noise=false, model=false, refine_intrinsics=false, intrinsics_model="radial-tangential"))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         py: Python<'_>,
@@ -87,8 +88,12 @@ impl FeatureMap {
         timestamps: Option<PyReadonlyArray1<'_, f64>>,
         estimate_noise: bool,
         model: bool,
+        refine_intrinsics: bool,
+        intrinsics_model: &str,
     ) -> PyResult<Self> {
         let method: RetrievalMethod = retrieval.parse().map_err(to_py_err)?;
+        let calibration =
+            SelfCalibrationOptions { model: intrinsics_model.parse().map_err(to_py_err)?, ..Default::default() };
         let kind = method.with(count_arg(branching, "branching", 10)?, count_arg(depth, "depth", 3)?);
         let seed = u64_arg(seed, "seed", 0)?;
         let (fx, fy, cx, cy) = intrinsics;
@@ -102,6 +107,7 @@ impl FeatureMap {
         let map = py
             .detach(|| {
                 let map = CoreMap::build(camera, kfs, covs, kind, seed)?;
+                let map = if refine_intrinsics { map.with_refined_intrinsics(&calibration)? } else { map };
                 let map = if model { map.with_model(&ModelOptions::default())? } else { map };
                 if estimate_noise { map.with_estimated_noise(ts, &NoiseOptions::default()) } else { Ok(map) }
             })
@@ -118,6 +124,18 @@ impl FeatureMap {
     fn intrinsics(&self) -> (f64, f64, f64, f64) {
         let c = self.inner.camera;
         (c.fx, c.fy, c.cx, c.cy)
+    }
+
+    /// The camera the map estimated from its keyframes (JSON text of the map header's
+    /// `self_calibration` object), or None when it was not tried.
+    #[getter]
+    fn self_calibration_json(&self) -> PyResult<Option<String>> {
+        self.inner
+            .self_calibration
+            .as_ref()
+            .map(|s| serde_json::to_string(&SelfCalibrationHeader::from_self_calibration(s)))
+            .transpose()
+            .map_err(|e| invalid("self_calibration", e.to_string()))
     }
 
     /// Points of the map-level 3D model, or None when the map has no model.

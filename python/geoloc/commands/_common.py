@@ -220,3 +220,19 @@ def open_retrieval(text: str) -> Any:
         return OnnxDescriptor(text)
     except InvalidInputError as e:
         raise InvalidInputError(option_message(str(e), "--retrieval")) from None
+
+
+def describe_self_calibration(found: dict[str, Any] | None) -> str:
+    """One line on the camera a map estimated from its keyframes (``Map.self_calibration``)."""
+    if found is None:
+        return "camera: the given intrinsics, as they are (--nominal-intrinsics)"
+    cam = found.get("camera")
+    if cam is None:
+        return f"camera: the given intrinsics (not refined: {found['reason']})"
+    k1, k2, p1, p2, _ = found["distortion"]
+    return (
+        f"camera estimated from the keyframes: fx {cam['fx']:.1f} fy {cam['fy']:.1f} cx {cam['cx']:.1f} cy {cam['cy']:.1f}, "
+        f"k1 {k1:+.4f} k2 {k2:+.4f} p1 {p1:+.5f} p2 {p2:+.5f}; track residuals {found['rms_before_px']:.2f} -> "
+        f"{found['rms_after_px']:.2f} px rms over {found['observations']} observations (correction 1σ "
+        f"{found['correction_sigma_px']:.2f} px)"
+    )

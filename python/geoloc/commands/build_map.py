@@ -6,7 +6,7 @@ import argparse
 import time
 
 from ..exceptions import InvalidInputError
-from ._common import MAP_DONE, Progress, load_dataset, open_retrieval, select
+from ._common import MAP_DONE, Progress, describe_self_calibration, load_dataset, open_retrieval, select
 
 __all__ = ["run"]
 
@@ -27,6 +27,7 @@ def run(args: argparse.Namespace) -> int:
         n_features=args.n_features,
         keyframe_step=args.step,
         model=bool(getattr(args, "model", False)),
+        refine_intrinsics=not getattr(args, "nominal_intrinsics", False),
         progress=Progress("map", then=MAP_DONE),
     )
     built = time.perf_counter() - start
@@ -36,4 +37,5 @@ def run(args: argparse.Namespace) -> int:
         f"wrote {args.out}: {len(the_map)} keyframes of {sequence.name!r} ({args.features}, {args.n_features} features, "
         f"{args.retrieval} retrieval; camera {cam.width}×{cam.height}, fx={cam.intrinsics[0]:g}) in {built:.1f} s"
     )
+    print(describe_self_calibration(the_map.self_calibration))
     return 0

@@ -15,7 +15,17 @@ from pathlib import Path
 from typing import Any
 
 from ..exceptions import InvalidInputError
-from ._common import FrameRange, MAP_DONE, MODES, Progress, load_dataset, localize_sequence, open_retrieval, stage_table
+from ._common import (
+    FrameRange,
+    MAP_DONE,
+    MODES,
+    Progress,
+    describe_self_calibration,
+    load_dataset,
+    localize_sequence,
+    open_retrieval,
+    stage_table,
+)
 
 __all__ = ["PAPER_7SCENES", "evaluate_split", "report", "run"]
 
@@ -64,12 +74,14 @@ def evaluate_split(
     retrieval: str = "bow",
     options: tuple[str, str] = ("--train", "--test"),
     locator: str = "paper",
+    nominal_intrinsics: bool = False,
 ) -> dict[str, Any]:
     """Build the map from ``sequence[train]``, localize ``sequence[test]`` in each mode.
 
     Returns ``{"map": Map, "build_s": float, "test": Sequence, "summaries": {mode: dict}}``,
     each summary :func:`geoloc.evaluation.summarize_results` plus per-frame ``frame`` (the
-    dataset's frame index) and ``reason``. ``locator`` is "paper" or "model".
+    dataset's frame index) and ``reason``. ``locator`` is "paper" or "model";
+    ``nominal_intrinsics`` keeps the sequence's camera as it is (no self-calibration).
     """
     from ..evaluation import summarize_results
     from ..mapping import Localizer, Map
@@ -88,7 +100,14 @@ def evaluate_split(
     train_seq, test_seq = sequence[train_slice], sequence[test_slice]
     start = time.perf_counter()
     network = open_retrieval(retrieval)
-    the_map = Map.build(train_seq, retrieval=network, features=features, n_features=n_features, progress=Progress("map", then=MAP_DONE))
+    the_map = Map.build(
+        train_seq,
+        retrieval=network,
+        features=features,
+        n_features=n_features,
+        refine_intrinsics=not nominal_intrinsics,
+        progress=Progress("map", then=MAP_DONE),
+    )
     build_s = time.perf_counter() - start
     summaries: dict[str, Any] = {}
     for mode in modes:
@@ -142,6 +161,7 @@ def report(
         f"cx={cam.intrinsics[2]:g} cy={cam.intrinsics[3]:g}",
         file=out,
     )
+    print(describe_self_calibration(run["map"].self_calibration), file=out)
     print(format_table(rows, reference), file=out)
     if ref is not None:
         single, multi = ref[1]["single"], ref[1]["sequential"]
@@ -162,7 +182,7 @@ def report(
             "camera": {"intrinsics": list(cam.intrinsics), "width": cam.width, "height": cam.height},
             "train": str(train),
             "test": str(test),
-            "map": {"keyframes": len(run["map"]), "build_s": run["build_s"]},
+            "map": {"keyframes": len(run["map"]), "build_s": run["build_s"], "self_calibration": run["map"].self_calibration},
             "modes": summaries,
         }
     )
@@ -198,7 +218,7 @@ def run(args: argparse.Namespace) -> int:
     test = args.test or default_test
     result = evaluate_split(
         sequence, train, test, _modes(args.mode), features=args.features, n_features=args.n_features, retrieval=args.retrieval,
-        locator=args.locator,
+        locator=args.locator, nominal_intrinsics=args.nominal_intrinsics,
     )
     data = report(sequence, result, dataset=args.dataset, fmt=args.format, train=train, test=test, timings=args.timings)
     if args.json:
