@@ -20,8 +20,8 @@ part it does not contain disagree with its own.
     PYTHONPATH=python python benchmarks/calibration.py --json cal.json
     PYTHONPATH=python python benchmarks/label_runs.py cal.json
 
-Measured 2026-11-25 on ``calibration.py`` (paper locator, ORB, per-keypoint σ), runs of
-≥ 5 frames with errors above 15 cm:
+Measured 2026-11-25 on ``calibration.py`` (paper locator, ORB, per-keypoint σ, the nominal
+camera fx = fy = 525), runs of ≥ 5 frames with errors above 15 cm:
 
     fold 300-399  run 329-373: 33 of 45 frames, median (+19, -20, -16) cm (-5.2, -4.5, -0.5)°,
                   localized against frames 420-473 (and 280, 284); the fold's other 55
@@ -30,6 +30,11 @@ Measured 2026-11-25 on ``calibration.py`` (paper locator, ORB, per-keypoint σ),
                   localized against frames 349-368; the other 65 frames: median 3.6 cm
     held out      5-6 keyframes of 340-375 and 440-475 are 16-48 cm off in each of the five
                   maps that hold both visits (folds 0-99, 100-199, 200-299, 500-599, 600-699)
+
+With each map's camera estimated from its own keyframes (``Map.build``'s default, 2026-11-25)
+the same runs remain: 340-373, 28 of 34 frames, (+27, -18, -12) cm (-4.8, -6.0, -0.8)°
+against 422-466; 433-461, 16 of 29 frames, (-15, +20, 0) cm (+4.3, +3.1, -0.7)° against
+352-372 — the camera model is not what makes them.
 
 The two runs are the same disagreement seen from either side — queries of ≈ 330-370
 against a map of ≈ 420-470 and queries of ≈ 430-450 against a map of ≈ 350-370 — with

@@ -9,7 +9,7 @@ map build time (features are extracted once, outside the timings): the map itsel
 vocabulary and database) and the 3D model (built when the model localizer is created).
 
     PYTHONPATH=python python benchmarks/novel_views.py [--folds 6,0] [--features orb,sift] [--json out.json]
-        [--uniform-sigma]
+        [--uniform-sigma] [--refine-intrinsics]
 
 Each query keypoint is weighted by its detector-scale σ (``Features.pixel_sigmas``), as
 ``geoloc.Localizer`` does; ``--uniform-sigma`` weights them all alike (1 px).
@@ -80,7 +80,9 @@ def bias(poses: list[Any], truth: Any) -> tuple[Any, float]:
     return np.r_[med[:3] * 100, np.degrees(med[3:])], rest
 
 
-def run_fold(seq: Any, feats: tuple[list[Any], list[Any], list[Any]], b: int, uniform: bool = False) -> dict[str, Any]:
+def run_fold(
+    seq: Any, feats: tuple[list[Any], list[Any], list[Any]], b: int, uniform: bool = False, refine: bool = False
+) -> dict[str, Any]:
     from geoloc.localizer import FeatureLocalizer, FeatureMap
 
     lo, hi = b * BLOCK, min((b + 1) * BLOCK, FRAMES)
@@ -88,13 +90,20 @@ def run_fold(seq: Any, feats: tuple[list[Any], list[Any], list[Any]], b: int, un
     kps, descs, sigmas = feats
     poses = seq.poses[:FRAMES]
     t0 = time.perf_counter()
-    the_map = FeatureMap(seq.camera, poses[train], [kps[i] for i in train], [descs[i] for i in train])
+    the_map = FeatureMap(
+        seq.camera, poses[train], [kps[i] for i in train], [descs[i] for i in train], refine_intrinsics=refine
+    )
     map_build_s = time.perf_counter() - t0
     localizers = {"paper": FeatureLocalizer(the_map, locator="paper")}
     t0 = time.perf_counter()
     localizers["model"] = FeatureLocalizer(the_map, locator="model")  # builds the 3D model here
     model_build_s = time.perf_counter() - t0
-    out: dict[str, Any] = {"train": len(train), "map_build_s": map_build_s, "model_build_s": model_build_s}
+    out: dict[str, Any] = {
+        "train": len(train),
+        "map_build_s": map_build_s,
+        "model_build_s": model_build_s,
+        "self_calibration": the_map.self_calibration,
+    }
     for locator in ("paper", "model"):
         loc = localizers[locator]
         et, er, inl, ms, raw = [], [], [], [], []
@@ -131,6 +140,8 @@ def main() -> int:
     ap.add_argument("--features", default="orb,sift", help="comma-separated: orb, sift")
     ap.add_argument("--json", help="write the results (with every pose) here")
     ap.add_argument("--uniform-sigma", action="store_true", help="no per-keypoint pixel σ (every keypoint 1 px)")
+    ap.add_argument("--refine-intrinsics", action="store_true",
+                    help="maps estimate their camera from their own tracks (Map.build's default)")
     args = ap.parse_args()
     if not DATA.is_dir():
         print(f"no shared data at {DATA}: nothing to measure")
@@ -143,9 +154,20 @@ def main() -> int:
         feats = extract(seq, kind)
         print(f"({kind}: features of {FRAMES} frames in {time.perf_counter() - t0:.0f} s)", flush=True)
         for b in (int(x) for x in args.folds.split(",")):
-            r = run_fold(seq, feats, b, uniform=args.uniform_sigma)
+            r = run_fold(seq, feats, b, uniform=args.uniform_sigma, refine=args.refine_intrinsics)
             name = f"{b * BLOCK}-{min((b + 1) * BLOCK, FRAMES) - 1}"
             report[f"{name} {kind}"] = r
+            sc = r["self_calibration"]
+            if sc is not None:
+                cam = sc.get("camera")
+                found = "" if cam is None else (
+                    f"fx {cam['fx']:.1f} fy {cam['fy']:.1f} cx {cam['cx']:.1f} cy {cam['cy']:.1f} "
+                    f"k1 {sc['distortion'][0]:+.3f} k2 {sc['distortion'][1]:+.3f} "
+                    f"p {sc['distortion'][2]:+.4f} {sc['distortion'][3]:+.4f}; "
+                )
+                print(f"{name:<8} {kind:<5} camera: {found}{sc['reason']}, track rms {sc['rms_before_px']:.2f} -> "
+                      f"{sc['rms_after_px'] or float('nan'):.2f} px, σ {sc['correction_sigma_px'] or float('nan'):.2f} px",
+                      flush=True)
             for locator in ("paper", "model"):
                 s = r[locator]
                 build = (
