@@ -351,9 +351,14 @@ fn theta_of(camera: &Camera, d: &Distortion) -> Theta {
     Theta::from_column_slice(&[camera.fx, camera.fy, camera.cx, camera.cy, d.k1, d.k2, d.p1, d.p2])
 }
 
+/// The distortion part of θ (k3 is not estimated: 0).
+fn distortion_of(theta: &Theta) -> Distortion {
+    Distortion { k1: theta[4], k2: theta[5], p1: theta[6], p2: theta[7], k3: 0.0 }
+}
+
 fn camera_of(theta: &Theta) -> Option<(Camera, Distortion)> {
     let camera = Camera::new(theta[0], theta[1], theta[2], theta[3]).ok()?;
-    let d = Distortion { k1: theta[4], k2: theta[5], p1: theta[6], p2: theta[7], k3: 0.0 };
+    let d = distortion_of(theta);
     d.to_opencv().iter().all(|c| c.is_finite()).then_some((camera, d))
 }
 
@@ -389,6 +394,14 @@ struct Problem<'a> {
     prior_information: Theta,
 }
 
+/// One observation projected at θ (see [`Problem::project`]).
+struct Projected {
+    p: Vector3<f64>,
+    n: Vector2<f64>,
+    x_d: Vector2<f64>,
+    r: Vector2<f64>,
+}
+
 /// One observation linearized: residual r = π_θ − u, ∂r/∂θ, ∂r/∂X, and the IRLS weight.
 struct Linearized {
     r: Vector2<f64>,
@@ -398,16 +411,23 @@ struct Linearized {
 }
 
 impl Problem<'_> {
-    /// r = π_θ(T_k, X_p) − u, or None when the point is not in front of the keyframe.
-    fn residual(&self, theta: &Theta, points: &[Vector3<f64>], obs: &TrackObservation) -> Option<Vector2<f64>> {
+    /// Observation `obs` at θ and `points`: p = T_k⁻¹X_p, x = (p_x, p_y)/p_z, x_d = d(x) and
+    /// r = K′x_d − u; None when the point is not in front of the keyframe.
+    fn project(&self, theta: &Theta, points: &[Vector3<f64>], obs: &TrackObservation) -> Option<Projected> {
         let pose = &self.poses[obs.keyframe];
         let p = pose.rotation.matrix().tr_mul(&(points[obs.point] - pose.translation));
         if p.z <= 0.0 {
             return None;
         }
-        let d = Distortion { k1: theta[4], k2: theta[5], p1: theta[6], p2: theta[7], k3: 0.0 };
-        let x_d = d.distort(&Vector2::new(p.x / p.z, p.y / p.z));
-        Some(Vector2::new(theta[0] * x_d.x + theta[2], theta[1] * x_d.y + theta[3]) - obs.pixel)
+        let n = Vector2::new(p.x / p.z, p.y / p.z);
+        let x_d = distortion_of(theta).distort(&n);
+        let r = Vector2::new(theta[0] * x_d.x + theta[2], theta[1] * x_d.y + theta[3]) - obs.pixel;
+        Some(Projected { p, n, x_d, r })
+    }
+
+    /// r = π_θ(T_k, X_p) − u, or None when the point is not in front of the keyframe.
+    fn residual(&self, theta: &Theta, points: &[Vector3<f64>], obs: &TrackObservation) -> Option<Vector2<f64>> {
+        self.project(theta, points, obs).map(|q| q.r)
     }
 
     /// The residual norms at `x` (∞ for a point behind its keyframe).
@@ -469,16 +489,9 @@ impl Problem<'_> {
 
     fn linearize(&self, x: &State, obs: &TrackObservation) -> Option<Linearized> {
         let theta = &x.theta;
-        let pose = &self.poses[obs.keyframe];
-        let r_wc = pose.rotation.matrix();
-        let p = r_wc.tr_mul(&(x.points[obs.point] - pose.translation));
-        if p.z <= 0.0 {
-            return None;
-        }
-        let n = Vector2::new(p.x / p.z, p.y / p.z);
-        let d = Distortion { k1: theta[4], k2: theta[5], p1: theta[6], p2: theta[7], k3: 0.0 };
-        let x_d = d.distort(&n);
-        let r = Vector2::new(theta[0] * x_d.x + theta[2], theta[1] * x_d.y + theta[3]) - obs.pixel;
+        let Projected { p, n, x_d, r } = self.project(theta, &x.points, obs)?;
+        let r_wc = self.poses[obs.keyframe].rotation.matrix();
+        let d = distortion_of(theta);
         let f = Matrix2::new(theta[0], 0.0, 0.0, theta[1]);
         let pj = f * Distortion::parameter_jacobian(&n);
         let mut j_theta = Jacobian2::zeros();
