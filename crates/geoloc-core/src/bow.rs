@@ -37,7 +37,7 @@ pub use arrays::VocabularyArrays;
 
 use crate::error::{GeolocError, Result};
 use crate::matching::{DescriptorSet, Descriptors, Row};
-use crate::parallel::map_indices;
+use crate::parallel::{map_indices, map_slice};
 use crate::rng::SplitMix64;
 
 /// Largest `branching` [`Vocabulary::train`] accepts.
@@ -49,26 +49,41 @@ pub const MAX_DEPTH: usize = 24;
 pub const MAX_WORDS: usize = 1 << 24;
 /// Lloyd iterations per tree node.
 const LLOYD_ITERATIONS: usize = 10;
+/// Cluster members below which a k-means step (seeding, assignment) stays on the calling
+/// thread; above, each member's distances run in parallel and the results are combined in
+/// member order, so the vocabulary is the same with any thread count.
+const KMEANS_PARALLEL_MIN: usize = 4096;
 /// Descriptors below which [`Vocabulary::words_of`] stays on the calling thread.
 const WORDS_PARALLEL_MIN: usize = 64;
 
-/// The centre nearest to `row` (the first on ties).
+/// The centre nearest to `row` (the first on ties): one distance per centre.
 fn nearest_centre(row: &Row<'_>, centres: &Descriptors<'_>) -> usize {
-    (0..centres.len())
-        .min_by(|&a, &b| row.distance(&centres.row(a)).total_cmp(&row.distance(&centres.row(b))))
-        .expect("invariant: nodes have at least one centre")
+    let (mut best, mut best_d) = (0, f32::INFINITY);
+    for c in 0..centres.len() {
+        let d = row.distance(&centres.row(c));
+        if d < best_d {
+            (best, best_d) = (c, d);
+        }
+    }
+    best
 }
 /// Centre of `members` (k-majority bits or means).
 fn centre_of(desc: &Descriptors<'_>, members: &[usize]) -> DescriptorSet {
     match *desc {
         Descriptors::Binary { data, width } => {
-            let mut out = vec![0u8; width];
-            for byte in 0..width {
-                for bit in 0..8 {
-                    let ones = members.iter().filter(|&&m| data[m * width + byte] >> bit & 1 == 1).count();
-                    if 2 * ones > members.len() {
-                        out[byte] |= 1 << bit;
+            // one pass over the members, counting the ones of every bit (row-major reads)
+            let mut ones = vec![0usize; 8 * width];
+            for &m in members {
+                for (byte, &value) in data[m * width..(m + 1) * width].iter().enumerate() {
+                    for bit in 0..8 {
+                        ones[8 * byte + bit] += usize::from(value >> bit & 1);
                     }
+                }
+            }
+            let mut out = vec![0u8; width];
+            for (i, &count) in ones.iter().enumerate() {
+                if 2 * count > members.len() {
+                    out[i / 8] |= 1 << (i % 8);
                 }
             }
             DescriptorSet::Binary { data: out, width }
@@ -282,11 +297,10 @@ fn seed_centres(desc: &Descriptors<'_>, members: &[usize], k: usize, rng: &mut S
     let mut nearest: Vec<f32> = vec![f32::INFINITY; members.len()];
     while seeds.len() < k {
         let last = desc.row(*seeds.last().expect("invariant: one seed"));
-        let mut total = 0.0f64;
-        for (slot, &m) in nearest.iter_mut().zip(members) {
-            *slot = slot.min(desc.row(m).distance(&last));
-            total += f64::from(*slot) * f64::from(*slot);
-        }
+        // distances in parallel (each slot on its own), the total in member order
+        nearest =
+            map_indices(members.len(), KMEANS_PARALLEL_MIN, |i| nearest[i].min(desc.row(members[i]).distance(&last)));
+        let total: f64 = nearest.iter().fold(0.0, |t, &d| t + f64::from(d) * f64::from(d));
         let mut target = rng.uniform() * total;
         let mut pick = members[members.len() - 1];
         for (&d, &m) in nearest.iter().zip(members) {
@@ -309,8 +323,10 @@ fn lloyd(desc: &Descriptors<'_>, members: &[usize], seeds: &[usize]) -> (Descrip
     let mut clusters = vec![Vec::new(); k];
     for _ in 0..LLOYD_ITERATIONS {
         clusters = vec![Vec::new(); k];
-        for &m in members {
-            clusters[nearest_centre(&desc.row(m), &centres.view())].push(m);
+        let view = centres.view();
+        let assigned = map_slice(members, KMEANS_PARALLEL_MIN, |&m| nearest_centre(&desc.row(m), &view));
+        for (&m, c) in members.iter().zip(assigned) {
+            clusters[c].push(m);
         }
         let next = DescriptorSet::stack(
             &clusters
@@ -482,6 +498,62 @@ mod tests {
     #[test]
     fn binary_vocabulary_retrieves_the_right_image() {
         synthetic(true);
+    }
+
+    /// The k-majority centre against a bit-by-bit reference (bit b of byte i is set when more
+    /// than half of the members have it; exactly half is not a majority), members repeated
+    /// and in any order; the float centre is the arithmetic mean.
+    #[test]
+    fn centres_match_bitwise_majority_and_the_mean() {
+        let mut rng = SplitMix64::new(11);
+        let (n, width) = (37, 5);
+        let data: Vec<u8> = (0..n * width).map(|_| (rng.next_u64() & 0xff) as u8).collect();
+        let d = Descriptors::Binary { data: &data, width };
+        for members in [vec![0, 1], vec![3, 3, 7], (0..n).collect(), (0..n).rev().step_by(3).collect::<Vec<_>>()] {
+            let mut expected = vec![0u8; width];
+            for (byte, out) in expected.iter_mut().enumerate() {
+                for bit in 0..8 {
+                    let ones = members.iter().filter(|&&m| data[m * width + byte] & (1 << bit) != 0).count();
+                    if ones * 2 > members.len() {
+                        *out |= 1 << bit;
+                    }
+                }
+            }
+            assert_eq!(centre_of(&d, &members), DescriptorSet::Binary { data: expected, width }, "{members:?}");
+        }
+        let floats = [1.0f32, 2.0, 3.0, 5.0, -4.0, 0.5];
+        let f = Descriptors::Float { data: &floats, width: 2 };
+        assert_eq!(centre_of(&f, &[0, 1, 2]), DescriptorSet::Float { data: vec![0.0, 2.5], width: 2 });
+    }
+
+    /// The nearest centre is the first of equally near ones (centres 0 = 2 and 1 = 3).
+    #[test]
+    fn nearest_centre_takes_the_first_on_ties() {
+        let centres = [0u8, 3, 0, 3];
+        let c = Descriptors::Binary { data: &centres, width: 1 };
+        assert_eq!(nearest_centre(&Row::Binary(&[1]), &c), 0);
+        assert_eq!(nearest_centre(&Row::Binary(&[2]), &c), 0);
+        assert_eq!(nearest_centre(&Row::Binary(&[7]), &c), 1);
+        assert_eq!(nearest_centre(&Row::Binary(&[0]), &c), 0);
+    }
+
+    /// Seeding and assignment run in parallel above [`KMEANS_PARALLEL_MIN`] members: the
+    /// vocabulary (every descriptor's word) is the same with one and with two threads.
+    #[test]
+    fn vocabulary_is_identical_with_one_or_two_threads() {
+        use crate::parallel::{Parallelism, with_parallelism};
+        use std::num::NonZero;
+        let mut rng = SplitMix64::new(5);
+        let n = 3 * KMEANS_PARALLEL_MIN;
+        let bytes: Vec<u8> = (0..n * 32).map(|_| (rng.next_u64() & 0xff) as u8).collect();
+        let floats: Vec<f32> = (0..n * 8).map(|_| rng.normal() as f32).collect();
+        for d in [Descriptors::Binary { data: &bytes, width: 32 }, Descriptors::Float { data: &floats, width: 8 }] {
+            let words = |threads: usize| {
+                let p = Parallelism::Threads(NonZero::new(threads).expect("positive"));
+                with_parallelism(&p, || Vocabulary::train(&d, 6, 2, 3).and_then(|v| v.words_of(&d))).expect("valid")
+            };
+            assert_eq!(words(1), words(2));
+        }
     }
 
     /// An image scores exactly 1 against itself (L1 similarity of equal vectors) and ranks
