@@ -11,7 +11,7 @@ pub mod file;
 pub mod model;
 mod persist;
 
-pub use model::{ModelOptions, SceneModel};
+pub use model::{ModelOptions, PairMatches, SceneModel};
 pub use persist::{CameraHeader, MapHeader, ModelHeader, NoiseHeader, RetrievalHeader, SelfCalibrationHeader};
 
 use nalgebra::{Matrix6, Vector2, Vector6};
@@ -242,17 +242,39 @@ impl Map {
     /// keyframe keypoint u replaced by the corrected u_c = K d⁻¹(K′⁻¹u). When the tracks give
     /// no correction (too few, or one that does not invert at some keypoint) the keypoints
     /// stay as they were and [`Map::self_calibration`] says why. A 3D model built before is
-    /// dropped (its points belong to the uncorrected keypoints): build it after.
+    /// dropped (its points belong to the uncorrected keypoints): build it after, or with
+    /// [`Map::with_refined_intrinsics_and_model`].
     ///
     /// # Errors
     /// The map was refined already (`intrinsics`); as [`SceneModel::build`] and
     /// [`self_calibrate`].
-    pub fn with_refined_intrinsics(mut self, options: &SelfCalibrationOptions) -> Result<Self> {
+    pub fn with_refined_intrinsics(self, options: &SelfCalibrationOptions) -> Result<Self> {
+        self.refined(options, None)
+    }
+
+    /// [`Map::with_refined_intrinsics`] then [`Map::with_model`], the same maps bit for bit,
+    /// with the keyframe pairs' descriptor matching done once for both ([`PairMatches`]:
+    /// it does not depend on the keypoints the correction moves) when `model`'s pair and
+    /// matching options are [`calibration_tracks`]'s.
+    ///
+    /// # Errors
+    /// As [`Map::with_refined_intrinsics`] and [`Map::with_model`].
+    pub fn with_refined_intrinsics_and_model(
+        self,
+        calibration: &SelfCalibrationOptions,
+        model: &ModelOptions,
+    ) -> Result<Self> {
+        self.refined(calibration, Some(model))
+    }
+
+    fn refined(mut self, options: &SelfCalibrationOptions, model_options: Option<&ModelOptions>) -> Result<Self> {
         if self.self_calibration.as_ref().is_some_and(|s| s.correction.is_some()) {
             return Err(GeolocError::invalid("intrinsics", "the map's keypoints are corrected already"));
         }
-        let model =
-            SceneModel::build(&self.camera, &self.keyframes, self.pose_covariances.as_deref(), &calibration_tracks())?;
+        let tracks = calibration_tracks();
+        let pair_matches = PairMatches::compute(&self.keyframes, &tracks)?;
+        let covariances = self.pose_covariances.as_deref();
+        let model = SceneModel::from_pair_matches(&self.camera, &self.keyframes, covariances, &tracks, &pair_matches)?;
         let observations: Vec<TrackObservation> = model
             .point_ids
             .iter()
@@ -278,8 +300,18 @@ impl Map {
                 }
             }
         }
-        self.model = None;
         self.self_calibration = Some(calibration);
+        self.model = match model_options {
+            Some(o) if pair_matches.serves(o) => Some(SceneModel::from_pair_matches(
+                &self.camera,
+                &self.keyframes,
+                self.pose_covariances.as_deref(),
+                o,
+                &pair_matches,
+            )?),
+            Some(o) => Some(SceneModel::build(&self.camera, &self.keyframes, self.pose_covariances.as_deref(), o)?),
+            None => None,
+        };
         Ok(self)
     }
 

@@ -171,3 +171,34 @@ fn a_map_that_cannot_determine_its_camera_says_why_and_keeps_its_keypoints() {
     // refining twice is refused only once a correction is applied
     assert!(out.with_refined_intrinsics(&SelfCalibrationOptions::default()).is_ok());
 }
+
+/// Refining and building the 3D model in one step (the keyframe pairs matched once) gives
+/// the map of the two steps, bit for bit — also with model options whose pairs differ (the
+/// matches are then recomputed); pair matches computed with other options are refused.
+#[test]
+fn refining_with_the_model_equals_refining_then_building_it() {
+    use geoloc_core::map::{ModelOptions, PairMatches, SceneModel, calibration_tracks};
+    let mut rng = SplitMix64::new(43);
+    let world = LandmarkScene::new(&mut rng, 1500, 10.0);
+    let base = || map(&world, &mut rng.clone(), 40);
+    let calibration = SelfCalibrationOptions::default();
+    let other_pairs = ModelOptions { neighbours: 3, ..ModelOptions::default() };
+    for options in [ModelOptions::default(), other_pairs] {
+        let two_steps =
+            base().with_refined_intrinsics(&calibration).and_then(|m| m.with_model(&options)).expect("valid");
+        let one_step = base().with_refined_intrinsics_and_model(&calibration, &options).expect("valid");
+        assert!(two_steps.model.as_ref().is_some_and(|m| m.len() > 100));
+        assert!(two_steps.intrinsics_correction().is_some());
+        assert_eq!(one_step.model, two_steps.model);
+        assert_eq!(one_step.self_calibration, two_steps.self_calibration);
+        let keypoints = |m: &Map| m.keyframes.iter().map(|k| k.keypoints.clone()).collect::<Vec<_>>();
+        assert_eq!(keypoints(&one_step), keypoints(&two_steps));
+    }
+    let base = base();
+    let matches = PairMatches::compute(&base.keyframes, &calibration_tracks()).expect("valid");
+    assert!(matches.serves(&ModelOptions::default()) && !matches.serves(&other_pairs));
+    let refused = SceneModel::from_pair_matches(&base.camera, &base.keyframes, None, &other_pairs, &matches);
+    assert!(refused.is_err_and(|e| e.to_string().contains("pair_matches")));
+    let fewer = &base.keyframes[..30];
+    assert!(SceneModel::from_pair_matches(&base.camera, fewer, None, &ModelOptions::default(), &matches).is_err());
+}

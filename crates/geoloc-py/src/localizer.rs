@@ -107,8 +107,12 @@ impl FeatureMap {
         let map = py
             .detach(|| {
                 let map = CoreMap::build(camera, kfs, covs, kind, seed)?;
-                let map = if refine_intrinsics { map.with_refined_intrinsics(&calibration)? } else { map };
-                let map = if model { map.with_model(&ModelOptions::default())? } else { map };
+                let map = match (refine_intrinsics, model) {
+                    (true, true) => map.with_refined_intrinsics_and_model(&calibration, &ModelOptions::default())?,
+                    (true, false) => map.with_refined_intrinsics(&calibration)?,
+                    (false, true) => map.with_model(&ModelOptions::default())?,
+                    (false, false) => map,
+                };
                 if estimate_noise { map.with_estimated_noise(ts, &NoiseOptions::default()) } else { Ok(map) }
             })
             .map_err(to_py_err)?;

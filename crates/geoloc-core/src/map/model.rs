@@ -32,7 +32,7 @@ use super::Keyframe;
 use crate::camera::Camera;
 use crate::error::{GeolocError, Result};
 use crate::lie::SE3;
-use crate::matching::{DescriptorSet, MatchOptions, epipolar_filter, match_descriptors};
+use crate::matching::{DescriptorSet, Match, MatchOptions, epipolar_filter, match_descriptors};
 use crate::parallel::{map_indices, map_slice};
 use crate::triangulate::{TrackStatus, TriangulationOptions, triangulate};
 
@@ -207,10 +207,36 @@ impl SceneModel {
         options: &ModelOptions,
     ) -> Result<Self> {
         options.check()?;
+        let pair_matches = PairMatches::compute(keyframes, options)?;
+        Self::from_pair_matches(camera, keyframes, pose_covariances, options, &pair_matches)
+    }
+
+    /// [`SceneModel::build`] from steps 1 and 2's descriptor matches computed before
+    /// ([`PairMatches::compute`] on the same keyframes' poses and descriptors); the result is
+    /// the same, bit for bit. The keypoints (and so the camera correction) may have changed
+    /// since: they enter from the epipolar check on.
+    ///
+    /// # Errors
+    /// As [`SceneModel::build`]; `InvalidInput` (`pair_matches`) when they were computed with
+    /// other pair or matching options, or for another number of keyframes.
+    pub fn from_pair_matches(
+        camera: &Camera,
+        keyframes: &[Keyframe],
+        pose_covariances: Option<&[nalgebra::Matrix6<f64>]>,
+        options: &ModelOptions,
+        pair_matches: &PairMatches,
+    ) -> Result<Self> {
+        options.check()?;
+        if !pair_matches.serves(options) || pair_matches.keyframes != keyframes.len() {
+            return Err(GeolocError::invalid(
+                "pair_matches",
+                "computed for other keyframes or with other pair or matching options",
+            ));
+        }
         let poses: Vec<SE3> = keyframes.iter().map(|k| k.world_from_cam).collect();
-        let pairs = neighbour_pairs(&poses, options);
-        let matches = pair_matches(camera, keyframes, &pairs, options)?;
-        let tracks = tracks(keyframes, &pairs, &matches);
+        let pairs = &pair_matches.pairs;
+        let matches = epipolar_matches(camera, keyframes, pair_matches, options)?;
+        let tracks = tracks(keyframes, pairs, &matches);
         let (mut cam_ids, mut track_ids, mut pixels) = (Vec::new(), Vec::new(), Vec::new());
         for (t, track) in tracks.iter().enumerate() {
             for &(k, i) in track {
@@ -267,23 +293,63 @@ fn neighbour_pairs(poses: &[SE3], options: &ModelOptions) -> Vec<(usize, usize)>
     pairs
 }
 
+/// Steps 1 and the first half of 2 of the build: the pose-neighbour pairs and each pair's
+/// descriptor matches, before the epipolar check. They depend on the keyframes' poses and
+/// descriptors only, so a map that corrects its keypoints ([`crate::map::Map::with_refined_intrinsics`])
+/// computes them once for the calibration's tracks and its 3D model.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PairMatches {
+    /// The options they were computed with (only the pair and matching ones matter).
+    options: ModelOptions,
+    keyframes: usize,
+    /// The pairs (a, b), a < b, sorted.
+    pairs: Vec<(usize, usize)>,
+    /// Per pair: the mutual ratio matches of a's and b's descriptors.
+    matches: Vec<Vec<Match>>,
+}
+
+impl PairMatches {
+    /// The pairs of `keyframes` and their descriptor matches (see the module doc).
+    ///
+    /// # Errors
+    /// Bad options; errors of matching (descriptors the map already checked).
+    pub fn compute(keyframes: &[Keyframe], options: &ModelOptions) -> Result<Self> {
+        options.check()?;
+        let poses: Vec<SE3> = keyframes.iter().map(|k| k.world_from_cam).collect();
+        let pairs = neighbour_pairs(&poses, options);
+        let matches = map_slice(&pairs, 2, |&(a, b)| {
+            match_descriptors(&keyframes[a].descriptors.view(), &keyframes[b].descriptors.view(), &options.matching)
+        })
+        .into_iter()
+        .collect::<Result<Vec<_>>>()?;
+        Ok(Self { options: *options, keyframes: keyframes.len(), pairs, matches })
+    }
+
+    /// Whether a build with `options` pairs and matches keyframes as these were computed.
+    pub fn serves(&self, options: &ModelOptions) -> bool {
+        let pairing =
+            |o: &ModelOptions| (o.neighbours, o.max_distance_m, o.min_distance_m, o.max_angle_rad, o.baseline_m);
+        pairing(&self.options) == pairing(options) && self.options.matching == options.matching
+    }
+}
+
 /// Step 2: per pair, the (keypoint in a, keypoint in b) matches that pass the epipolar check.
-fn pair_matches(
+fn epipolar_matches(
     camera: &Camera,
     keyframes: &[Keyframe],
-    pairs: &[(usize, usize)],
+    pair_matches: &PairMatches,
     options: &ModelOptions,
 ) -> Result<Vec<Vec<(usize, usize)>>> {
-    map_slice(pairs, 2, |&(a, b)| {
+    let jobs: Vec<(&(usize, usize), &Vec<Match>)> = pair_matches.pairs.iter().zip(&pair_matches.matches).collect();
+    map_slice(&jobs, 2, |&(&(a, b), matches)| {
         let (ka, kb) = (&keyframes[a], &keyframes[b]);
-        let matches = match_descriptors(&ka.descriptors.view(), &kb.descriptors.view(), &options.matching)?;
         let keep = epipolar_filter(
             camera,
             &ka.world_from_cam,
             &kb.world_from_cam,
             &ka.keypoints,
             &kb.keypoints,
-            &matches,
+            matches,
             options.epipolar_px,
         )?;
         Ok(matches.iter().zip(keep).filter(|(_, k)| *k).map(|(m, _)| (m.a, m.b)).collect())
