@@ -64,20 +64,32 @@ impl<'a> KeypointGrid<'a> {
 
     /// The keypoints within `r` px of `centre` (‖k − centre‖ ≤ r).
     pub(super) fn within(&self, centre: &Vector2<f64>, r: f64) -> impl Iterator<Item = usize> + '_ {
+        // cells ⌊lo/cell⌋ ..= ⌊hi/cell⌋ clamped to 0..n; for x ≥ 0 the truncating `as usize`
+        // is ⌊x⌋ (and saturates), which keeps libm's floor out of this hot loop
         let span = |lo: f64, hi: f64, n: usize| {
-            let (a, b) = ((lo / self.cell).floor().max(0.0), (hi / self.cell).floor().min(n as f64 - 1.0));
-            if a <= b { a as usize..b as usize + 1 } else { 0..0 }
+            if hi < 0.0 {
+                return 0..0;
+            }
+            let a = if lo > 0.0 { (lo / self.cell) as usize } else { 0 };
+            let b = ((hi / self.cell) as usize).min(n - 1);
+            if a <= b { a..b + 1 } else { 0..0 }
         };
         let d = centre - self.origin;
         let xs = span(d.x - r, d.x + r, self.cols);
         let ys = span(d.y - r, d.y + r, self.rows);
         let centre = *centre;
+        let near = (r * r * (1.0 - 1e-9), r * r * (1.0 + 1e-9));
         ys.flat_map(move |y| {
             let row = y * self.cols;
             let (a, b) = (self.starts[row + xs.start], self.starts[row + xs.end]);
             self.order[a..b].iter().copied()
         })
-        .filter(move |&i| (self.keypoints[i] - centre).norm() <= r)
+        .filter(move |&i| {
+            // ‖d‖ ≤ r decided on ‖d‖² away from r² (no square root); the root only within a
+            // relative 1e-9 of it, where rounding could make the two tests differ
+            let s = (self.keypoints[i] - centre).norm_squared();
+            s <= near.0 || (s <= near.1 && s.sqrt() <= r)
+        })
     }
 }
 
@@ -106,6 +118,31 @@ mod tests {
                 let want: Vec<usize> = (0..keypoints.len()).filter(|&i| (keypoints[i] - c).norm() <= r).collect();
                 prop_assert_eq!(got, want);
             }
+        }
+    }
+
+    /// Keypoints on and a few ulps around the circle ‖k − c‖ = r, where the squared-distance
+    /// shortcut could disagree with the root: the same set as the scan with ‖·‖ ≤ r.
+    #[test]
+    fn the_circle_itself_follows_the_norm() {
+        let c = Vector2::new(311.37, 207.91);
+        for r in [6.0, 0.1, 3.3, 7.000000001, 1e-3] {
+            let mut keypoints = Vec::new();
+            for i in 0..720 {
+                let a = f64::from(i) * std::f64::consts::PI / 360.0;
+                let k = c + Vector2::new(a.cos(), a.sin()) * r;
+                for ulps in [-2i64, -1, 0, 1, 2] {
+                    let nudge = |v: f64| f64::from_bits((v.to_bits() as i64 + ulps) as u64);
+                    keypoints.push(Vector2::new(nudge(k.x), k.y));
+                    keypoints.push(Vector2::new(k.x, nudge(k.y)));
+                }
+            }
+            let grid = KeypointGrid::new(&keypoints, 6.0);
+            let mut got: Vec<usize> = grid.within(&c, r).collect();
+            got.sort_unstable();
+            let want: Vec<usize> = (0..keypoints.len()).filter(|&i| (keypoints[i] - c).norm() <= r).collect();
+            assert!(!want.is_empty() && want.len() < keypoints.len(), "r {r}: {}", want.len());
+            assert_eq!(got, want, "r {r}");
         }
     }
 
