@@ -66,7 +66,8 @@ class FeatureMap:
     and corrects the keyframes' keypoints and, in the localizer, every query's keypoints with
     it; :attr:`self_calibration` reports what was found, and why not when the tracks do not
     determine the camera (too short or too straight a recording: the keypoints are then left
-    as they are)."""
+    as they are). With both, the keyframe pairs are matched once for the two: building the
+    map with ``model=True`` is cheaper than building the model later."""
 
     def __init__(
         self,

@@ -111,7 +111,7 @@ class Map:
         lengths, principal point and lens distortion, with the poses known — and corrects the
         keyframes' and every query's keypoints with it (:attr:`self_calibration`; it says why
         not when the recording does not determine the camera, and the sequence's camera is
-        then used as it is).
+        then used as it is). With both, the keyframe pairs are matched once for the two.
         """
         from .datasets import Sequence
 
