@@ -201,4 +201,9 @@ fn refining_with_the_model_equals_refining_then_building_it() {
     assert!(refused.is_err_and(|e| e.to_string().contains("pair_matches")));
     let fewer = &base.keyframes[..30];
     assert!(SceneModel::from_pair_matches(&base.camera, fewer, None, &ModelOptions::default(), &matches).is_err());
+    // keyframes of the same count but other sizes: refused, not an index out of range
+    let mut other = map(&world, &mut rng.clone(), 40).keyframes;
+    other[7].keypoints.truncate(3);
+    other[7].descriptors = other[7].descriptors.select(&[0, 1, 2]);
+    assert!(SceneModel::from_pair_matches(&base.camera, &other, None, &ModelOptions::default(), &matches).is_err());
 }

@@ -218,7 +218,7 @@ impl SceneModel {
     ///
     /// # Errors
     /// As [`SceneModel::build`]; `InvalidInput` (`pair_matches`) when they were computed with
-    /// other pair or matching options, or for another number of keyframes.
+    /// other pair or matching options, or for keyframes of other sizes.
     pub fn from_pair_matches(
         camera: &Camera,
         keyframes: &[Keyframe],
@@ -227,7 +227,8 @@ impl SceneModel {
         pair_matches: &PairMatches,
     ) -> Result<Self> {
         options.check()?;
-        if !pair_matches.serves(options) || pair_matches.keyframes != keyframes.len() {
+        let sizes = keyframes.iter().map(|k| k.keypoints.len().min(k.descriptors.len()));
+        if !pair_matches.serves(options) || !pair_matches.sizes.iter().copied().eq(sizes) {
             return Err(GeolocError::invalid(
                 "pair_matches",
                 "computed for other keyframes or with other pair or matching options",
@@ -301,7 +302,8 @@ fn neighbour_pairs(poses: &[SE3], options: &ModelOptions) -> Vec<(usize, usize)>
 pub struct PairMatches {
     /// The options they were computed with (only the pair and matching ones matter).
     options: ModelOptions,
-    keyframes: usize,
+    /// Descriptors per keyframe (the matches index them).
+    sizes: Vec<usize>,
     /// The pairs (a, b), a < b, sorted.
     pairs: Vec<(usize, usize)>,
     /// Per pair: the mutual ratio matches of a's and b's descriptors.
@@ -322,7 +324,8 @@ impl PairMatches {
         })
         .into_iter()
         .collect::<Result<Vec<_>>>()?;
-        Ok(Self { options: *options, keyframes: keyframes.len(), pairs, matches })
+        let sizes = keyframes.iter().map(|k| k.descriptors.len()).collect();
+        Ok(Self { options: *options, sizes, pairs, matches })
     }
 
     /// Whether a build with `options` pairs and matches keyframes as these were computed.
