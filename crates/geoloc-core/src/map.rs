@@ -274,7 +274,7 @@ impl Map {
         let tracks = calibration_tracks();
         let pair_matches = PairMatches::compute(&self.keyframes, &tracks)?;
         let covariances = self.pose_covariances.as_deref();
-        let model = SceneModel::from_pair_matches(&self.camera, &self.keyframes, covariances, &tracks, &pair_matches)?;
+        let model = SceneModel::assemble(&self.camera, &self.keyframes, covariances, &tracks, &pair_matches)?;
         let observations: Vec<TrackObservation> = model
             .point_ids
             .iter()
@@ -301,8 +301,11 @@ impl Map {
             }
         }
         self.self_calibration = Some(calibration);
+        if let Some(o) = model_options {
+            o.check()?;
+        }
         self.model = match model_options {
-            Some(o) if pair_matches.serves(o) => Some(SceneModel::from_pair_matches(
+            Some(o) if pair_matches.serves(o) => Some(SceneModel::assemble(
                 &self.camera,
                 &self.keyframes,
                 self.pose_covariances.as_deref(),

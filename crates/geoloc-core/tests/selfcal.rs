@@ -207,3 +207,24 @@ fn refining_with_the_model_equals_refining_then_building_it() {
     other[7].descriptors = other[7].descriptors.select(&[0, 1, 2]);
     assert!(SceneModel::from_pair_matches(&base.camera, &other, None, &ModelOptions::default(), &matches).is_err());
 }
+
+/// The one-pass build accepts what the two-step build accepted: keyframes without neighbour
+/// pairs and matching options nobody checks then (a NaN ratio), keyframes with fewer
+/// keypoints than descriptors (Map::build refuses those; SceneModel::build is public).
+#[test]
+fn the_model_build_accepts_what_it_accepted_before() {
+    use geoloc_core::map::{ModelOptions, SceneModel};
+    use geoloc_core::matching::MatchOptions;
+    let mut rng = SplitMix64::new(45);
+    let world = LandmarkScene::new(&mut rng, 300, 10.0);
+    let base = map(&world, &mut rng, 4);
+    let nan = ModelOptions {
+        matching: MatchOptions { ratio: Some(f32::NAN), ..MatchOptions::default() },
+        ..Default::default()
+    };
+    let one = SceneModel::build(&base.camera, &base.keyframes[..1], None, &nan).expect("no pair, nothing to match");
+    assert!(one.is_empty());
+    let mut short = base.keyframes[..1].to_vec();
+    short[0].keypoints.truncate(2);
+    assert!(SceneModel::build(&base.camera, &short, None, &ModelOptions::default()).is_ok_and(|m| m.is_empty()));
+}

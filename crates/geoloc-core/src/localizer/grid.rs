@@ -67,18 +67,22 @@ impl<'a> KeypointGrid<'a> {
         // cells ⌊lo/cell⌋ ..= ⌊hi/cell⌋ clamped to 0..n; for x ≥ 0 the truncating `as usize`
         // is ⌊x⌋ (and saturates), which keeps libm's floor out of this hot loop
         let span = |lo: f64, hi: f64, n: usize| {
+            let (lo, hi) = (lo / self.cell, hi / self.cell);
             if hi < 0.0 {
-                return 0..0;
+                return 0..0; // ⌊hi⌋ ≤ −1
             }
-            let a = if lo > 0.0 { (lo / self.cell) as usize } else { 0 };
-            let b = ((hi / self.cell) as usize).min(n - 1);
+            let a = if lo > 0.0 { lo as usize } else { 0 };
+            let b = (hi as usize).min(n - 1);
             if a <= b { a..b + 1 } else { 0..0 }
         };
         let d = centre - self.origin;
         let xs = span(d.x - r, d.x + r, self.cols);
         let ys = span(d.y - r, d.y + r, self.rows);
         let centre = *centre;
-        let near = (r * r * (1.0 - 1e-9), r * r * (1.0 + 1e-9));
+        // the squared test is exact where r² and the window are normal, finite numbers;
+        // outside (absurd radii) every keypoint takes the root
+        let near =
+            if r > 1e-150 && r < 1e150 { (r * r * (1.0 - 1e-9), r * r * (1.0 + 1e-9)) } else { (-1.0, f64::INFINITY) };
         ys.flat_map(move |y| {
             let row = y * self.cols;
             let (a, b) = (self.starts[row + xs.start], self.starts[row + xs.end]);
@@ -142,6 +146,24 @@ mod tests {
             got.sort_unstable();
             let want: Vec<usize> = (0..keypoints.len()).filter(|&i| (keypoints[i] - c).norm() <= r).collect();
             assert!(!want.is_empty() && want.len() < keypoints.len(), "r {r}: {}", want.len());
+            assert_eq!(got, want, "r {r}");
+        }
+    }
+
+    /// Radii whose square overflows or is subnormal: the scan's answer (the root decides).
+    #[test]
+    fn extreme_radii_follow_the_norm() {
+        let cases = [
+            (vec![Vector2::new(0.0, 0.0), Vector2::new(1.4e154, 1.4e154)], 1.5e154),
+            (vec![Vector2::new(0.0, 0.0), Vector2::new(2.9e-162, 0.0)], 2.9e-162),
+            (vec![Vector2::new(0.0, 0.0), Vector2::new(1e-160, 1e-160), Vector2::new(-3e-160, 0.0)], 2e-160),
+        ];
+        for (keypoints, r) in cases {
+            let c = Vector2::zeros();
+            let grid = KeypointGrid::new(&keypoints, 6.0);
+            let mut got: Vec<usize> = grid.within(&c, r).collect();
+            got.sort_unstable();
+            let want: Vec<usize> = (0..keypoints.len()).filter(|&i| (keypoints[i] - c).norm() <= r).collect();
             assert_eq!(got, want, "r {r}");
         }
     }

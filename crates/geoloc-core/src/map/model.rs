@@ -208,7 +208,7 @@ impl SceneModel {
     ) -> Result<Self> {
         options.check()?;
         let pair_matches = PairMatches::compute(keyframes, options)?;
-        Self::from_pair_matches(camera, keyframes, pose_covariances, options, &pair_matches)
+        Self::assemble(camera, keyframes, pose_covariances, options, &pair_matches)
     }
 
     /// [`SceneModel::build`] from steps 1 and 2's descriptor matches computed before
@@ -227,13 +227,24 @@ impl SceneModel {
         pair_matches: &PairMatches,
     ) -> Result<Self> {
         options.check()?;
-        let sizes = keyframes.iter().map(|k| k.keypoints.len().min(k.descriptors.len()));
-        if !pair_matches.serves(options) || !pair_matches.sizes.iter().copied().eq(sizes) {
+        if !pair_matches.serves(options) || pair_matches.sizes != sizes_of(keyframes) {
             return Err(GeolocError::invalid(
                 "pair_matches",
                 "computed for other keyframes or with other pair or matching options",
             ));
         }
+        Self::assemble(camera, keyframes, pose_covariances, options, pair_matches)
+    }
+
+    /// Steps 2 (epipolar check) to 5 from pair matches computed for these keyframes with
+    /// these options (by the caller itself: nothing is checked).
+    pub(crate) fn assemble(
+        camera: &Camera,
+        keyframes: &[Keyframe],
+        pose_covariances: Option<&[nalgebra::Matrix6<f64>]>,
+        options: &ModelOptions,
+        pair_matches: &PairMatches,
+    ) -> Result<Self> {
         let poses: Vec<SE3> = keyframes.iter().map(|k| k.world_from_cam).collect();
         let pairs = &pair_matches.pairs;
         let matches = epipolar_matches(camera, keyframes, pair_matches, options)?;
@@ -302,8 +313,8 @@ fn neighbour_pairs(poses: &[SE3], options: &ModelOptions) -> Vec<(usize, usize)>
 pub struct PairMatches {
     /// The options they were computed with (only the pair and matching ones matter).
     options: ModelOptions,
-    /// Descriptors per keyframe (the matches index them).
-    sizes: Vec<usize>,
+    /// (keypoints, descriptors) per keyframe (the matches index them).
+    sizes: Vec<(usize, usize)>,
     /// The pairs (a, b), a < b, sorted.
     pairs: Vec<(usize, usize)>,
     /// Per pair: the mutual ratio matches of a's and b's descriptors.
@@ -324,8 +335,7 @@ impl PairMatches {
         })
         .into_iter()
         .collect::<Result<Vec<_>>>()?;
-        let sizes = keyframes.iter().map(|k| k.descriptors.len()).collect();
-        Ok(Self { options: *options, sizes, pairs, matches })
+        Ok(Self { options: *options, sizes: sizes_of(keyframes), pairs, matches })
     }
 
     /// Whether a build with `options` pairs and matches keyframes as these were computed.
@@ -334,6 +344,11 @@ impl PairMatches {
             |o: &ModelOptions| (o.neighbours, o.max_distance_m, o.min_distance_m, o.max_angle_rad, o.baseline_m);
         pairing(&self.options) == pairing(options) && self.options.matching == options.matching
     }
+}
+
+/// (keypoints, descriptors) of each keyframe.
+fn sizes_of(keyframes: &[Keyframe]) -> Vec<(usize, usize)> {
+    keyframes.iter().map(|k| (k.keypoints.len(), k.descriptors.len())).collect()
 }
 
 /// Step 2: per pair, the (keypoint in a, keypoint in b) matches that pass the epipolar check.
