@@ -132,6 +132,7 @@ def run_fold(
 
 def main() -> int:
     import geoloc
+    from geoloc.commands._common import describe_self_calibration
 
     ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     ap.add_argument("--folds", default="6,0", help="comma-separated test blocks of 100 frames (0–6)")
@@ -155,17 +156,8 @@ def main() -> int:
             r = run_fold(seq, feats, b, uniform=args.uniform_sigma, refine=args.refine_intrinsics)
             name = f"{b * BLOCK}-{min((b + 1) * BLOCK, FRAMES) - 1}"
             report[f"{name} {kind}"] = r
-            sc = r["self_calibration"]
-            if sc is not None:
-                cam = sc.get("camera")
-                found = "" if cam is None else (
-                    f"fx {cam['fx']:.1f} fy {cam['fy']:.1f} cx {cam['cx']:.1f} cy {cam['cy']:.1f} "
-                    f"k1 {sc['distortion'][0]:+.3f} k2 {sc['distortion'][1]:+.3f} "
-                    f"p {sc['distortion'][2]:+.4f} {sc['distortion'][3]:+.4f}; "
-                )
-                print(f"{name:<8} {kind:<5} camera: {found}{sc['reason']}, track rms {sc['rms_before_px']:.2f} -> "
-                      f"{sc['rms_after_px'] or float('nan'):.2f} px, σ {sc['correction_sigma_px'] or float('nan'):.2f} px",
-                      flush=True)
+            if r["self_calibration"] is not None:
+                print(f"{name:<8} {kind:<5} {describe_self_calibration(r['self_calibration'])}", flush=True)
             for locator in ("paper", "model"):
                 s = r[locator]
                 build = f"{r['map_build_s']:.1f} s with the model ({r['train']} kf)" if locator == "paper" else ""

@@ -301,18 +301,14 @@ impl Map {
             }
         }
         self.self_calibration = Some(calibration);
-        if let Some(o) = model_options {
-            o.check()?;
-        }
         self.model = match model_options {
-            Some(o) if pair_matches.serves(o) => Some(SceneModel::assemble(
-                &self.camera,
-                &self.keyframes,
-                self.pose_covariances.as_deref(),
-                o,
-                &pair_matches,
-            )?),
-            Some(o) => Some(SceneModel::build(&self.camera, &self.keyframes, self.pose_covariances.as_deref(), o)?),
+            // the calibration's pair matches serve: the model from them (its options checked
+            // as SceneModel::build checks them)
+            Some(o) if pair_matches.serves(o) => {
+                o.check()?;
+                Some(SceneModel::assemble(&self.camera, &self.keyframes, covariances, o, &pair_matches)?)
+            }
+            Some(o) => Some(SceneModel::build(&self.camera, &self.keyframes, covariances, o)?),
             None => None,
         };
         Ok(self)

@@ -57,6 +57,18 @@ pub struct CameraHeader {
     pub cy: f64,
 }
 
+impl CameraHeader {
+    /// The stored form of `camera`.
+    pub fn from_camera(camera: &Camera) -> Self {
+        Self { fx: camera.fx, fy: camera.fy, cx: camera.cx, cy: camera.cy }
+    }
+
+    /// The camera, checked; a `Format` error prefixed with `what` otherwise.
+    fn to_camera(self, what: &str) -> Result<Camera> {
+        Camera::new(self.fx, self.fy, self.cx, self.cy).map_err(|e| format_error(format!("{what}: {e}")))
+    }
+}
+
 /// How the map retrieves keyframes, as stored.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "method", rename_all = "lowercase")]
@@ -138,12 +150,7 @@ impl SelfCalibrationHeader {
     pub fn from_self_calibration(s: &SelfCalibration) -> Self {
         let finite = |v: f64| v.is_finite().then_some(v);
         Self {
-            camera: s.correction.map(|c| CameraHeader {
-                fx: c.camera.fx,
-                fy: c.camera.fy,
-                cx: c.camera.cx,
-                cy: c.camera.cy,
-            }),
+            camera: s.correction.map(|c| CameraHeader::from_camera(&c.camera)),
             distortion: s.correction.map(|c| c.distortion.to_opencv().to_vec()),
             reason: s.reason.clone(),
             rms_before_px: finite(s.rms_before_px),
@@ -162,8 +169,7 @@ impl SelfCalibrationHeader {
         let correction = match (&self.camera, &self.distortion) {
             (None, None) => None,
             (Some(c), Some(d)) => {
-                let camera = Camera::new(c.fx, c.fy, c.cx, c.cy)
-                    .map_err(|e| format_error(format!("self_calibration.camera: {e}")))?;
+                let camera = c.to_camera("self_calibration.camera")?;
                 if d.len() != 5 {
                     return Err(format_error("self_calibration.distortion: expected 5 coefficients"));
                 }
@@ -283,7 +289,7 @@ impl Map {
             }
         };
         let header = MapHeader {
-            camera: CameraHeader { fx: self.camera.fx, fy: self.camera.fy, cx: self.camera.cx, cy: self.camera.cy },
+            camera: CameraHeader::from_camera(&self.camera),
             keyframes: k,
             keypoints: self.keypoint_count(),
             descriptor_kind: if binary { "binary" } else { "float" }.to_owned(),
@@ -311,9 +317,7 @@ impl Map {
     pub fn from_map_file(file: &MapFile) -> Result<(Self, MapHeader)> {
         let header: MapHeader =
             serde_json::from_str(&file.header).map_err(|e| format_error(format!("map header: {e}")))?;
-        let c = header.camera;
-        let camera =
-            Camera::new(c.fx, c.fy, c.cx, c.cy).map_err(|e| format_error(format!("map header camera: {e}")))?;
+        let camera = header.camera.to_camera("map header camera")?;
         let k = header.keyframes;
         if k == 0 {
             return Err(format_error("the map has no keyframes"));
