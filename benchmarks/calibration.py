@@ -16,41 +16,44 @@ C_map models can be compared offline on one run.
 
 Measured (2026-11-25, GEOLOC_NUM_THREADS=2, query keypoints weighted by their detector-scale σ,
 each map's camera estimated from its own keyframes as ``Map.build`` does; NEES = fraction inside
-χ²₆ 95 %; axis min = the lowest per-axis 1.96σ coverage):
+χ²₆ 95 %; axis min = the lowest per-axis 1.96σ coverage; "median, lost=∞" is over all 100
+frames, a lost frame an infinite error, as the recall counts it — "median" is over the
+localized frames only, so two modes that lose different frames are not compared on the same
+frames there):
 
-    fold       mode                   median  5cm/5°   NEES axis min med NEES  σ_p med  sources
-    0-99       single         5.0 cm / 1.21°     41%    92%      91%      0.9   7.3 cm  geo80 los20
-    0-99       sequential     5.7 cm / 1.29°     42%    99%      98%      1.4   7.4 cm  fus67 geo6 los6 mot21
-    100-199    single         4.1 cm / 1.13°     62%   100%      99%      1.3   6.6 cm  geo97 los3
-    100-199    sequential     4.0 cm / 1.12°     66%   100%      99%      1.3   6.6 cm  fus95 geo2 mot3
-    200-299    single         2.3 cm / 0.84°     92%   100%      99%      0.4   7.6 cm  geo95 los5
-    200-299    sequential     2.3 cm / 0.83°     93%   100%      99%      0.4   7.6 cm  fus93 geo2 los5
-    300-399    single         3.7 cm / 1.44°     54%    71%      68%      2.6   4.6 cm  geo98 los2
-    300-399    sequential     3.4 cm / 1.47°     57%    79%      77%      2.6   4.6 cm  fus67 geo5 los1 mot27
-    400-499    single         4.8 cm / 1.24°     54%    81%      79%      1.5   6.1 cm  geo100
-    400-499    sequential     4.7 cm / 1.16°     54%    83%      80%      1.3   6.1 cm  fus79 geo6 mot15
-    500-599    single         2.3 cm / 0.84°     89%   100%     100%      0.3   8.1 cm  geo100
-    500-599    sequential     2.1 cm / 0.83°     90%   100%     100%      0.3   8.1 cm  fus98 geo2
-    600-699    single         7.4 cm / 1.83°     35%    91%      91%      2.2   6.9 cm  geo100
-    600-699    sequential     7.4 cm / 1.87°     36%    89%      90%      2.3   6.9 cm  fus94 geo3 mot3
+    fold       mode                   median     median, lost=∞  5cm/5°   NEES axis min med NEES  σ_p med  sources
+    0-99       single         5.0 cm / 1.21°     7.1 cm / 1.56°     41%    92%      91%      0.9   7.3 cm  geo80 los20
+    0-99       sequential     5.7 cm / 1.29°     6.9 cm / 1.42°     42%    99%      98%      1.4   7.4 cm  fus67 geo6 los6 mot21
+    100-199    single         4.1 cm / 1.13°     4.2 cm / 1.16°     62%   100%      99%      1.3   6.6 cm  geo97 los3
+    100-199    sequential     4.0 cm / 1.12°     4.0 cm / 1.12°     66%   100%      99%      1.3   6.6 cm  fus95 geo2 mot3
+    200-299    single         2.3 cm / 0.84°     2.4 cm / 0.85°     92%   100%      99%      0.4   7.6 cm  geo95 los5
+    200-299    sequential     2.3 cm / 0.83°     2.4 cm / 0.85°     93%   100%      99%      0.4   7.6 cm  fus93 geo2 los5
+    300-399    single         3.7 cm / 1.44°     3.8 cm / 1.49°     54%    71%      68%      2.6   4.6 cm  geo98 los2
+    300-399    sequential     3.4 cm / 1.47°     3.7 cm / 1.48°     57%    79%      77%      2.6   4.6 cm  fus67 geo5 los1 mot27
+    400-499    single         4.8 cm / 1.24°     4.8 cm / 1.24°     54%    81%      79%      1.5   6.1 cm  geo100
+    400-499    sequential     4.7 cm / 1.16°     4.7 cm / 1.16°     54%    83%      80%      1.3   6.1 cm  fus79 geo6 mot15
+    500-599    single         2.3 cm / 0.84°     2.3 cm / 0.84°     89%   100%     100%      0.3   8.1 cm  geo100
+    500-599    sequential     2.1 cm / 0.83°     2.1 cm / 0.83°     90%   100%     100%      0.3   8.1 cm  fus98 geo2
+    600-699    single         7.4 cm / 1.83°     7.4 cm / 1.83°     35%    91%      91%      2.2   6.9 cm  geo100
+    600-699    sequential     7.4 cm / 1.87°     7.4 cm / 1.87°     36%    89%      90%      2.3   6.9 cm  fus94 geo3 mot3
 
 ``--locator model``:
 
-    fold       mode                   median  5cm/5°   NEES axis min med NEES  σ_p med  sources
-    0-99       single         4.0 cm / 1.23°     62%    87%      91%      1.4   6.2 cm  geo89 los11
-    0-99       sequential     4.1 cm / 1.25°     62%    77%      79%      1.5   6.2 cm  fus69 geo6 los2 mot23
-    100-199    single         4.1 cm / 0.96°     62%    93%      75%      1.3   6.7 cm  geo100
-    100-199    sequential     4.1 cm / 0.96°     62%    96%      78%      1.3   6.7 cm  fus97 geo2 mot1
-    200-299    single         2.9 cm / 0.95°     99%   100%     100%      0.8   7.1 cm  geo100
-    200-299    sequential     2.9 cm / 0.95°     99%   100%     100%      0.8   7.1 cm  fus98 geo2
-    300-399    single         4.8 cm / 1.81°     54%    68%      69%      3.6   4.6 cm  geo98 los2
-    300-399    sequential     4.8 cm / 1.80°     54%    68%      68%      3.4   4.6 cm  fus84 geo4 mot12
-    400-499    single         4.3 cm / 1.08°     61%    69%      69%      2.5   5.1 cm  geo100
-    400-499    sequential     4.2 cm / 0.97°     64%    83%      81%      2.4   5.1 cm  fus78 geo5 mot17
-    500-599    single         1.2 cm / 0.69°     94%   100%     100%      0.3   7.6 cm  geo100
-    500-599    sequential     1.2 cm / 0.69°     94%   100%     100%      0.3   7.6 cm  fus98 geo2
-    600-699    single         4.8 cm / 1.24°     54%    99%      94%      1.2   7.2 cm  geo100
-    600-699    sequential     4.8 cm / 1.25°     53%   100%      94%      1.2   7.2 cm  fus98 geo2
+    fold       mode                   median     median, lost=∞  5cm/5°   NEES axis min med NEES  σ_p med  sources
+    0-99       single         4.0 cm / 1.23°     4.1 cm / 1.28°     62%    87%      91%      1.4   6.2 cm  geo89 los11
+    0-99       sequential     4.1 cm / 1.25°     4.1 cm / 1.25°     62%    77%      79%      1.5   6.2 cm  fus69 geo6 los2 mot23
+    100-199    single         4.1 cm / 0.96°     4.1 cm / 0.96°     62%    93%      75%      1.3   6.7 cm  geo100
+    100-199    sequential     4.1 cm / 0.96°     4.1 cm / 0.96°     62%    96%      78%      1.3   6.7 cm  fus97 geo2 mot1
+    200-299    single         2.9 cm / 0.95°     2.9 cm / 0.95°     99%   100%     100%      0.8   7.1 cm  geo100
+    200-299    sequential     2.9 cm / 0.95°     2.9 cm / 0.95°     99%   100%     100%      0.8   7.1 cm  fus98 geo2
+    300-399    single         4.8 cm / 1.81°     4.8 cm / 1.82°     54%    68%      69%      3.6   4.6 cm  geo98 los2
+    300-399    sequential     4.8 cm / 1.80°     4.8 cm / 1.80°     54%    68%      68%      3.4   4.6 cm  fus84 geo4 mot12
+    400-499    single         4.3 cm / 1.08°     4.3 cm / 1.08°     61%    69%      69%      2.5   5.1 cm  geo100
+    400-499    sequential     4.2 cm / 0.97°     4.2 cm / 0.97°     64%    83%      81%      2.4   5.1 cm  fus78 geo5 mot17
+    500-599    single         1.2 cm / 0.69°     1.2 cm / 0.69°     94%   100%     100%      0.3   7.6 cm  geo100
+    500-599    sequential     1.2 cm / 0.69°     1.2 cm / 0.69°     94%   100%     100%      0.3   7.6 cm  fus98 geo2
+    600-699    single         4.8 cm / 1.24°     4.8 cm / 1.24°     54%    99%      94%      1.2   7.2 cm  geo100
+    600-699    sequential     4.8 cm / 1.25°     4.8 cm / 1.25°     53%   100%      94%      1.2   7.2 cm  fus98 geo2
 
 With the nominal camera (fx = fy = 525, 2026-11-24) the paper's locator had 8.3 / 4.5 / 2.8 /
 5.4 / 4.7 / 3.0 / 6.4 cm and NEES coverage 89/86, 97/99, 100/100, 67/72, 82/89, 99/100,
@@ -152,6 +155,8 @@ def fold(seq: Any, b: int) -> tuple[Any, Any]:
 
 def row(name: str, mode: str, s: dict[str, Any]) -> str:
     med = "lost" if s["median_translation_m"] is None else f"{100 * s['median_translation_m']:.1f} cm / {s['median_rotation_deg']:.2f}°"
+    all_t, all_r = s.get("median_translation_all_m"), s.get("median_rotation_all_deg")
+    med_all = "lost" if all_t is None or all_r is None else f"{100 * all_t:.1f} cm / {all_r:.2f}°"
     axis = s.get("axis_coverage") or {}
     axis_vals = [v for v in (axis.values() if isinstance(axis, dict) else axis) if v is not None]
     axis_min = f"{min(axis_vals):.0%}" if axis_vals else "—"
@@ -160,7 +165,7 @@ def row(name: str, mode: str, s: dict[str, Any]) -> str:
     sig = "—" if s.get("median_sigma_p_m") is None else f"{100 * s['median_sigma_p_m']:.1f} cm"
     src = " ".join(f"{k[:3]}{v}" for k, v in s["sources"].items())
     return (
-        f"{name:<10} {mode:<10} {med:>18} {s['recall'].get('5cm_5deg', 0):>7.0%} {cov:>6} {axis_min:>8} {nees:>8} {sig:>8}  {src}"
+        f"{name:<10} {mode:<10} {med:>18} {med_all:>18} {s['recall'].get('5cm_5deg', 0):>7.0%} {cov:>6} {axis_min:>8} {nees:>8} {sig:>8}  {src}"
     )
 
 
@@ -173,7 +178,7 @@ def main() -> int:
                     help="the geometric locator (model: the map is built with its 3D model, C_map measured with it)")
     args = ap.parse_args()
     report: dict[str, Any] = {}
-    header = f"{'fold':<10} {'mode':<10} {'median':>18} {'5cm/5°':>7} {'NEES':>6} {'axis min':>8} {'med NEES':>8} {'σ_p med':>8}  sources"
+    header = f"{'fold':<10} {'mode':<10} {'median':>18} {'median, lost=∞':>18} {'5cm/5°':>7} {'NEES':>6} {'axis min':>8} {'med NEES':>8} {'σ_p med':>8}  sources"
     print(header, flush=True)
     if DATA.is_dir() and args.folds:
         seq = geoloc.datasets.load_7scenes(DATA)[:700]

@@ -46,6 +46,8 @@ def test_sequential_is_never_worse_than_single(room: tuple[Any, Any, geoloc.Map]
     # "no worse": within 10 % of the single mode's median (sub-millimetre on this scene)
     assert seq["median_translation_m"] <= 1.1 * single["median_translation_m"]
     assert seq["median_rotation_deg"] <= 1.1 * single["median_rotation_deg"]
+    assert seq["median_translation_all_m"] <= 1.1 * single["median_translation_all_m"]
+    assert seq["median_rotation_all_deg"] <= 1.1 * single["median_rotation_all_deg"]
     assert seq["recall"]["5cm_5deg"] >= single["recall"]["5cm_5deg"]
     assert seq["nees_coverage"] >= 0.85 and single["nees_coverage"] >= 0.85
 

@@ -131,6 +131,10 @@ def test_summarize_keys_lost_frames_and_json() -> None:
     assert design_keys <= set(s)
     assert s["frames"] == 4 and s["localized"] == 3
     assert s["median_translation_m"] == pytest.approx(0.04)  # median of the localized 0.01, 0.2, 0.04
+    # over all four frames, the lost one as ∞: median of 0.01, 0.04, 0.2, ∞ = (0.04 + 0.2) / 2
+    assert s["median_translation_all_m"] == pytest.approx(0.12) and s["median_rotation_all_deg"] == 0.0
+    half_lost = evaluation.summarize([est[0], None, None, est[3]], gt)
+    assert half_lost["median_translation_all_m"] is None and half_lost["median_translation_m"] == pytest.approx(0.025)
     assert s["recall"] == {"5cm_5deg": 0.5, "25cm_2deg": 0.75, "10cm_1deg": 0.5}  # the lost frame fails
     assert s["sources"] == {"fused": 2, "geometric": 1, "lost": 1}
     assert s["timing_ms"] == {"median_pnp": 3.0, "median_total": 10.5}
@@ -153,6 +157,7 @@ def test_summarize_results_and_table() -> None:
     lines = table.splitlines()
     assert lines[0].split()[:2] == ["Sequence", "Frames"] and "Reference" in lines[0]
     assert "0.040m, 0.00°" in lines[2] and "0.02m, 1.10°" in lines[2]
+    assert "Median, lost=∞" in lines[0] and "0.120m, 0.00°" in lines[2]  # 0.01, 0.04, 0.2, ∞
     with pytest.raises(geoloc.InvalidInputError, match="estimates: expected 4"):
         evaluation.summarize(est[:3], gt)
 
