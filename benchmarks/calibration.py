@@ -37,6 +37,19 @@ frames there):
     600-699    single         7.4 cm / 1.83°     7.4 cm / 1.83°     35%    91%      91%      2.2   6.9 cm  geo100
     600-699    sequential     7.4 cm / 1.87°     7.4 cm / 1.87°     36%    89%      90%      2.3   6.9 cm  fus94 geo3 mot3
 
+NEES coverage of the single mode by PnP inlier count (the second line the script prints per
+fold; coverage (frames)) — the covariance is too large for well-supported frames, where
+C_map dominates, and too small for poorly supported ones (outliers that survive RANSAC, and
+on 300–499 the two visits' disagreeing labels, are not in C_G):
+
+    0-99       <20: 82% (28)  20-39: 94% (16)  40-79: 100% (9)  ≥80: 100% (27)
+    100-199    <20: 100% (2)  20-39: 100% (15)  40-79: 100% (33)  ≥80: 100% (47)
+    200-299    <20: —  20-39: —  40-79: 100% (8)  ≥80: 100% (87)
+    300-399    <20: 67% (6)  20-39: 56% (45)  40-79: 79% (28)  ≥80: 100% (19)
+    400-499    <20: 100% (2)  20-39: 57% (21)  40-79: 81% (54)  ≥80: 100% (23)
+    500-599    <20: —  20-39: 100% (1)  40-79: 100% (17)  ≥80: 100% (82)
+    600-699    <20: 58% (12)  20-39: 100% (9)  40-79: 87% (31)  ≥80: 100% (48)
+
 ``--locator model``:
 
     fold       mode                   median     median, lost=∞  5cm/5°   NEES axis min med NEES  σ_p med  sources
@@ -84,7 +97,7 @@ from typing import Any
 import numpy as np
 
 import geoloc
-from geoloc.evaluation import summarize_results
+from geoloc.evaluation import CHI2_6_95, summarize_results
 from geoloc.lie import se3_inverse, se3_log
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "7scenes-redkitchen"
@@ -153,6 +166,25 @@ def fold(seq: Any, b: int) -> tuple[Any, Any]:
     return seq[keep], seq[lo:hi]
 
 
+#: PnP inlier-count bins of the coverage breakdown: [lo, hi).
+INLIER_BINS = ((0, 20), (20, 40), (40, 80), (80, None))
+
+
+def coverage_by_inliers(frames: list[dict[str, Any]]) -> str:
+    """NEES coverage (χ²₆ 95 %) of the frames with a covariance, by their PnP inlier count:
+    "<20: 82 % (28)  20-39: ..." — where a covariance is too small or too large."""
+    cells = []
+    for lo, hi in INLIER_BINS:
+        nees = [
+            float(np.asarray(f["delta"]) @ np.linalg.solve(np.asarray(f["covariance"]), np.asarray(f["delta"])))
+            for f in frames
+            if f["delta"] is not None and f["covariance"] is not None and lo <= f["inliers"] and (hi is None or f["inliers"] < hi)
+        ]
+        label = f"<{hi}" if lo == 0 else (f"≥{lo}" if hi is None else f"{lo}-{hi - 1}")
+        cells.append(f"{label}: " + ("—" if not nees else f"{np.mean(np.array(nees) <= CHI2_6_95):.0%} ({len(nees)})"))
+    return "  ".join(cells)
+
+
 def row(name: str, mode: str, s: dict[str, Any]) -> str:
     med = "lost" if s["median_translation_m"] is None else f"{100 * s['median_translation_m']:.1f} cm / {s['median_rotation_deg']:.2f}°"
     all_t, all_r = s.get("median_translation_all_m"), s.get("median_rotation_all_deg")
@@ -189,6 +221,7 @@ def main() -> int:
             report[name] = r
             for mode in ("single", "sequential"):
                 print(row(name, mode, r[mode]), flush=True)
+            print(f"{'':<10} NEES coverage by PnP inliers, single: {coverage_by_inliers(r['frames']['single'])}", flush=True)
             n = r["map_noise"]
             print(f"{'':<10} map noise √diag C_map {np.round(n['sqrt_diag'], 4).tolist()} "
                   f"(n={n['holdout_samples']}), q {np.round(n['acceleration_psd'], 3).tolist()}, build {r['build_s']:.0f} s",
