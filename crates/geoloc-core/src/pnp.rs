@@ -21,12 +21,12 @@
 //!      With independent point covariances Σⱼ: maximum likelihood over the pose and the
 //!      point corrections jointly (`joint`), C the pose block of its inverse information.
 //!      With keyframe-pose errors shared by the points (D_jk = ∂Xⱼ/∂δ_k, C_k): the same
-//!      joint solve, the shared part kept in the residual weights
-//!      Wⱼ = (σ²I + J_X,j Σⱼ^shared J_X,jᵀ)⁻¹, and the first-order sandwich covariance
-//!      C = H⁻¹ (Σⱼ JⱼᵀWⱼ Sⱼ^ind WⱼJⱼ) H⁻¹ + Σ_k M_k C_k M_kᵀ with
-//!      H = Σⱼ JⱼᵀWⱼJⱼ and M_k = −H⁻¹ Σⱼ JⱼᵀWⱼ J_X,j D_jk (Wⱼ here from the marginal
-//!      Sⱼ = σ²I + J_X,j Σⱼ^marg J_X,jᵀ), where Sⱼ^ind holds the errors independent between
-//!      points and the M_k terms those all points share.
+//!      joint solve over the independent part (the shared errors stay out of the weights:
+//!      weights that depend on the label-error realization bias the pose, see `joint`), and
+//!      the first-order sandwich covariance
+//!      C = H⁻¹ (Σⱼ JⱼᵀWⱼ Sⱼ^ind WⱼJⱼ) H⁻¹ + Σ_k M_k C_k M_kᵀ = H⁻¹ + Σ_k M_k C_k M_kᵀ with
+//!      Wⱼ = (Sⱼ^ind)⁻¹, Sⱼ^ind = σ²I + J_X,j Σⱼ^ind J_X,jᵀ the errors independent between
+//!      points, H = Σⱼ JⱼᵀWⱼJⱼ and M_k = −H⁻¹ Σⱼ JⱼᵀWⱼ J_X,j D_jk the errors all points share.
 //!
 //!    The propagated covariance is then scaled by max(1, s²), s² = Σⱼ rⱼᵀSⱼ⁻¹rⱼ/(2n − 6) the
 //!    variance factor of the inliers ([`PnpResult::variance_factor`]): it only inflates.
@@ -434,18 +434,8 @@ impl Correspondences<'_> {
             return propagate;
         }
         if let Some(u) = self.uncertainty {
-            // Shared keyframe-pose errors stay in the residual weights
-            // (Wⱼ = (σ²I + J_X Σⱼ^shared J_Xᵀ)⁻¹) and in the sandwich covariance.
-            let shared_weights = u.shared.is_some().then(|| self.shared_weights(&pose, subset, u));
-            let problem = joint::JointProblem::new(
-                self.camera,
-                self.points,
-                self.pixels,
-                subset,
-                u,
-                self.noise,
-                shared_weights.as_deref(),
-            );
+            // Shared keyframe-pose errors enter the sandwich covariance only (see `joint`).
+            let problem = joint::JointProblem::new(self.camera, self.points, self.pixels, subset, u, self.noise);
             let (pose, cov, r) = problem.solve(pose, &o.lm);
             let information = if u.shared.is_none() { Information::Joint(cov) } else { Information::Propagate };
             return FinalSolve { pose, report: Some(r), information };
@@ -459,21 +449,6 @@ impl Correspondences<'_> {
         // exact points: C = (Σ JⱼᵀJⱼ/σ²)⁻¹ is the information of this very solve, and its cost
         // is Σ‖rⱼ‖²/σ²
         FinalSolve { pose, report: Some(r), information: Information::LeastSquares(h, r.final_cost) }
-    }
-
-    /// Wⱼ = (σ²I + J_X,j Σⱼ^shared J_X,jᵀ)⁻¹ over `subset` at `pose`.
-    fn shared_weights(&self, pose: &SE3, subset: &[usize], u: &PointUncertainty<'_>) -> Vec<Matrix2<f64>> {
-        subset
-            .iter()
-            .map(|&j| {
-                let var = self.noise.at(j) * self.noise.at(j);
-                let p = project(self.camera, pose, &self.points[j]);
-                let j_x = j_uv_point(self.camera, pose, &p);
-                let shared = point_covariance(j, Some(u), true).unwrap_or_else(Matrix3::zeros) - u.covariances[j];
-                let s = Matrix2::identity() * var + j_x * shared * j_x.transpose();
-                s.try_inverse().unwrap_or_else(|| Matrix2::identity() / var)
-            })
-            .collect()
     }
 
     /// Step 4: the covariance (C_G) and the isometric σ, the RMS, and the acceptance test —
@@ -991,6 +966,8 @@ fn paper_covariance(
     inverse_information(&info).map(|c| c * sigma2)
 }
 
+/// The `Propagated` covariance of the module doc at `pose` over the inliers `subset` (before
+/// the variance factor).
 fn propagated_covariance(
     camera: &Camera,
     points: &[Vector3<f64>],
@@ -1000,26 +977,24 @@ fn propagated_covariance(
     noise: PixelNoise<'_>,
 ) -> Option<Matrix6<f64>> {
     let mut h = Matrix6::zeros();
-    let mut meat = Matrix6::zeros();
     // JⱼᵀWⱼ J_X,j per point, needed for the shared part
     let mut couplings: Vec<(usize, nalgebra::Matrix6x3<f64>)> = Vec::new();
     for &j in subset {
         let p = project(camera, pose, &points[j]);
-        let sigma = noise.at(j);
-        let (s_marginal, _) = residual_moments(camera, points, pose, j, uncertainty, sigma, true);
-        let w = s_marginal.try_inverse()?;
+        // Wⱼ = (Sⱼ^ind)⁻¹, the weights of the solve (the shared errors are not in them)
+        let (s_ind, _) = residual_moments(camera, points, pose, j, uncertainty, noise.at(j), false);
+        let w = s_ind.try_inverse()?;
         let jac = j_uv_pose(camera, &p);
         let jt_w = jac.transpose() * w;
         h += jt_w * jac;
-        let (s_ind, _) = residual_moments(camera, points, pose, j, uncertainty, sigma, false);
-        meat += jt_w * s_ind * jt_w.transpose();
         if uncertainty.is_some_and(|u| u.shared.is_some()) {
             let j_x: Matrix2x3<f64> = j_uv_point(camera, pose, &p);
             couplings.push((j, jt_w * j_x));
         }
     }
+    // the independent errors: H⁻¹ (Σ JᵀW Sⁱⁿᵈ W J) H⁻¹ = H⁻¹ since W = (Sⁱⁿᵈ)⁻¹
     let h_inv = inverse_information(&h)?;
-    let mut c = h_inv * meat * h_inv;
+    let mut c = h_inv;
     if let Some(shared) = uncertainty.and_then(|u| u.shared.as_ref()) {
         let k_count = shared.pose_covariances.len();
         for (k, c_k) in shared.pose_covariances.iter().enumerate() {

@@ -231,11 +231,19 @@ fn propagated_covariance_is_calibrated_without_label_noise() {
     }
 }
 
+/// Issue 8's band (93–97 %) with label noise too, the 2 px columns included: the shared
+/// label errors stay out of the PnP weights (weights that depend on the label-error
+/// realization biased the pose; NEES coverage was 92.6–92.7 % at 2 px on these scenes).
 #[test]
 fn propagated_covariance_is_calibrated_with_label_noise() {
-    for (seed, sigma, label) in [(21, 1.0, (0.01, 0.5f64.to_radians())), (22, 2.0, (0.03, 1f64.to_radians()))] {
+    let cases = [
+        (21, 1.0, (0.01, 0.5f64.to_radians())),
+        (23, 2.0, (0.01, 0.5f64.to_radians())),
+        (22, 2.0, (0.03, 1f64.to_radians())),
+    ];
+    for (seed, sigma, label) in cases {
         let o = monte_carlo(seed, 1000, sigma, Some(label));
-        assert_coverage(&o, 0.90, 0.98, &format!("σ = {sigma} px, label noise {label:?}"));
+        assert_coverage(&o, 0.93, 0.97, &format!("σ = {sigma} px, label noise {label:?}"));
     }
 }
 
