@@ -27,6 +27,24 @@ def test_undistort_points_empty_and_huge() -> None:
         cam.undistort_points(np.full((3, 2), 3.5e302))
 
 
+def test_map_load_of_a_missing_file_names_the_path(tmp_path: Path) -> None:
+    """The suite's Map.load('3'): a string that names no file is a FileAccessError (an
+    OSError) naming that path, not a crash or a wrong type."""
+    missing = tmp_path / "3"
+    with pytest.raises(geoloc.FileAccessError, match=f"^{missing}: cannot read the map"):
+        geoloc.Map.load(str(missing))
+
+
+def test_motion_predict_refuses_a_fit_swamped_by_rounding() -> None:
+    """The suite's motion_predict with one pose 3e38 m away: the covariance came back
+    indefinite (smallest eigenvalue −1.7e90); now an InvalidInputError naming the poses."""
+    poses = np.repeat(np.eye(4)[None], 4, axis=0)
+    poses[:, 0, 3] = [3e38, 0.1, 0.2, 0.3]
+    covs = np.repeat(np.diag([1e-4] * 3 + [1e-5] * 3)[None], 4, axis=0)
+    with pytest.raises(geoloc.InvalidInputError, match="^poses: "):
+        geoloc.motion_predict(poses, np.array([0.0, 0.1, 0.2, 0.3]), 0.4, covariances=covs, acceleration_psd=np.full(6, 0.1))
+
+
 @pytest.mark.parametrize(
     "call, name",
     [

@@ -113,6 +113,10 @@ def run_case(case: dict[str, Any]) -> dict[str, Any]:
         if case.get("cli") is not None:
             return invariants.run_cli(case, evaluate)
         result = evaluate(case["expr"])
+    except geoloc.FileAccessError as e:
+        # A path that cannot be read or written (missing, a folder): the documented OSError,
+        # its message names the path — a clean rejection, like an InvalidInputError.
+        return {"kind": "rejected", "detail": str(e)[:200]}
     except geoloc.InvalidInputError as e:
         msg = str(e)
         # A FileFormatError names the file and the failed check (documented), not an argument.

@@ -21,7 +21,7 @@ use nalgebra::{Matrix6, SMatrix, SVector, Vector6};
 
 use crate::error::{GeolocError, Result};
 use crate::lie::{SE3, Twist, se3};
-use crate::optim::covariance::{check_covariances, spd_inverse};
+use crate::optim::covariance::{check_covariance, check_covariances, spd_inverse};
 use crate::optim::{LeastSquares, LmOptions, PoseEstimate, solve};
 
 /// What the motion model adds to its prediction.
@@ -85,6 +85,11 @@ pub fn motion_predict(
         sigma *= at_fit.cost / dof as f64;
     }
     let (world_from_cam, covariance) = predict(&reference, &velocity, &sigma, t_query - fit.t_ref);
+    // at absurd scales (translations ~1e38 m) rounding swamps the fit and C_M comes out
+    // indefinite: refuse rather than return a covariance that is not one
+    check_covariance("poses", &covariance).map_err(|_| {
+        GeolocError::invalid("poses", "too large for the motion fit: its covariance is not positive semi-definite")
+    })?;
     let rms_residual =
         fit.residuals(&reference, &velocity).iter().map(|e| e.norm_squared()).sum::<f64>().sqrt() / (m as f64).sqrt();
     Ok(MotionPrediction {
@@ -335,7 +340,9 @@ impl LeastSquares<12> for Fit<'_> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::lie::SO3;
     use crate::testing::{SplitMix64, isotropic_pose_covariance};
+    use nalgebra::Vector3;
 
     /// A body-frame white-acceleration trajectory: the velocity random-walks with PSD `q`
     /// at a fine step `h`; returns the poses every `every` steps, starting at `start`.
@@ -557,6 +564,21 @@ mod tests {
         assert_eq!(name(motion_predict(&poses, &times, 0.3, Some(&covs))), "covariances[2]");
         let ok = motion_predict(&poses, &times, 0.2 + MAX_TIME_SPAN_S, None).expect("at the bound");
         assert!(ok.world_from_cam.matrix().iter().all(|v| v.is_finite()));
+    }
+
+    /// A pose 3e38 m from the others (found by the adversarial suite): rounding swamps the
+    /// fit and the covariance came out indefinite (smallest eigenvalue −1.7e90); now refused,
+    /// naming the poses. The same poses near the origin still predict.
+    #[test]
+    fn a_fit_swamped_by_rounding_is_refused() {
+        let times = [0.0, 0.1, 0.2, 0.3];
+        let covs = vec![isotropic_pose_covariance(0.01, 0.003); 4];
+        let q = Vector6::repeat(0.1);
+        let mut poses: Vec<SE3> = times.iter().map(|&t| SE3::new(SO3::identity(), Vector3::new(t, 0.0, 0.0))).collect();
+        assert!(motion_predict_with_noise(&poses, &times, 0.4, Some(&covs), &q).is_ok());
+        poses[0].translation.x = 3e38;
+        let err = motion_predict_with_noise(&poses, &times, 0.4, Some(&covs), &q).expect_err("indefinite");
+        assert!(matches!(&err, GeolocError::InvalidInput { name, .. } if name == "poses"), "{err:?}");
     }
 
     #[test]
