@@ -19,23 +19,24 @@ each map's camera estimated from its own keyframes as ``Map.build`` does; NEES =
 χ²₆ 95 %; axis min = the lowest per-axis 1.96σ coverage; "median, lost=∞" is over all 100
 frames, a lost frame an infinite error, as the recall counts it — "median" is over the
 localized frames only, so two modes that lose different frames are not compared on the same
-frames there):
+frames there; in sequence the paper's locator also tries the last frame's keyframe group
+when the retrieved one's support collapses, the "tracking" of ``geoloc.Localizer``):
 
     fold       mode                   median     median, lost=∞  5cm/5°   NEES axis min med NEES  σ_p med  sources
     0-99       single         5.0 cm / 1.21°     7.1 cm / 1.56°     41%    92%      91%      0.9   7.3 cm  geo80 los20
-    0-99       sequential     5.7 cm / 1.29°     6.9 cm / 1.42°     42%    99%      98%      1.4   7.4 cm  fus67 geo6 los6 mot21
+    0-99       sequential     5.0 cm / 1.25°     5.0 cm / 1.25°     51%    92%      90%      1.0   7.4 cm  fus77 geo4 los2 mot17
     100-199    single         4.1 cm / 1.13°     4.2 cm / 1.16°     62%   100%      99%      1.3   6.6 cm  geo97 los3
-    100-199    sequential     4.0 cm / 1.12°     4.0 cm / 1.12°     66%   100%      99%      1.3   6.6 cm  fus95 geo2 mot3
+    100-199    sequential     4.1 cm / 1.11°     4.1 cm / 1.11°     63%   100%      99%      1.3   6.6 cm  fus98 geo2
     200-299    single         2.3 cm / 0.84°     2.4 cm / 0.85°     92%   100%      99%      0.4   7.6 cm  geo95 los5
-    200-299    sequential     2.3 cm / 0.83°     2.4 cm / 0.85°     93%   100%      99%      0.4   7.6 cm  fus93 geo2 los5
+    200-299    sequential     2.4 cm / 0.85°     2.4 cm / 0.85°     92%    99%      98%      0.4   7.6 cm  fus91 geo3 los3 mot3
     300-399    single         3.7 cm / 1.44°     3.8 cm / 1.49°     54%    71%      68%      2.6   4.6 cm  geo98 los2
-    300-399    sequential     3.4 cm / 1.47°     3.7 cm / 1.48°     57%    79%      77%      2.6   4.6 cm  fus67 geo5 los1 mot27
+    300-399    sequential     3.3 cm / 1.44°     3.3 cm / 1.44°     60%    84%      79%      2.6   4.6 cm  fus81 geo3 mot16
     400-499    single         4.8 cm / 1.24°     4.8 cm / 1.24°     54%    81%      79%      1.5   6.1 cm  geo100
-    400-499    sequential     4.7 cm / 1.16°     4.7 cm / 1.16°     54%    83%      80%      1.3   6.1 cm  fus79 geo6 mot15
+    400-499    sequential     4.7 cm / 1.19°     4.7 cm / 1.19°     55%    86%      83%      1.3   6.1 cm  fus82 geo5 mot13
     500-599    single         2.3 cm / 0.84°     2.3 cm / 0.84°     89%   100%     100%      0.3   8.1 cm  geo100
-    500-599    sequential     2.1 cm / 0.83°     2.1 cm / 0.83°     90%   100%     100%      0.3   8.1 cm  fus98 geo2
+    500-599    sequential     2.1 cm / 0.83°     2.1 cm / 0.83°     92%   100%     100%      0.3   8.1 cm  fus98 geo2
     600-699    single         7.4 cm / 1.83°     7.4 cm / 1.83°     35%    91%      91%      2.2   6.9 cm  geo100
-    600-699    sequential     7.4 cm / 1.87°     7.4 cm / 1.87°     36%    89%      90%      2.3   6.9 cm  fus94 geo3 mot3
+    600-699    sequential     6.5 cm / 1.49°     6.5 cm / 1.49°     41%    97%      94%      1.8   6.8 cm  fus98 geo2
 
 NEES coverage of the single mode by PnP inlier count (the second line the script prints per
 fold; coverage (frames)) — the covariance is too large for well-supported frames, where

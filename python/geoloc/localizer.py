@@ -194,8 +194,9 @@ class FeatureMap:
 
 LocalizationResult.__doc__ = """One frame: ``pose`` (4, 4) world_from_cam and ``covariance`` (6, 6, right
 perturbation, translation first), or None when lost; ``source`` is "geometric", "fused",
-"motion" or "lost"; ``reason`` says why; ``keyframe`` the retrieved keyframe, ``inliers``
-the PnP inliers; per-stage ``timings_ms``."""
+"motion" or "lost"; ``reason`` says why; ``keyframe`` the keyframe whose group gave the
+geometric pose (the retrieved one, or the last frame's when the paper's locator tracked),
+``inliers`` the PnP inliers; per-stage ``timings_ms``."""
 
 
 class FeatureLocalizer:
@@ -254,5 +255,6 @@ class FeatureLocalizer:
         return self._loc.localize(real_scalar(timestamp, "timestamp"), k, d, g, s)
 
     def reset(self) -> None:
-        """Forget the motion history."""
+        """Forget the motion history (and the last frame's keyframe, which the paper's
+        locator tracks)."""
         self._loc.reset()

@@ -245,6 +245,9 @@ class Localizer:
 
     ``locator``: "paper" (the paper's: one retrieved keyframe and its co-visible group) or
     "model" (top-``top_k`` retrieval against the map-level 3D model, PnP, guided matching).
+    In sequence the paper's locator also tracks: when the retrieved keyframe's group gives
+    fewer than half the inliers of the last frame, the last frame's group is tried too and
+    the pose with more inliers kept (the result's ``reason`` says so).
     Each query keypoint's pixel noise in PnP is ``pixel_sigma`` × its own σ from the detector
     scale (:attr:`geoloc.features.Features.pixel_sigmas`: 1.2^level for ORB)."""
 
@@ -319,7 +322,8 @@ class Localizer:
         return MapLocalization(r.pose, r.covariance, r.source, r.reason, r.keyframe, r.inliers, timings)
 
     def reset(self) -> None:
-        """Forget the motion history (the next frame is localized by geometry alone)."""
+        """Forget the motion history and the last frame's keyframe (the next frame is
+        localized by geometry alone)."""
         self._core.reset()
 
     def localize_sequence(

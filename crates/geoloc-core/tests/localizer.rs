@@ -224,3 +224,58 @@ fn bad_maps_and_frames_are_refused_by_name() {
     let history = LocalizerOptions { history: 1, ..LocalizerOptions::default() };
     assert_eq!(name_of(Localizer::new(map, history)), "history");
 }
+
+/// Tracking in the sequential mode: every 7th frame retrieves a keyframe from the far end of
+/// the walk (global descriptors are keyframe positions, the query's is replaced by the far
+/// keyframe's), 3 m away, whose group sees only a corner of the view. Alone, the frame gets
+/// its pose from that group's few points; in sequence the last frame's group is tried too
+/// (the far group gives under half its inliers) and the frame gets a pose as good as its
+/// neighbours' from it.
+#[test]
+fn a_wrong_retrieval_is_tracked_through_the_last_frames_group() {
+    let mut rng = SplitMix64::new(17);
+    let world = LandmarkScene::new(&mut rng, LANDMARKS, 12.0);
+    let mut kfs = keyframes(&world, &mut rng);
+    let position = |p: &SE3| p.translation.iter().map(|v| *v as f32).collect::<Vec<f32>>();
+    for kf in &mut kfs {
+        kf.global = Some(position(&kf.world_from_cam));
+    }
+    let far = position(&kfs[59].world_from_cam);
+    let map = Arc::new(Map::build(world.camera, kfs, None, RetrievalKind::Global, 0).expect("valid map"));
+    let mut sequential = Localizer::new(Arc::clone(&map), LocalizerOptions::default()).expect("valid options");
+    let mut single = Localizer::new(map, LocalizerOptions::default()).expect("valid options");
+    let (mut wrong, mut good) = (Vec::new(), Vec::new());
+    for f in 0..40 {
+        let t = 0.3 + f as f64 / 30.0;
+        let truth = walk(t, 0.15);
+        let (keypoints, data) = world.observe(&mut rng, &truth, 3);
+        let misled = f >= 5 && f % 7 == 0;
+        let global = if misled { far.clone() } else { position(&truth) };
+        let frame = Frame {
+            timestamp: t,
+            keypoints: &keypoints,
+            descriptors: Descriptors::Binary { data: &data, width: WIDTH },
+            global: Some(&global),
+            pixel_sigmas: None,
+        };
+        let r = sequential.localize(&frame).expect("valid frame");
+        let error = r.estimate.map_or(f64::INFINITY, |e| (e.world_from_cam.translation - truth.translation).norm());
+        single.reset();
+        let alone = single.localize(&frame).expect("valid frame");
+        if misled {
+            // alone: the far keyframe's group, which sees a corner of the view
+            assert_eq!(alone.keyframe, 59, "frame {f}: the far keyframe is retrieved");
+            assert!(2 * alone.inliers < r.inliers, "frame {f}: {} inliers alone, {} tracked", alone.inliers, r.inliers);
+            assert!(r.keyframe < 20, "frame {f}: tracked through keyframe {}", r.keyframe);
+            assert_eq!(r.source, Source::Fused, "frame {f}: {}", r.reason);
+            assert!(r.reason.contains("tracked through the last frame's keyframe"), "frame {f}: {}", r.reason);
+            wrong.push(error);
+        } else {
+            good.push(error);
+        }
+    }
+    let worst = wrong.iter().copied().fold(0.0, f64::max);
+    eprintln!("misled frames: worst {:.2} mm; others: median {:.2} mm", 1e3 * worst, 1e3 * median(&good));
+    assert_eq!(wrong.len(), 5);
+    assert!(worst < 3.0 * median(&good), "misled frames up to {worst} m, others {} m", median(&good));
+}

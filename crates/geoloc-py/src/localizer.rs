@@ -222,7 +222,8 @@ impl Localization {
         &self.inner.reason
     }
 
-    /// The retrieved keyframe.
+    /// The keyframe whose group gave the geometric pose (the retrieved one, or the last
+    /// frame's when the paper's locator tracked).
     #[getter]
     fn keyframe(&self) -> usize {
         self.inner.keyframe
