@@ -20,23 +20,24 @@ each map's camera estimated from its own keyframes as ``Map.build`` does; NEES =
 frames, a lost frame an infinite error, as the recall counts it — "median" is over the
 localized frames only, so two modes that lose different frames are not compared on the same
 frames there; in sequence the paper's locator also tries the last frame's keyframe group
-when the retrieved one's support collapses, the "tracking" of ``geoloc.Localizer``):
+when the retrieved one's support collapses, the "tracking" of ``geoloc.Localizer``, and the
+motion model has the map's velocity prior):
 
     fold       mode                   median     median, lost=∞  5cm/5°   NEES axis min med NEES  σ_p med  sources
     0-99       single         5.0 cm / 1.21°     7.1 cm / 1.56°     41%    92%      91%      0.9   7.3 cm  geo80 los20
-    0-99       sequential     5.0 cm / 1.25°     5.0 cm / 1.25°     51%    92%      90%      1.0   7.4 cm  fus77 geo4 los2 mot17
+    0-99       sequential     4.5 cm / 1.10°     4.5 cm / 1.13°     56%   100%     100%      0.8   7.3 cm  fus78 geo4 los2 mot16
     100-199    single         4.1 cm / 1.13°     4.2 cm / 1.16°     62%   100%      99%      1.3   6.6 cm  geo97 los3
-    100-199    sequential     4.1 cm / 1.11°     4.1 cm / 1.11°     63%   100%      99%      1.3   6.6 cm  fus98 geo2
+    100-199    sequential     4.0 cm / 1.06°     4.0 cm / 1.06°     67%   100%     100%      1.3   6.6 cm  fus98 geo2
     200-299    single         2.3 cm / 0.84°     2.4 cm / 0.85°     92%   100%      99%      0.4   7.6 cm  geo95 los5
-    200-299    sequential     2.4 cm / 0.85°     2.4 cm / 0.85°     92%    99%      98%      0.4   7.6 cm  fus91 geo3 los3 mot3
+    200-299    sequential     2.3 cm / 0.82°     2.3 cm / 0.85°     94%   100%      99%      0.4   7.6 cm  fus95 geo2 los3
     300-399    single         3.7 cm / 1.44°     3.8 cm / 1.49°     54%    71%      68%      2.6   4.6 cm  geo98 los2
-    300-399    sequential     3.3 cm / 1.44°     3.3 cm / 1.44°     60%    84%      79%      2.6   4.6 cm  fus81 geo3 mot16
+    300-399    sequential     3.4 cm / 1.61°     3.4 cm / 1.61°     57%    71%      69%      2.8   4.6 cm  fus78 geo5 mot17
     400-499    single         4.8 cm / 1.24°     4.8 cm / 1.24°     54%    81%      79%      1.5   6.1 cm  geo100
-    400-499    sequential     4.7 cm / 1.19°     4.7 cm / 1.19°     55%    86%      83%      1.3   6.1 cm  fus82 geo5 mot13
+    400-499    sequential     4.7 cm / 1.16°     4.7 cm / 1.16°     53%    90%      87%      1.3   6.1 cm  fus87 geo3 mot10
     500-599    single         2.3 cm / 0.84°     2.3 cm / 0.84°     89%   100%     100%      0.3   8.1 cm  geo100
-    500-599    sequential     2.1 cm / 0.83°     2.1 cm / 0.83°     92%   100%     100%      0.3   8.1 cm  fus98 geo2
+    500-599    sequential     2.0 cm / 0.83°     2.0 cm / 0.83°     94%   100%     100%      0.3   8.1 cm  fus98 geo2
     600-699    single         7.4 cm / 1.83°     7.4 cm / 1.83°     35%    91%      91%      2.2   6.9 cm  geo100
-    600-699    sequential     6.5 cm / 1.49°     6.5 cm / 1.49°     41%    97%      94%      1.8   6.8 cm  fus98 geo2
+    600-699    sequential     6.3 cm / 1.43°     6.3 cm / 1.43°     43%    97%      94%      1.8   6.8 cm  fus98 geo2
 
 NEES coverage of the single mode by PnP inlier count (the second line the script prints per
 fold; coverage (frames)) — the covariance is too large for well-supported frames, where
@@ -55,19 +56,19 @@ on 300–499 the two visits' disagreeing labels, are not in C_G):
 
     fold       mode                   median     median, lost=∞  5cm/5°   NEES axis min med NEES  σ_p med  sources
     0-99       single         4.0 cm / 1.23°     4.1 cm / 1.28°     62%    87%      91%      1.4   6.2 cm  geo89 los11
-    0-99       sequential     4.1 cm / 1.25°     4.1 cm / 1.25°     62%    77%      79%      1.5   6.2 cm  fus69 geo6 los2 mot23
+    0-99       sequential     4.0 cm / 1.25°     4.0 cm / 1.25°     66%    91%      95%      1.3   6.2 cm  fus80 geo2 mot18
     100-199    single         4.1 cm / 0.96°     4.1 cm / 0.96°     62%    93%      75%      1.3   6.7 cm  geo100
-    100-199    sequential     4.1 cm / 0.96°     4.1 cm / 0.96°     62%    96%      78%      1.3   6.7 cm  fus97 geo2 mot1
+    100-199    sequential     4.1 cm / 0.95°     4.1 cm / 0.95°     63%    96%      77%      1.3   6.7 cm  fus97 geo2 mot1
     200-299    single         2.9 cm / 0.95°     2.9 cm / 0.95°     99%   100%     100%      0.8   7.1 cm  geo100
-    200-299    sequential     2.9 cm / 0.95°     2.9 cm / 0.95°     99%   100%     100%      0.8   7.1 cm  fus98 geo2
+    200-299    sequential     2.9 cm / 0.94°     2.9 cm / 0.94°     99%   100%     100%      0.8   7.1 cm  fus98 geo2
     300-399    single         4.8 cm / 1.81°     4.8 cm / 1.82°     54%    68%      69%      3.6   4.6 cm  geo98 los2
-    300-399    sequential     4.8 cm / 1.80°     4.8 cm / 1.80°     54%    68%      68%      3.4   4.6 cm  fus84 geo4 mot12
+    300-399    sequential     4.8 cm / 1.79°     4.8 cm / 1.79°     55%    67%      67%      3.4   4.6 cm  fus86 geo3 mot11
     400-499    single         4.3 cm / 1.08°     4.3 cm / 1.08°     61%    69%      69%      2.5   5.1 cm  geo100
-    400-499    sequential     4.2 cm / 0.97°     4.2 cm / 0.97°     64%    83%      81%      2.4   5.1 cm  fus78 geo5 mot17
+    400-499    sequential     4.2 cm / 0.98°     4.2 cm / 0.98°     65%    75%      75%      2.5   5.1 cm  fus85 geo3 mot12
     500-599    single         1.2 cm / 0.69°     1.2 cm / 0.69°     94%   100%     100%      0.3   7.6 cm  geo100
     500-599    sequential     1.2 cm / 0.69°     1.2 cm / 0.69°     94%   100%     100%      0.3   7.6 cm  fus98 geo2
     600-699    single         4.8 cm / 1.24°     4.8 cm / 1.24°     54%    99%      94%      1.2   7.2 cm  geo100
-    600-699    sequential     4.8 cm / 1.25°     4.8 cm / 1.25°     53%   100%      94%      1.2   7.2 cm  fus98 geo2
+    600-699    sequential     4.8 cm / 1.26°     4.8 cm / 1.26°     53%   100%      94%      1.2   7.2 cm  fus98 geo2
 
 With the nominal camera (fx = fy = 525, 2026-11-24) the paper's locator had 8.3 / 4.5 / 2.8 /
 5.4 / 4.7 / 3.0 / 6.4 cm and NEES coverage 89/86, 97/99, 100/100, 67/72, 82/89, 99/100,

@@ -72,6 +72,32 @@ def test_motion_process_noise_adds_the_closed_form() -> None:
         geoloc.motion_predict(poses, times, 0.25, covariances=cov, acceleration_psd=q[:5])
 
 
+def test_motion_velocity_prior_is_the_bayesian_linear_fit() -> None:
+    """Translation-only poses along x make the fit linear: (p_r, v) minimize
+    ‖y − A(p_r, v)‖²/σ² + (v − μ)²/s, solved here by numpy's lstsq on the stacked, whitened
+    rows (an independent solve of the same problem); the prediction at t_q is p_r + (t_q − t_r)v."""
+    times = np.array([0.0, 1 / 30, 2 / 30, 3 / 30])
+    x = np.array([0.0, 0.02, 0.01, 0.05])  # noisy positions, m
+    poses = np.stack([np.eye(4)] * 4)
+    poses[:, 0, 3] = x
+    sigma, mu, s = 0.01, np.array([0.3, 0, 0, 0, 0, 0]), np.full(6, 0.01)
+    cov = np.stack([np.eye(6) * sigma**2] * 4)
+    p = geoloc.motion_predict(poses, times, 4 / 30, covariances=cov, velocity_mean=mu, velocity_variance=s)
+    a = np.vstack([np.column_stack([np.ones(4), times - times[-1]]) / sigma, [0.0, 1 / np.sqrt(s[0])]])
+    y = np.concatenate([x / sigma, [mu[0] / np.sqrt(s[0])]])
+    (pr, v), *_ = np.linalg.lstsq(a, y, rcond=None)
+    np.testing.assert_allclose(p.pose[0, 3], pr + v / 30, atol=1e-10)
+    np.testing.assert_allclose(p.velocity[0], v, atol=1e-8)
+    g = np.array([1.0, 1 / 30])
+    np.testing.assert_allclose(p.covariance[0, 0], g @ np.linalg.inv(a.T @ a) @ g, rtol=1e-8)
+    without = geoloc.motion_predict(poses, times, 4 / 30, covariances=cov)
+    assert abs(without.velocity[0] - v) > 0.05  # the prior matters here
+    for kwargs, name in (({"velocity_variance": -s}, "velocity_variance"), ({"velocity_mean": mu[:5]}, "velocity_mean"),
+                         ({"velocity_mean": np.full(6, np.inf), "velocity_variance": s}, "velocity_mean")):
+        with pytest.raises(geoloc.InvalidInputError, match=name):
+            geoloc.motion_predict(poses, times, 0.2, covariances=cov, **kwargs)
+
+
 def test_motion_bad_input() -> None:
     poses = _track(3)
     with pytest.raises(geoloc.InvalidInputError, match=r"timestamps: expected shape \(3,\)"):

@@ -181,6 +181,8 @@ def motion_predict(
     *,
     covariances: NDArray[np.float64] | None = None,
     acceleration_psd: NDArray[np.float64] | None = None,
+    velocity_mean: NDArray[np.float64] | None = None,
+    velocity_variance: NDArray[np.float64] | None = None,
 ) -> MotionPrediction: ...
 def fuse(
     pose_m: NDArray[np.float64],
@@ -272,7 +274,7 @@ class FeatureMap:
     @property
     def model_points(self) -> int | None: ...
     @property
-    def map_noise(self) -> tuple[NDArray[np.float64], list[float], int]: ...
+    def map_noise(self) -> tuple[NDArray[np.float64], list[float], list[float], list[float], int]: ...
     @property
     def map_noise_holdout(
         self,

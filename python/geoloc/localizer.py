@@ -145,11 +145,13 @@ class FeatureMap:
         """What was estimated about the map's noise at build time (all zero when not):
         ``pose_covariance`` C_map (6, 6, right perturbation, translation first; added to every
         returned covariance), ``acceleration_psd`` (6,) of the motion model's process noise,
+        ``velocity_mean`` and ``velocity_variance`` (6,) of its velocity prior (per twist axis,
+        from the keyframes' timestamps and poses; zero in maps saved before it: no prior),
         ``holdout_samples`` (held-out keyframes C_map comes from) and, for a map built in this
         process (not stored in the file), ``holdout``: the held-out re-localizations
         (``keyframe`` (n,), ``delta`` (n, 6) = log(T_label⁻¹T_est), ``covariance`` (n, 6, 6) C_G,
         ``used`` (n,) bool)."""
-        cov, psd, samples = self._map.map_noise
+        cov, psd, velocity_mean, velocity_variance, samples = self._map.map_noise
         keyframes, deltas, covs, used = self._map.map_noise_holdout
         holdout = {
             "keyframe": np.asarray(keyframes, dtype=np.int64),
@@ -160,6 +162,8 @@ class FeatureMap:
         return {
             "pose_covariance": cov,
             "acceleration_psd": np.asarray(psd),
+            "velocity_mean": np.asarray(velocity_mean),
+            "velocity_variance": np.asarray(velocity_variance),
             "holdout_samples": samples,
             "holdout": holdout,
         }

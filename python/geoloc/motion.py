@@ -27,6 +27,8 @@ def motion_predict(
     t_query: float,
     covariances: ArrayLike | None = None,
     acceleration_psd: ArrayLike | None = None,
+    velocity_mean: ArrayLike | None = None,
+    velocity_variance: ArrayLike | None = None,
 ) -> MotionPrediction:
     """Fit T(t) = T_r exp((t − t_r) ξ^) to the last poses (world_from_cam, (m, 4, 4)) at
     ``timestamps`` (seconds; irregular spacing and dropped frames are fine) and predict the
@@ -42,6 +44,12 @@ def motion_predict(
     twist axis (translation first; m²/s³, rad²/s³), as a map estimates it (``map_noise``) —
     adds the process noise Q(τ) = diag(q)(|τ|³/3 + τ²T_w/3) for the horizon τ = t_query −
     latest timestamp and the fit window T_w, so the predicted covariance grows with τ.
+
+    ``velocity_mean`` and ``velocity_variance`` (6,) — per twist axis ((m/s, rad/s) and their
+    squares), as a map estimates them from its keyframes (``map_noise``) — add the velocity
+    prior ξ ~ N(mean, diag(variance)) to the fit: two poses then no longer fix the velocity
+    exactly, so one bad pose does not make a velocity the recording never had. Variance all
+    zero (or not given): no prior.
     """
     flat, lead = as_batch(poses, "poses", (4, 4))
     if len(lead) != 1:
@@ -64,4 +72,13 @@ def motion_predict(
         if q.shape != (6,) or not np.all(np.isfinite(q)) or np.any(q < 0):
             raise InvalidInputError(f"acceleration_psd: expected 6 finite values ≥ 0, got shape {q.shape}")
         q = np.ascontiguousarray(q)
-    return _core.motion_predict(flat, np.ascontiguousarray(t), float(tq), covariances=covs, acceleration_psd=q)
+    prior = {}
+    for name, value in (("velocity_mean", velocity_mean), ("velocity_variance", velocity_variance)):
+        if value is not None:
+            v = as_float64(value, name)
+            if v.shape != (6,):
+                raise InvalidInputError(f"{name}: expected 6 values, got shape {v.shape}")
+            prior[name] = np.ascontiguousarray(v)
+    return _core.motion_predict(
+        flat, np.ascontiguousarray(t), float(tq), covariances=covs, acceleration_psd=q, **prior
+    )

@@ -26,7 +26,7 @@ use crate::keyframes::{KeyframeOptions, select_keyframes};
 use crate::lie::SE3;
 use crate::map::{DescriptorSet, Map, ModelOptions, SceneModel};
 use crate::matching::{Descriptors, MatchOptions, epipolar_filter, match_descriptors};
-use crate::motion::motion_predict_with_noise;
+use crate::motion::{motion_predict_with_noise, motion_predict_with_prior};
 use crate::optim::covariance::{isometric_sigmas, spd_inverse};
 
 mod grid;
@@ -556,7 +556,8 @@ impl Localizer {
     }
 
     /// (d) the constant-velocity prediction T_M, C_M at `timestamp` from the last fused
-    /// poses (None with fewer than two, or when the fit fails).
+    /// poses, with the map's process noise and velocity prior (None with fewer than two
+    /// poses, or when the fit fails).
     fn predict(&self, timestamp: f64) -> Option<Estimate> {
         if self.history.len() < 2 {
             return None;
@@ -564,7 +565,8 @@ impl Localizer {
         let ts: Vec<f64> = self.history.iter().map(|(t, _, _)| *t).collect();
         let poses: Vec<SE3> = self.history.iter().map(|(_, p, _)| *p).collect();
         let covs: Vec<Matrix6<f64>> = self.history.iter().map(|(_, _, c)| *c).collect();
-        motion_predict_with_noise(&poses, &ts, timestamp, Some(&covs), &self.map.noise.acceleration_psd)
+        let noise = &self.map.noise;
+        motion_predict_with_prior(&poses, &ts, timestamp, Some(&covs), &noise.acceleration_psd, &noise.velocity_prior)
             .ok()
             .map(|p| Estimate { world_from_cam: p.world_from_cam, covariance: p.covariance })
     }
@@ -663,6 +665,7 @@ impl Localizer {
         let ts: Vec<f64> = earlier.iter().map(|(t, _)| *t).collect();
         let poses: Vec<SE3> = earlier.iter().map(|(_, e)| e.world_from_cam).collect();
         let covs: Vec<Matrix6<f64>> = earlier.iter().map(|(_, e)| e.covariance).collect();
+        // no velocity prior here: the question is whether the run agrees with itself
         let q = &self.map.noise.acceleration_psd;
         let p = motion_predict_with_noise(&poses, &ts, t_last, Some(&covs), q).ok()?;
         let e = (p.world_from_cam.inverse() * last.world_from_cam).log();

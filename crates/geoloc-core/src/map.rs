@@ -22,6 +22,7 @@ use crate::error::{GeolocError, Result};
 use crate::lie::SE3;
 pub use crate::matching::DescriptorSet;
 use crate::matching::Descriptors;
+use crate::motion::VelocityPrior;
 use crate::retrieval::DescriptorIndex;
 use crate::selfcal::{IntrinsicsCorrection, SelfCalibration, SelfCalibrationOptions, TrackObservation, self_calibrate};
 use crate::triangulate::TriangulationOptions;
@@ -84,6 +85,9 @@ pub struct MapNoise {
     /// q: power spectral density of the white body acceleration per twist axis
     /// ((m/s²)²·s, (rad/s²)²·s), from the keyframes' timestamps and poses; 0 = none.
     pub acceleration_psd: Vector6<f64>,
+    /// The motion model's velocity prior: mean and variance of the body velocity per twist
+    /// axis, from the keyframes' timestamps and poses; none (all zero) in maps saved before it.
+    pub velocity_prior: VelocityPrior,
     /// Held-out keyframes placed within the gross-failure bounds (C_map's samples; fewer than
     /// 12 leave C_map zero).
     pub holdout_samples: usize,

@@ -16,6 +16,15 @@
 //! * without them (the paper's way) each axis' noise variance is estimated from the fit
 //!   residuals, σ_a² = Σᵢ eᵢ,ₐ² / (m − 2) (m poses, 2 parameters per axis), and
 //!   Σ = (Jᵀ diag(1/σ²) J)⁻¹; this needs m ≥ 3.
+//!
+//! With a velocity prior ξ ~ N(μ_v, Σ_v) ([`motion_predict_with_prior`]; μ_v and Σ_v =
+//! diag of the mean and variance of the training trajectory's body velocity,
+//! [`estimate_velocity_prior`]) the fit minimizes Σ eᵢᵀWᵢeᵢ + (ξ − μ_v)ᵀΣ_v⁻¹(ξ − μ_v): H
+//! gains Σ_v⁻¹ in the velocity block, the χ² check gains its 6 dof. Two poses determine ξ
+//! exactly and carry no check, so one pose 15 cm off made a 3.6 m/s velocity and a
+//! prediction 30 cm off (7-Scenes 200–299); the prior weighs such a velocity against how
+//! the camera was carried when the map was recorded (a robot that drives forward keeps its
+//! mean: a zero-mean prior would pull every estimate towards standing still).
 
 use nalgebra::{Matrix6, SMatrix, SVector, Vector6};
 
@@ -49,6 +58,40 @@ const MIN_RESIDUAL_VARIANCE: f64 = 1e-8;
 /// it, τξ overflows the exponential map's accuracy (and 1e300 overflows it outright).
 pub const MAX_TIME_SPAN_S: f64 = 1e9;
 
+/// The velocity prior ξ ~ N(mean, diag(variance)) of the motion fit (per twist axis,
+/// translation first; m/s and rad/s). All-zero variance: no prior.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct VelocityPrior {
+    /// μ_v, the mean body velocity.
+    pub mean: Vector6<f64>,
+    /// diag(Σ_v), the variance of the body velocity per axis.
+    pub variance: Vector6<f64>,
+}
+
+impl VelocityPrior {
+    /// No prior (the variance all zero).
+    pub fn is_none(&self) -> bool {
+        self.variance == Vector6::zeros()
+    }
+
+    /// Checks the values: finite, the variance > 0 on every axis or 0 on all (no prior).
+    ///
+    /// # Errors
+    /// `InvalidInput` naming `velocity_mean` or `velocity_variance`.
+    pub fn check(&self) -> Result<()> {
+        if self.mean.iter().any(|v| !v.is_finite()) {
+            return Err(GeolocError::invalid("velocity_mean", "must be finite"));
+        }
+        if !self.is_none() && self.variance.iter().any(|v| !(v.is_finite() && *v > 0.0)) {
+            return Err(GeolocError::invalid(
+                "velocity_variance",
+                "must be finite and > 0 on every axis (all 0: no prior)",
+            ));
+        }
+        Ok(())
+    }
+}
+
 /// Fits the model to `poses` at `timestamps` and predicts at `t_query`; see the module doc.
 ///
 /// # Errors
@@ -61,10 +104,21 @@ pub fn motion_predict(
     t_query: f64,
     covariances: Option<&[Matrix6<f64>]>,
 ) -> Result<MotionPrediction> {
+    fit_and_predict(poses, timestamps, t_query, covariances, None)
+}
+
+/// The fit of [`motion_predict`], with the velocity prior (μ_v, Σ_v⁻¹) if any.
+fn fit_and_predict(
+    poses: &[SE3],
+    timestamps: &[f64],
+    t_query: f64,
+    covariances: Option<&[Matrix6<f64>]>,
+    velocity_information: Option<(Vector6<f64>, Matrix6<f64>)>,
+) -> Result<MotionPrediction> {
     let weights = validate(poses, timestamps, t_query, covariances)?;
     let m = poses.len();
     let latest = (0..m).max_by(|&a, &b| timestamps[a].total_cmp(&timestamps[b])).expect("invariant: m ≥ 2");
-    let mut fit = Fit { poses, timestamps, t_ref: timestamps[latest], weights };
+    let mut fit = Fit { poses, timestamps, t_ref: timestamps[latest], weights, velocity_information };
     let mut state = (poses[latest], initial_velocity(poses, timestamps, latest));
     let options = LmOptions::gauss_newton(MAX_ITERATIONS, STEP_TOLERANCE);
     let (mut next, mut report, mut at_fit) = solve(&fit, state, &options);
@@ -80,7 +134,7 @@ pub fn motion_predict(
     // With given covariances, a fit much worse than they allow means the motion is not
     // constant-velocity: scale Σ by the variance factor χ²/dof when χ² exceeds its 99 %
     // quantile (rarely triggered by noise alone, so a consistent model stays calibrated).
-    let dof = 6 * m - 12;
+    let dof = 6 * m - 12 + if velocity_information.is_some() { 6 } else { 0 };
     if covariances.is_some() && dof > 0 && at_fit.cost > chi2_quantile_99(dof) {
         sigma *= at_fit.cost / dof as f64;
     }
@@ -129,10 +183,29 @@ pub fn motion_predict_with_noise(
     covariances: Option<&[Matrix6<f64>]>,
     acceleration_psd: &Vector6<f64>,
 ) -> Result<MotionPrediction> {
+    motion_predict_with_prior(poses, timestamps, t_query, covariances, acceleration_psd, &VelocityPrior::default())
+}
+
+/// [`motion_predict_with_noise`] with the velocity prior ξ ~ N(μ_v, Σ_v) (see the module doc;
+/// [`VelocityPrior::is_none`]: none).
+///
+/// # Errors
+/// As [`motion_predict_with_noise`]; a prior refused by [`VelocityPrior::check`].
+pub fn motion_predict_with_prior(
+    poses: &[SE3],
+    timestamps: &[f64],
+    t_query: f64,
+    covariances: Option<&[Matrix6<f64>]>,
+    acceleration_psd: &Vector6<f64>,
+    prior: &VelocityPrior,
+) -> Result<MotionPrediction> {
     if acceleration_psd.iter().any(|q| !(q.is_finite() && *q >= 0.0)) {
         return Err(GeolocError::invalid("acceleration_psd", "must be finite and ≥ 0"));
     }
-    let mut p = motion_predict(poses, timestamps, t_query, covariances)?;
+    prior.check()?;
+    let information =
+        (!prior.is_none()).then(|| (prior.mean, Matrix6::from_diagonal(&prior.variance.map(|v| 1.0 / v))));
+    let mut p = fit_and_predict(poses, timestamps, t_query, covariances, information)?;
     let first = timestamps.iter().copied().fold(f64::INFINITY, f64::min);
     let latest = timestamps.iter().copied().fold(f64::NEG_INFINITY, f64::max);
     p.covariance += process_noise(acceleration_psd, t_query - latest, latest - first);
@@ -158,18 +231,7 @@ const MAX_STEP_S: f64 = 1.0;
 /// Mismatched lengths, non-finite or non-increasing timestamps, fewer than 3 poses (or no
 /// usable triple).
 pub fn estimate_acceleration_psd(poses: &[SE3], timestamps: &[f64]) -> Result<Vector6<f64>> {
-    if poses.len() != timestamps.len() {
-        return Err(GeolocError::invalid(
-            "timestamps",
-            format!("has {} entries for {} poses", timestamps.len(), poses.len()),
-        ));
-    }
-    if let Some(i) = timestamps.iter().position(|t| !t.is_finite()) {
-        return Err(GeolocError::NonFinite { name: "timestamps".into(), index: i });
-    }
-    if timestamps.windows(2).any(|w| w[1] <= w[0]) {
-        return Err(GeolocError::invalid("timestamps", "must increase"));
-    }
+    check_trajectory(poses, timestamps)?;
     let velocity = |i: usize| (poses[i - 1].inverse() * poses[i]).log() / (timestamps[i] - timestamps[i - 1]);
     let mut samples: Vec<Vector6<f64>> = Vec::new();
     for i in 1..poses.len().saturating_sub(1) {
@@ -190,6 +252,53 @@ pub fn estimate_acceleration_psd(poses: &[SE3], timestamps: &[f64]) -> Result<Ve
         let median = if n % 2 == 1 { v[n / 2] } else { 0.5 * (v[n / 2 - 1] + v[n / 2]) };
         median / CHI2_1_MEDIAN
     }))
+}
+
+/// Estimates the velocity prior ([`VelocityPrior`]) from a trajectory (poses world_from_cam at
+/// increasing `timestamps`, e.g. a map's training frames): the mean and the variance per twist
+/// axis of the body velocities over consecutive steps, vᵢ = log(Tᵢ₋₁⁻¹Tᵢ)^∨/Δtᵢ. The plain
+/// mean and variance, not robust ones: the prior must allow the fastest motion the recording
+/// has (pose-label jitter widens it, the conservative side). Steps longer than 1 s are breaks
+/// and skipped. A trajectory without variation on some axis (a variance below 10⁻¹² of the
+/// axis' mean square, i.e. rounding) gives no prior.
+///
+/// # Errors
+/// Mismatched lengths, non-finite or non-increasing timestamps, no step of at most 1 s.
+pub fn estimate_velocity_prior(poses: &[SE3], timestamps: &[f64]) -> Result<VelocityPrior> {
+    check_trajectory(poses, timestamps)?;
+    let velocities: Vec<Vector6<f64>> = (1..poses.len())
+        .filter(|&i| timestamps[i] - timestamps[i - 1] <= MAX_STEP_S)
+        .map(|i| (poses[i - 1].inverse() * poses[i]).log() / (timestamps[i] - timestamps[i - 1]))
+        .collect();
+    if velocities.is_empty() {
+        return Err(GeolocError::invalid("poses", "need at least 2 poses with a step ≤ 1 s"));
+    }
+    let n = velocities.len() as f64;
+    let mean = velocities.iter().sum::<Vector6<f64>>() / n;
+    let variance = velocities.iter().map(|v| (v - mean).component_mul(&(v - mean))).sum::<Vector6<f64>>() / n;
+    // no variation on an axis (below rounding of its mean square): no prior
+    if variance.iter().zip(mean.iter()).any(|(v, m)| v.is_nan() || *v <= 1e-12 * (v + m * m)) {
+        return Ok(VelocityPrior::default());
+    }
+    Ok(VelocityPrior { mean, variance })
+}
+
+/// The input checks of the trajectory estimators: as many timestamps as poses, finite and
+/// increasing.
+fn check_trajectory(poses: &[SE3], timestamps: &[f64]) -> Result<()> {
+    if poses.len() != timestamps.len() {
+        return Err(GeolocError::invalid(
+            "timestamps",
+            format!("has {} entries for {} poses", timestamps.len(), poses.len()),
+        ));
+    }
+    if let Some(i) = timestamps.iter().position(|t| !t.is_finite()) {
+        return Err(GeolocError::NonFinite { name: "timestamps".into(), index: i });
+    }
+    if timestamps.windows(2).any(|w| w[1] <= w[0]) {
+        return Err(GeolocError::invalid("timestamps", "must increase"));
+    }
+    Ok(())
 }
 
 /// Smallest time between two poses of a fit (1 ns): closer timestamps make the velocity's
@@ -293,6 +402,8 @@ struct Fit<'a> {
     timestamps: &'a [f64],
     t_ref: f64,
     weights: Vec<Matrix6<f64>>,
+    /// (μ_v, Σ_v⁻¹) of the velocity prior, if any.
+    velocity_information: Option<(Vector6<f64>, Matrix6<f64>)>,
 }
 
 impl Fit<'_> {
@@ -328,6 +439,16 @@ impl LeastSquares<12> for Fit<'_> {
             h += j.transpose() * w * j;
             g += j.transpose() * (w * e);
             cost += e.dot(&(w * e));
+        }
+        if let Some((mean, info)) = &self.velocity_information {
+            // the prior's residual ξ − μ_v with weight Σ_v⁻¹ (∂/∂ε = I)
+            let r = velocity - mean;
+            let gv = info * r;
+            let mut hv = h.fixed_view_mut::<6, 6>(6, 6);
+            hv += info;
+            let mut g_velocity = g.fixed_rows_mut::<6>(6);
+            g_velocity += gv;
+            cost += r.dot(&gv);
         }
         (h, g, cost)
     }
@@ -484,7 +605,13 @@ mod tests {
         let times = [0.0, 0.1, 0.25, 0.3];
         let reference = rng.pose(2.0);
         let v = rng.twist(0.7, 0.5);
-        let fit = Fit { poses: &poses, timestamps: &times, t_ref: 0.3, weights: vec![Matrix6::identity(); 4] };
+        let fit = Fit {
+            poses: &poses,
+            timestamps: &times,
+            t_ref: 0.3,
+            weights: vec![Matrix6::identity(); 4],
+            velocity_information: None,
+        };
         let (h, _, _) = fit.normal_equations(&(reference, v));
         // numeric J stacked over the 4 residuals
         let h_step = 1e-6;
@@ -590,5 +717,94 @@ mod tests {
         assert!(motion_predict(&poses, &[0.0, 0.1, 0.2], f64::INFINITY, None).is_err());
         let bad = vec![Matrix6::zeros(); 3];
         assert!(motion_predict(&poses, &[0.0, 0.1, 0.2], 0.3, Some(&bad)).is_err());
+    }
+
+    /// The prior against the closed form of the linear problem it becomes for a pure
+    /// translation along x (the twist of a rotation-free pose is its translation): two poses
+    /// p₁ = 0 at t = 0 and p₂ = 0.1 m at t_r = 0.1 s, σ = 1 cm, prior v ~ N(μ, s) on every
+    /// axis: minimize ((p₁ − p_r + 0.1v)² + (p₂ − p_r)²)/σ² + (v − μ)²/s over (p_r, v) by its
+    /// 2×2 normal equations; T_M at 0.2 s is p_r + 0.1v, its variance [1 0.1] H⁻¹ [1 0.1]ᵀ.
+    #[test]
+    fn velocity_prior_matches_the_linear_closed_form() {
+        let sigma: f64 = 0.01;
+        let at = |x: f64| SE3::new(SO3::identity(), Vector3::new(x, 0.0, 0.0));
+        let poses = [at(0.0), at(0.1)];
+        let covs = [Matrix6::identity() * sigma * sigma; 2];
+        let w = 1.0 / (sigma * sigma);
+        for (mu, s) in [(0.0, 0.09), (0.5, 0.09), (-0.2, 0.3)] {
+            let mut mean = Vector6::zeros();
+            mean[0] = mu;
+            let prior = VelocityPrior { mean, variance: Vector6::repeat(s) };
+            let p = motion_predict_with_prior(&poses, &[0.0, 0.1], 0.2, Some(&covs), &Vector6::zeros(), &prior)
+                .expect("valid");
+            // A = [[1, −0.1], [1, 0]] for (p_r, v), y = (p₁, p₂) = (0, 0.1); prior rows on v
+            let (h11, h12, h22) = (2.0 * w, -0.1 * w, 0.01 * w + 1.0 / s);
+            let (b1, b2) = (w * 0.1, mu / s);
+            let det = h11 * h22 - h12 * h12;
+            let (pr, v) = ((h22 * b1 - h12 * b2) / det, (h11 * b2 - h12 * b1) / det);
+            let expected = pr + 0.1 * v;
+            let x = p.world_from_cam.translation.x;
+            assert!((x - expected).abs() < 1e-10, "μ {mu}: {x} vs {expected}");
+            assert!(p.world_from_cam.translation.yz().norm() < 1e-12);
+            assert!(v > 0.3 && v < 0.95, "v = {v}"); // pulled from the data's 1 m/s towards μ
+            let var = (h22 - 0.2 * h12 + 0.01 * h11) / det; // [1 0.1] H⁻¹ [1 0.1]ᵀ
+            assert!((p.covariance[(0, 0)] - var).abs() < 1e-10, "μ {mu}: {} vs {var}", p.covariance[(0, 0)]);
+        }
+        // a prior far wider than the motion changes nothing; none is none
+        let none = motion_predict(&poses, &[0.0, 0.1], 0.2, Some(&covs)).expect("valid");
+        for prior in
+            [VelocityPrior { mean: Vector6::repeat(0.3), variance: Vector6::repeat(1e14) }, VelocityPrior::default()]
+        {
+            let p = motion_predict_with_prior(&poses, &[0.0, 0.1], 0.2, Some(&covs), &Vector6::zeros(), &prior)
+                .expect("valid");
+            assert!((p.world_from_cam.translation - none.world_from_cam.translation).norm() < 1e-9);
+            assert!((p.covariance - none.covariance).abs().max() < 1e-9);
+        }
+    }
+
+    /// Body velocities alternating v + d and v − d: mean v, variance d² on every axis; a step
+    /// over 1 s (a break in the recording) is skipped; a constant velocity has no variation,
+    /// so no prior; bad priors are refused by name.
+    #[test]
+    fn velocity_prior_of_a_trajectory() {
+        let v = Vector6::new(0.3, -0.1, 0.2, 0.2, 0.1, -0.3);
+        let d = Vector6::new(0.05, 0.02, 0.04, 0.03, 0.01, 0.06);
+        // 30 steps, a 5 s break, 30 steps: 30 of each sign
+        let mut times: Vec<f64> = (0..31).map(|i| i as f64 / 30.0).collect();
+        times.extend((0..31).map(|i| 6.0 + i as f64 / 30.0));
+        let mut poses = vec![SE3::identity()];
+        for i in 1..times.len() {
+            let dt = times[i] - times[i - 1];
+            let step = if dt > 1.0 {
+                Vector6::repeat(0.7)
+            } else if i % 2 == 0 {
+                v + d
+            } else {
+                v - d
+            };
+            poses.push(poses[i - 1] * SE3::exp(&(step * dt.min(1.0))));
+        }
+        let prior = estimate_velocity_prior(&poses, &times).expect("valid");
+        assert!((prior.mean - v).abs().max() < 1e-9, "{:?}", prior.mean);
+        assert!((prior.variance - d.component_mul(&d)).abs().max() < 1e-9, "{:?}", prior.variance);
+        let constant = trajectory(&SE3::identity(), &v, &times[..30]);
+        assert!(estimate_velocity_prior(&constant, &times[..30]).expect("valid").is_none());
+        assert!(estimate_velocity_prior(&poses[..1], &times[..1]).is_err());
+        let two = [SE3::identity(), SE3::identity()];
+        let err = estimate_velocity_prior(&two, &[0.0, 5.0]).expect_err("only a break");
+        assert!(err.to_string().contains("poses"), "{err}");
+        let covs = [Matrix6::identity() * 1e-4; 2];
+        let bad = [
+            (Vector6::zeros(), Vector6::new(0.1, 0.0, 0.1, 0.1, 0.1, 0.1), "velocity_variance"),
+            (Vector6::zeros(), Vector6::repeat(f64::NAN), "velocity_variance"),
+            (Vector6::zeros(), Vector6::repeat(-1.0), "velocity_variance"),
+            (Vector6::repeat(f64::INFINITY), Vector6::repeat(0.1), "velocity_mean"),
+        ];
+        for (mean, variance, name) in bad {
+            let prior = VelocityPrior { mean, variance };
+            let err = motion_predict_with_prior(&two, &[0.0, 0.1], 0.2, Some(&covs), &Vector6::zeros(), &prior)
+                .expect_err("refused");
+            assert!(err.to_string().contains(name), "{err}");
+        }
     }
 }

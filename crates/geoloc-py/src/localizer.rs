@@ -148,11 +148,18 @@ impl FeatureMap {
         self.inner.model.as_ref().map(|m| m.len())
     }
 
-    /// The noise estimated at build time: (C_map (6, 6), acceleration PSD (6,), held-out samples).
+    /// The noise estimated at build time: (C_map (6, 6), acceleration PSD (6,), velocity
+    /// prior mean (6,) and variance (6,), held-out samples).
     #[getter]
-    fn map_noise<'py>(&self, py: Python<'py>) -> PyResult<(Bound<'py, PyArray2<f64>>, Vec<f64>, usize)> {
+    #[allow(clippy::type_complexity)]
+    fn map_noise<'py>(
+        &self,
+        py: Python<'py>,
+    ) -> PyResult<(Bound<'py, PyArray2<f64>>, Vec<f64>, Vec<f64>, Vec<f64>, usize)> {
         let n = &self.inner.noise;
-        Ok((square(py, &n.pose_covariance)?, n.acceleration_psd.iter().copied().collect(), n.holdout_samples))
+        let list = |v: &nalgebra::Vector6<f64>| v.iter().copied().collect();
+        let (mean, variance) = (list(&n.velocity_prior.mean), list(&n.velocity_prior.variance));
+        Ok((square(py, &n.pose_covariance)?, list(&n.acceleration_psd), mean, variance, n.holdout_samples))
     }
 
     /// The build's held-out re-localizations: (keyframes, δ (n, 6), C_G (n, 6, 6), used).

@@ -2,7 +2,7 @@
 
 use geoloc_core::fusion::{Gate, fuse as core_fuse};
 use geoloc_core::keyframes::{KeyframeOptions, keyframe_score as core_score, select_keyframes as core_select};
-use geoloc_core::motion::motion_predict_with_noise as core_motion_predict;
+use geoloc_core::motion::{VelocityPrior, motion_predict_with_prior as core_motion_predict};
 use nalgebra::Vector6;
 use numpy::{IntoPyArray, PyArray1, PyArray2, PyReadonlyArray1, PyReadonlyArray2};
 use pyo3::prelude::*;
@@ -137,9 +137,11 @@ pose_estimate_methods!(FusionResult {
 });
 
 /// Constant-velocity prediction at `t_query`, plus the process noise of white body
-/// acceleration of PSD `acceleration_psd` (6,) (zero: none).
+/// acceleration of PSD `acceleration_psd` (6,) (zero: none), with the velocity prior
+/// N(`velocity_mean`, diag(`velocity_variance`)) (each (6,); variance zero: none).
 #[pyfunction]
-#[pyo3(signature = (poses_wc, timestamps, t_query, *, covariances=None, acceleration_psd=None))]
+#[pyo3(signature = (poses_wc, timestamps, t_query, *, covariances=None, acceleration_psd=None, velocity_mean=None, velocity_variance=None))]
+#[allow(clippy::too_many_arguments)]
 pub fn motion_predict(
     py: Python<'_>,
     poses_wc: PyReadonlyArray2<'_, f64>,
@@ -147,18 +149,25 @@ pub fn motion_predict(
     t_query: f64,
     covariances: Option<PyReadonlyArray2<'_, f64>>,
     acceleration_psd: Option<PyReadonlyArray1<'_, f64>>,
+    velocity_mean: Option<PyReadonlyArray1<'_, f64>>,
+    velocity_variance: Option<PyReadonlyArray1<'_, f64>>,
 ) -> PyResult<MotionPrediction> {
     let p = poses("poses", &poses_wc)?;
     let t = timestamps.as_slice().map_err(|_| invalid("timestamps", "must be contiguous"))?;
     let c = covariances.as_ref().map(|c| matrices::<6, 6, 36>("covariances", c)).transpose()?;
-    let q = match &acceleration_psd {
-        Some(q) => match q.as_slice() {
-            Ok(s) if s.len() == 6 => Vector6::from_column_slice(s),
-            _ => return Err(invalid("acceleration_psd", "must be 6 contiguous values")),
+    let six = |name: &str, v: &Option<PyReadonlyArray1<'_, f64>>| match v {
+        Some(v) => match v.as_slice() {
+            Ok(s) if s.len() == 6 => Ok(Vector6::from_column_slice(s)),
+            _ => Err(invalid(name, "must be 6 contiguous values")),
         },
-        None => Vector6::zeros(),
+        None => Ok(Vector6::zeros()),
     };
-    let inner = py.detach(|| core_motion_predict(&p, t, t_query, c.as_deref(), &q)).map_err(to_py_err)?;
+    let q = six("acceleration_psd", &acceleration_psd)?;
+    let prior = VelocityPrior {
+        mean: six("velocity_mean", &velocity_mean)?,
+        variance: six("velocity_variance", &velocity_variance)?,
+    };
+    let inner = py.detach(|| core_motion_predict(&p, t, t_query, c.as_deref(), &q, &prior)).map_err(to_py_err)?;
     Ok(MotionPrediction { inner })
 }
 

@@ -40,7 +40,7 @@ use crate::error::{GeolocError, Result};
 use crate::keyframes::select_keyframes;
 use crate::lie::SE3;
 use crate::map::{HoldoutSample, Map, MapNoise};
-use crate::motion::estimate_acceleration_psd;
+use crate::motion::{VelocityPrior, estimate_acceleration_psd, estimate_velocity_prior};
 
 /// Fewest held-out samples for a C_map estimate (below: zero; `holdout_samples` says how many there were).
 const MIN_SAMPLES: usize = 12;
@@ -95,15 +95,18 @@ impl Map {
         if options.block == 0 {
             return Err(GeolocError::invalid("block", "must be ≥ 1"));
         }
-        let acceleration_psd = match timestamps {
+        let (acceleration_psd, velocity_prior) = match timestamps {
             Some(t) if t.len() != self.keyframes.len() => {
                 return Err(GeolocError::invalid(
                     "timestamps",
                     format!("has {} entries for {} keyframes", t.len(), self.keyframes.len()),
                 ));
             }
-            Some(t) if t.len() >= 3 => estimate_acceleration_psd(&self.poses(), t)?,
-            _ => Vector6::zeros(),
+            Some(t) if t.len() >= 3 => {
+                let poses = self.poses();
+                (estimate_acceleration_psd(&poses, t)?, estimate_velocity_prior(&poses, t)?)
+            }
+            _ => (Vector6::zeros(), VelocityPrior::default()),
         };
         let map = Arc::new(self);
         let samples = {
@@ -120,7 +123,7 @@ impl Map {
             sample.used = used;
         }
         let holdout_samples = holdout.len();
-        map.noise = MapNoise { pose_covariance, acceleration_psd, holdout_samples, holdout };
+        map.noise = MapNoise { pose_covariance, acceleration_psd, velocity_prior, holdout_samples, holdout };
         Ok(map)
     }
 }

@@ -41,6 +41,7 @@ use crate::camera::{Camera, Distortion};
 use crate::error::{GeolocError, Result};
 use crate::lie::SE3;
 use crate::matching::DescriptorSet;
+use crate::motion::VelocityPrior;
 use crate::retrieval::DescriptorIndex;
 use crate::selfcal::{IntrinsicsCorrection, SelfCalibration};
 
@@ -208,6 +209,13 @@ pub struct NoiseHeader {
     pub pose_covariance: Vec<f64>,
     /// Acceleration power spectral density per twist axis.
     pub acceleration_psd: Vec<f64>,
+    /// Mean body velocity per twist axis, the velocity prior's (6 values; absent in files
+    /// saved before it, and when there is no prior).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub velocity_mean: Vec<f64>,
+    /// Variance of the body velocity per twist axis (6 values; absent as `velocity_mean`).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub velocity_variance: Vec<f64>,
     /// Held-out keyframes C_map was estimated from.
     pub holdout_samples: usize,
 }
@@ -217,6 +225,8 @@ impl NoiseHeader {
         (*n != MapNoise::default()).then(|| Self {
             pose_covariance: n.pose_covariance.transpose().iter().copied().collect(),
             acceleration_psd: n.acceleration_psd.iter().copied().collect(),
+            velocity_mean: six_or_none(&n.velocity_prior, &n.velocity_prior.mean),
+            velocity_variance: six_or_none(&n.velocity_prior, &n.velocity_prior.variance),
             holdout_samples: n.holdout_samples,
         })
     }
@@ -232,8 +242,32 @@ impl NoiseHeader {
         if q.iter().any(|v| !(v.is_finite() && *v >= 0.0)) {
             return Err(format_error("map_noise.acceleration_psd: must be finite and ≥ 0"));
         }
-        Ok(MapNoise { pose_covariance: c, acceleration_psd: q, holdout_samples: self.holdout_samples, holdout: vec![] })
+        let velocity_prior = match (self.velocity_mean.len(), self.velocity_variance.len()) {
+            (0, 0) => VelocityPrior::default(),
+            (6, 6) => VelocityPrior {
+                mean: Vector6::from_column_slice(&self.velocity_mean),
+                variance: Vector6::from_column_slice(&self.velocity_variance),
+            },
+            (m, v) => {
+                return Err(format_error(format!(
+                    "map_noise: expected 6 velocity_mean and 6 velocity_variance values, got {m} and {v}"
+                )));
+            }
+        };
+        velocity_prior.check().map_err(|e| format_error(format!("map_noise.{e}")))?;
+        Ok(MapNoise {
+            pose_covariance: c,
+            acceleration_psd: q,
+            velocity_prior,
+            holdout_samples: self.holdout_samples,
+            holdout: vec![],
+        })
     }
+}
+
+/// The values of a prior's `part`, or none when there is no prior.
+fn six_or_none(prior: &VelocityPrior, part: &Vector6<f64>) -> Vec<f64> {
+    if prior.is_none() { Vec::new() } else { part.iter().copied().collect() }
 }
 
 fn format_error(reason: impl Into<String>) -> GeolocError {
@@ -802,6 +836,10 @@ mod tests {
         original.noise = MapNoise {
             pose_covariance: a,
             acceleration_psd: Vector6::repeat(0.25),
+            velocity_prior: VelocityPrior {
+                mean: Vector6::new(0.01, -0.02, 0.03, -0.04, 0.05, -0.06),
+                variance: Vector6::new(0.04, 0.05, 0.06, 0.07, 0.08, 0.09),
+            },
             holdout_samples: 57,
             holdout: vec![],
         };
@@ -812,6 +850,22 @@ mod tests {
         let mut bad = file.clone();
         bad.header = bad.header.replace("0.25", "-0.25");
         assert!(Map::from_map_file(&bad).expect_err("negative q").to_string().contains("acceleration_psd"));
+        let mut bad = file.clone();
+        bad.header = bad.header.replace("0.07", "-0.07");
+        assert!(Map::from_map_file(&bad).expect_err("negative variance").to_string().contains("velocity_variance"));
+        let mut bad = file.clone();
+        bad.header = bad.header.replace(r#""velocity_mean":[0.01,"#, r#""velocity_mean":["#);
+        assert!(Map::from_map_file(&bad).expect_err("5 values").to_string().contains("velocity_mean"));
+        // a file saved before the velocity prior: the keys are absent, the prior is none
+        let mut old_noise = file.clone();
+        old_noise.header = old_noise
+            .header
+            .replace(r#""velocity_mean":[0.01,-0.02,0.03,-0.04,0.05,-0.06],"#, "")
+            .replace(r#""velocity_variance":[0.04,0.05,0.06,0.07,0.08,0.09],"#, "");
+        assert!(!old_noise.header.contains("velocity_"), "{}", old_noise.header);
+        let (back, _) = Map::from_map_file(&old_noise).expect("valid");
+        assert!(back.noise.velocity_prior.is_none());
+        assert_eq!(back.noise.acceleration_psd, original.noise.acceleration_psd);
     }
 
     /// A stored model comes back exactly (re-saved bytes identical); a map without one
