@@ -232,7 +232,7 @@ const MAX_STEP_S: f64 = 1.0;
 /// usable triple).
 pub fn estimate_acceleration_psd(poses: &[SE3], timestamps: &[f64]) -> Result<Vector6<f64>> {
     check_trajectory(poses, timestamps)?;
-    let velocity = |i: usize| (poses[i - 1].inverse() * poses[i]).log() / (timestamps[i] - timestamps[i - 1]);
+    let velocity = |i: usize| step_velocity(poses, timestamps, i);
     let mut samples: Vec<Vector6<f64>> = Vec::new();
     for i in 1..poses.len().saturating_sub(1) {
         let (a, b) = (timestamps[i] - timestamps[i - 1], timestamps[i + 1] - timestamps[i]);
@@ -268,7 +268,7 @@ pub fn estimate_velocity_prior(poses: &[SE3], timestamps: &[f64]) -> Result<Velo
     check_trajectory(poses, timestamps)?;
     let velocities: Vec<Vector6<f64>> = (1..poses.len())
         .filter(|&i| timestamps[i] - timestamps[i - 1] <= MAX_STEP_S)
-        .map(|i| (poses[i - 1].inverse() * poses[i]).log() / (timestamps[i] - timestamps[i - 1]))
+        .map(|i| step_velocity(poses, timestamps, i))
         .collect();
     if velocities.is_empty() {
         return Err(GeolocError::invalid("poses", "need at least 2 poses with a step ≤ 1 s"));
@@ -281,6 +281,12 @@ pub fn estimate_velocity_prior(poses: &[SE3], timestamps: &[f64]) -> Result<Velo
         return Ok(VelocityPrior::default());
     }
     Ok(VelocityPrior { mean, variance })
+}
+
+/// The mean body velocity over step i of a trajectory: vᵢ = log(Tᵢ₋₁⁻¹Tᵢ)^∨/Δtᵢ (twist per
+/// second, translation first).
+fn step_velocity(poses: &[SE3], timestamps: &[f64], i: usize) -> Twist {
+    (poses[i - 1].inverse() * poses[i]).log() / (timestamps[i] - timestamps[i - 1])
 }
 
 /// The input checks of the trajectory estimators: as many timestamps as poses, finite and
