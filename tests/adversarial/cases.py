@@ -408,7 +408,8 @@ def temporal_specs() -> list[Spec]:
     return [
         Spec("motion", "geoloc.motion_predict",
              {"poses": a(_track(4)), "timestamps": a(np.array([0.0, 0.1, 0.2, 0.3])), "t_query": ("float", 0.4),
-              "covariances": a(np.repeat(COV6[None], 4, axis=0)), "acceleration_psd": a(np.full(6, 0.1))},
+              "covariances": a(np.repeat(COV6[None], 4, axis=0)), "acceleration_psd": a(np.full(6, 0.1)),
+              "velocity_mean": a(np.array([0.1, 0.0, -0.1, 0.0, 0.2, 0.0])), "velocity_variance": a(np.full(6, 0.05))},
              ("poses", "timestamps", "t_query"), "motion",
              aliases={"poses": ["timestamps", "covariances"], "timestamps": ["poses", "t_query"],
                       "t_query": ["timestamps"], "covariances": ["poses"]}),

@@ -45,6 +45,20 @@ def test_motion_predict_refuses_a_fit_swamped_by_rounding() -> None:
         geoloc.motion_predict(poses, np.array([0.0, 0.1, 0.2, 0.3]), 0.4, covariances=covs, acceleration_psd=np.full(6, 0.1))
 
 
+def test_motion_predict_names_an_absurd_velocity_prior() -> None:
+    """The suite's motion_predict with velocity_mean 1e300: the fit overflowed and the error
+    named the poses; now the prior itself is refused by name (|mean| ≤ 1e6 per axis, a
+    variance whose inverse is finite)."""
+    poses = np.repeat(np.eye(4)[None], 4, axis=0)
+    poses[:, 0, 3] = [0.0, 0.1, 0.2, 0.3]
+    covs = np.repeat(np.diag([1e-4] * 3 + [1e-5] * 3)[None], 4, axis=0)
+    t = np.array([0.0, 0.1, 0.2, 0.3])
+    with pytest.raises(geoloc.InvalidInputError, match="^velocity_mean: "):
+        geoloc.motion_predict(poses, t, 0.4, covariances=covs, velocity_mean=[1e300, 0, 0, 0, 0, 0], velocity_variance=np.full(6, 0.05))
+    with pytest.raises(geoloc.InvalidInputError, match="^velocity_variance: "):
+        geoloc.motion_predict(poses, t, 0.4, covariances=covs, velocity_mean=np.zeros(6), velocity_variance=np.full(6, 1e-320))
+
+
 @pytest.mark.parametrize(
     "call, name",
     [

@@ -58,6 +58,10 @@ const MIN_RESIDUAL_VARIANCE: f64 = 1e-8;
 /// it, τξ overflows the exponential map's accuracy (and 1e300 overflows it outright).
 pub const MAX_TIME_SPAN_S: f64 = 1e9;
 
+/// Largest |mean| of a velocity prior per axis (m/s, rad/s): far beyond any camera; a mean of
+/// 1e300 overflowed the fit and was reported against the poses.
+pub const MAX_PRIOR_SPEED: f64 = 1e6;
+
 /// The velocity prior ξ ~ N(mean, diag(variance)) of the motion fit (per twist axis,
 /// translation first; m/s and rad/s). All-zero variance: no prior.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -74,18 +78,22 @@ impl VelocityPrior {
         self.variance == Vector6::zeros()
     }
 
-    /// Checks the values: finite, the variance > 0 on every axis or 0 on all (no prior).
+    /// Checks the values: the mean within ±[`MAX_PRIOR_SPEED`] per axis, the variance finite
+    /// and > 0 with a finite inverse on every axis, or 0 on all (no prior).
     ///
     /// # Errors
     /// `InvalidInput` naming `velocity_mean` or `velocity_variance`.
     pub fn check(&self) -> Result<()> {
-        if self.mean.iter().any(|v| !v.is_finite()) {
-            return Err(GeolocError::invalid("velocity_mean", "must be finite"));
+        if self.mean.iter().any(|v| v.is_nan() || v.abs() > MAX_PRIOR_SPEED) {
+            return Err(GeolocError::invalid(
+                "velocity_mean",
+                format!("must be finite and within ±{MAX_PRIOR_SPEED:e} per axis"),
+            ));
         }
-        if !self.is_none() && self.variance.iter().any(|v| !(v.is_finite() && *v > 0.0)) {
+        if !self.is_none() && self.variance.iter().any(|v| !(v.is_finite() && *v > 0.0 && (1.0 / v).is_finite())) {
             return Err(GeolocError::invalid(
                 "velocity_variance",
-                "must be finite and > 0 on every axis (all 0: no prior)",
+                "must be finite and > 0 (with a finite inverse) on every axis (all 0: no prior)",
             ));
         }
         Ok(())
@@ -805,6 +813,8 @@ mod tests {
             (Vector6::zeros(), Vector6::repeat(f64::NAN), "velocity_variance"),
             (Vector6::zeros(), Vector6::repeat(-1.0), "velocity_variance"),
             (Vector6::repeat(f64::INFINITY), Vector6::repeat(0.1), "velocity_mean"),
+            (Vector6::new(1e300, 0.0, 0.0, 0.0, 0.0, 0.0), Vector6::repeat(0.05), "velocity_mean"),
+            (Vector6::zeros(), Vector6::repeat(1e-320), "velocity_variance"),
         ];
         for (mean, variance, name) in bad {
             let prior = VelocityPrior { mean, variance };
