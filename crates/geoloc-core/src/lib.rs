@@ -7,6 +7,7 @@
 //! * perturbations are on the **right**, T ⊞ δ = T·exp(δ^); pose covariances live there;
 //! * metres and radians.
 
+pub mod adjust;
 pub mod bow;
 pub mod camera;
 pub mod checksum;

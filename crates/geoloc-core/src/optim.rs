@@ -3,6 +3,7 @@
 //! covariance helpers the solvers share.
 
 pub mod covariance;
+pub mod envelope;
 pub mod lm;
 pub mod robust;
 
