@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Callable, Sequence
 
 from .exceptions import GeolocError, InvalidInputError
+from .reference import REFERENCE_FORMATS
 
 if TYPE_CHECKING:
     from .commands._common import FrameRange
@@ -326,6 +327,18 @@ def _add_evaluate(commands: argparse._SubParsersAction[argparse.ArgumentParser])
     ev.add_argument(
         "--locator", choices=("paper", "model"), default="paper",
         help="paper: one retrieved keyframe and its group; model: top-5 retrieval against the map's 3D model (default: paper)",
+    )
+    ev.add_argument(
+        "--reference", type=existing_file, metavar="FILE",
+        help="also score the test frames against this independent reference trajectory (e.g. a structure-from-motion "
+        "reconstruction of the same images): a similarity and one fixed camera-frame offset are fitted (Huber, 2 cm / 1°) "
+        "on the training frames to the map's keyframe poses, and the table gets a row against the labels and a row "
+        "against the aligned reference per mode",
+    )
+    ev.add_argument(
+        "--reference-format", choices=REFERENCE_FORMATS, metavar="auto|7scenes-reference|tum",
+        help="--reference's format: 7scenes-reference (frame index then the row-major top 3x4 camera-to-world pose per "
+        "line), tum (t tx ty tz qx qy qz qw, matched to frames by time); default auto, by the values per line",
     )
     ev.add_argument("--json", type=output_file, metavar="FILE", help="write the result dict (DESIGN.md §7 keys) as JSON")
     ev.add_argument("--timings", action="store_true", help="print the median time of every stage")

@@ -13,6 +13,11 @@ Reported errors (as in the paper): translation ‖t_est − t_gt‖ in metres an
 as **failures in recall** (its denominator is every frame) and are **excluded from medians
 and means**, which are over localized frames only; NEES statistics are over the frames that
 have a covariance.
+
+Against an independent reference instead of the labels (:mod:`geoloc.reference`, re-exported
+here): :func:`load_reference` reads it, :func:`align_reference` fits the similarity S and the
+camera-frame offset X with S·R_i·X ≈ M_i on the map's frames, and
+:func:`score_against_reference` is :func:`summarize_results` against S·R_j·X.
 """
 
 from __future__ import annotations
@@ -30,18 +35,24 @@ from . import lie
 from ._io import write_text_atomic
 from ._validation import as_float64, real_scalar
 from .exceptions import InvalidInputError, NotARotationError
+from .reference import ReferenceAlignment, align_reference, load_reference, match_reference
 
 __all__ = [
     "CHI2_6_95",
     "RECALL_THRESHOLDS",
+    "ReferenceAlignment",
+    "align_reference",
     "axis_coverage",
     "chi2_6_cdf",
     "chi2_6_quantile",
     "format_table",
     "format_tum_line",
     "isometric_sigmas",
+    "load_reference",
+    "match_reference",
     "nees",
     "pose_errors",
+    "score_against_reference",
     "summarize",
     "summarize_results",
     "tangent_errors",
@@ -356,6 +367,16 @@ def summarize_results(results: Sequence[Any], ground_truth: ArrayLike, timestamp
         timings_ms=timings,
         timestamps=timestamps,
     )
+
+
+def score_against_reference(
+    results: Sequence[Any], alignment: ReferenceAlignment, reference_poses: ArrayLike, timestamps: ArrayLike | None = None
+) -> dict[str, Any]:
+    """:func:`summarize_results` with the aligned reference as the truth: frame k's estimate
+    is compared with S · R_k · X (``alignment.apply(reference_poses)[k]``), where
+    ``reference_poses[k]`` is the reference's (4, 4) world_from_cam pose of result k's frame.
+    For raw estimates, call :func:`summarize` with ``alignment.apply(reference_poses)``."""
+    return summarize_results(results, alignment.apply(reference_poses), timestamps)
 
 
 def _cell(value: float | None, fmt: str) -> str:

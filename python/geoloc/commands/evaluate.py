@@ -4,6 +4,12 @@ The report is the paper's kind of table (median translation / rotation error, re
 sources, NEES calibration, time per frame), one row per mode; on 7-Scenes it shows the
 paper's own figures for the scene as a reference column. ``--json`` writes the result dict
 of DESIGN.md §7 (:func:`geoloc.evaluation.summarize`), ``--plots`` the four PNGs per mode.
+
+``--reference FILE`` also scores the test frames against an independent reference trajectory
+(:mod:`geoloc.reference`): a similarity S and a fixed camera-frame offset X are fitted on the
+training frames, S·R_i·X ≈ the map's keyframe pose of frame i (:func:`map_keyframe_poses`), and
+each test estimate is compared with S·R_j·X; the table then has a row against the labels and a
+row against the reference per mode.
 """
 
 from __future__ import annotations
@@ -14,7 +20,10 @@ import time
 from pathlib import Path
 from typing import Any
 
-from ..exceptions import InvalidInputError
+import numpy as np
+from numpy.typing import NDArray
+
+from ..exceptions import DatasetError, InvalidInputError
 from ._common import (
     FrameRange,
     MAP_DONE,
@@ -24,10 +33,11 @@ from ._common import (
     load_dataset,
     localize_sequence,
     open_retrieval,
+    option_message,
     stage_table,
 )
 
-__all__ = ["PAPER_7SCENES", "evaluate_split", "report", "run"]
+__all__ = ["PAPER_7SCENES", "evaluate_split", "load_reference_option", "map_keyframe_poses", "report", "run"]
 
 #: The paper's Table III (7-Scenes), median (m, deg): "Our method (Single image)" and
 #: "(Multiple model)", by scene name as it appears in the dataset's path.
@@ -63,6 +73,55 @@ def _positions(r: slice) -> set[int]:
     return set(range(r.start, r.stop, r.step))
 
 
+def load_reference_option(path: str, fmt: str | None) -> dict[str, Any]:
+    """``--reference`` / ``--reference-format``: ``{"file", "format", "keys", "poses"}`` of
+    :func:`geoloc.reference.load_reference`, its errors headed ``--reference:``."""
+    from ..reference import load_reference
+
+    try:
+        keys, poses = load_reference(path, fmt or "auto")
+    except DatasetError as e:
+        raise InvalidInputError(option_message(str(e), "--reference")) from None
+    kind = "7scenes-reference" if keys.dtype.kind in "iu" else "tum"
+    return {"file": path, "format": kind, "keys": keys, "poses": poses}
+
+
+def map_keyframe_poses(the_map: Any, labels: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The poses a reference is aligned to, one per training frame (``labels``, (N, 4, 4)):
+    the map's own keyframe poses (``the_map.keyframe_poses``, the adjusted poses when the map
+    adjusts its keyframes) where the map has them, else the training labels it was built from."""
+    poses = getattr(the_map, "keyframe_poses", None)
+    if poses is None or getattr(the_map, "labels", None) is None:
+        # a map that did not adjust its labels holds the labels themselves
+        return labels
+    arr = np.asarray(poses, dtype=np.float64)
+    if arr.shape != labels.shape:
+        raise InvalidInputError(
+            f"--reference: the map has {arr.shape[0] if arr.ndim == 3 else arr.shape} keyframe poses for "
+            f"{len(labels)} training frames (the alignment needs one per training frame)"
+        )
+    return arr
+
+
+def _reference_rows(reference: dict[str, Any], seq: Any, what: str) -> NDArray[np.int64]:
+    """The reference row of each frame of ``seq`` (-1: none), matched by frame index or time."""
+    from ..reference import match_reference
+
+    rows = match_reference(reference["keys"], seq.indices, seq.timestamps)
+    if what == "test" and (rows < 0).any():
+        missing = seq.indices[rows < 0]
+        listed = ", ".join(str(int(f)) for f in missing[:5]) + (" …" if len(missing) > 5 else "")
+        raise InvalidInputError(
+            f"--reference: {str(reference['file'])!r} has no pose for {len(missing)} of the {len(seq)} test frames ({listed})"
+        )
+    if what == "train" and (rows >= 0).sum() < 3:
+        raise InvalidInputError(
+            f"--reference: {str(reference['file'])!r} has poses for {(rows >= 0).sum()} of the {len(seq)} training frames; "
+            "the alignment needs at least 3"
+        )
+    return rows
+
+
 def evaluate_split(
     sequence: Any,
     train: FrameRange,
@@ -75,6 +134,7 @@ def evaluate_split(
     options: tuple[str, str] = ("--train", "--test"),
     locator: str = "paper",
     nominal_intrinsics: bool = False,
+    reference: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Build the map from ``sequence[train]``, localize ``sequence[test]`` in each mode.
 
@@ -82,9 +142,13 @@ def evaluate_split(
     each summary :func:`geoloc.evaluation.summarize_results` plus per-frame ``frame`` (the
     dataset's frame index) and ``reason``. ``locator`` is "paper" or "model";
     ``nominal_intrinsics`` keeps the sequence's camera as it is (no self-calibration).
+    With ``reference`` (:func:`load_reference_option`), also ``"reference"``: the file, the
+    :class:`~geoloc.reference.ReferenceAlignment` fitted on the training frames that the
+    reference has, and ``summaries`` ({mode: dict}) against the aligned reference.
     """
-    from ..evaluation import summarize_results
+    from ..evaluation import score_against_reference, summarize_results
     from ..mapping import Localizer, Map
+    from ..reference import align_reference
 
     train_slice = train.resolve(len(sequence), options[0], sequence.name)
     test_slice = test.resolve(len(sequence), options[1], sequence.name)
@@ -98,6 +162,9 @@ def evaluate_split(
             file=sys.stderr,
         )
     train_seq, test_seq = sequence[train_slice], sequence[test_slice]
+    if reference is not None:  # checked before the map is built
+        train_rows = _reference_rows(reference, train_seq, "train")
+        test_reference = reference["poses"][_reference_rows(reference, test_seq, "test")]
     start = time.perf_counter()
     network = open_retrieval(retrieval)
     the_map = Map.build(
@@ -109,17 +176,36 @@ def evaluate_split(
         progress=Progress("map", then=MAP_DONE),
     )
     build_s = time.perf_counter() - start
+    against: dict[str, Any] | None = None
+    if reference is not None:
+        fitted = train_rows >= 0
+        targets = map_keyframe_poses(the_map, train_seq.poses)
+        alignment = align_reference(reference["poses"][train_rows[fitted]], targets[fitted])
+        against = {
+            "file": reference["file"],
+            "format": reference["format"],
+            "fitted_to": "labels" if targets is train_seq.poses else "map keyframe poses",
+            "alignment": alignment,
+            "summaries": {},
+        }
     summaries: dict[str, Any] = {}
     for mode in modes:
         localizer = Localizer(the_map, global_descriptor=None if network == "bow" else network, locator=locator)  # type: ignore[arg-type]
         results = localize_sequence(localizer, test_seq, mode, Progress(f"{mode:>10}"))
         summary = summarize_results(results, test_seq.poses, test_seq.timestamps)
-        for entry, r, frame in zip(summary["per_frame"], results, test_seq.indices):
-            entry["frame"] = int(frame)
-            entry["reason"] = r.reason
-        summary["mode"] = mode
-        summaries[mode] = summary
-    return {"map": the_map, "build_s": build_s, "test": test_seq, "summaries": summaries, "train_slice": train_slice, "test_slice": test_slice}
+        scored = [(summaries, summary)]
+        if against is not None:
+            scored.append((against["summaries"], score_against_reference(results, against["alignment"], test_reference, test_seq.timestamps)))
+        for into, s in scored:
+            for entry, r, frame in zip(s["per_frame"], results, test_seq.indices):
+                entry["frame"] = int(frame)
+                entry["reason"] = r.reason
+            s["mode"] = mode
+            into[mode] = s
+    out = {"map": the_map, "build_s": build_s, "test": test_seq, "summaries": summaries, "train_slice": train_slice, "test_slice": test_slice}
+    if against is not None:
+        out["reference"] = against
+    return out
 
 
 def reference_for(dataset: str | None, fmt: str) -> tuple[str, dict[str, tuple[float, float]]] | None:
@@ -149,11 +235,19 @@ def report(
 
     out = out or sys.stdout
     summaries: dict[str, dict[str, Any]] = run["summaries"]
-    rows = {f"{sequence.name} ({mode})": s for mode, s in summaries.items()}
+    against: dict[str, Any] | None = run.get("reference")
+    suffix = "" if against is None else " vs labels"
+    rows = {f"{sequence.name} ({mode}){suffix}": s for mode, s in summaries.items()}
     ref = reference_for(dataset, fmt)
     reference = None
     if ref is not None:
-        reference = {f"{sequence.name} ({mode})": ref[1][mode] for mode in summaries}
+        reference = {f"{sequence.name} ({mode}){suffix}": ref[1][mode] for mode in summaries}
+    table_rows = dict(rows)
+    if against is not None:  # each mode's row against the labels, then against the reference
+        table_rows = {}
+        for mode, s in summaries.items():
+            table_rows[f"{sequence.name} ({mode}) vs labels"] = s
+            table_rows[f"{sequence.name} ({mode}) vs reference"] = against["summaries"][mode]
     cam = sequence.camera
     print(
         f"{sequence.name}: map of {len(run['map'])} keyframes (frames {train}) built in {run['build_s']:.1f} s; "
@@ -162,7 +256,9 @@ def report(
         file=out,
     )
     print(describe_self_calibration(run["map"].self_calibration), file=out)
-    print(format_table(rows, reference), file=out)
+    print(format_table(table_rows, reference), file=out)
+    if against is not None:
+        print(describe_alignment(against), file=out)
     if ref is not None:
         single, multi = ref[1]["single"], ref[1]["sequential"]
         print(
@@ -188,7 +284,29 @@ def report(
     )
     if ref is not None:
         result["reference"] = {"paper_7scenes_scene": ref[0], **{m: list(v) for m, v in ref[1].items()}}
+    if against is not None:
+        result["against_reference"] = {
+            "file": str(against["file"]),
+            "format": against["format"],
+            "fitted_to": against["fitted_to"],
+            "alignment": against["alignment"].as_dict(),
+            "modes": against["summaries"],
+        }
     return result
+
+
+def describe_alignment(against: dict[str, Any]) -> str:
+    """One line on the reference's alignment: S, X and its residuals on the training frames."""
+    a = against["alignment"]
+    st = a.statistics()
+    d = a.as_dict()
+    return (
+        f"Aligned reference {str(against['file'])!r} ({against['format']}): S·R·X fitted on {st['frames']} training frames to the "
+        f"{against['fitted_to']} (Huber {a.position_scale_m * 100:g} cm / {a.rotation_scale_deg:g}°): scale {a.scale:.4f}, "
+        f"offset X {d['offset_rotation_deg']:.2f}° / {d['offset_translation'] * 100:.1f} cm; training residuals median "
+        f"{st['median_position_m'] * 100:.1f} cm / {st['median_rotation_deg']:.2f}°, 90 % {st['p90_position_m'] * 100:.1f} cm / "
+        f"{st['p90_rotation_deg']:.2f}°"
+    )
 
 
 def write_plots(directory: str, summaries: dict[str, dict[str, Any]]) -> list[Path]:
@@ -212,13 +330,18 @@ def run(args: argparse.Namespace) -> int:
     """The ``evaluate`` command."""
     from .._io import write_json_atomic
 
+    reference_file = getattr(args, "reference", None)
+    reference_format = getattr(args, "reference_format", None)
+    if reference_format is not None and reference_file is None:
+        raise InvalidInputError("--reference-format: only used with --reference FILE")
+    reference = None if reference_file is None else load_reference_option(reference_file, reference_format)
     sequence = load_dataset(args)
     default_train, default_test = default_split(len(sequence), args.format)
     train = args.train or default_train
     test = args.test or default_test
     result = evaluate_split(
         sequence, train, test, _modes(args.mode), features=args.features, n_features=args.n_features, retrieval=args.retrieval,
-        locator=args.locator, nominal_intrinsics=args.nominal_intrinsics,
+        locator=args.locator, nominal_intrinsics=args.nominal_intrinsics, reference=reference,
     )
     data = report(sequence, result, dataset=args.dataset, fmt=args.format, train=train, test=test, timings=args.timings)
     if args.json:
