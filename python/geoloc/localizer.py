@@ -86,6 +86,7 @@ class FeatureMap:
         model: bool = False,
         refine_intrinsics: bool = False,
         intrinsics_model: Literal["pinhole", "radial", "radial-tangential"] = "radial-tangential",
+        adjust_labels: bool = False,
     ) -> None:
         if not isinstance(camera, Camera):
             raise InvalidInputError(f"camera: expected a geoloc.Camera, got {type(camera).__name__}")
@@ -120,6 +121,7 @@ class FeatureMap:
             timestamps=ts, estimate_noise=bool(estimate_noise), model=bool(model),
             refine_intrinsics=bool(refine_intrinsics),
             intrinsics_model=choice(intrinsics_model, "intrinsics_model", INTRINSICS_MODELS),
+            adjust_labels=bool(adjust_labels),
         )
 
     @property
@@ -134,6 +136,35 @@ class FeatureMap:
         correction over the tracks' pixels (applied only below 0.5 px)."""
         text = self._map.self_calibration_json
         return None if text is None else dict(json.loads(text))
+
+    @property
+    def labels(self) -> dict[str, Any] | None:
+        """The labels' correction by bundle adjustment (``adjust_labels=True``), or None when
+        the labels were not adjusted: ``label_sigma_m`` / ``label_sigma_deg`` (the labels' σ the
+        adjustment estimated), the label-to-camera offset (``label_from_cam_translation_m``,
+        ``label_from_cam_rotation_deg`` and their σ), the median correction, ``rms_px`` (the
+        tracks' reprojection error with the labels and after), ``observations`` (used,
+        rejected) and ``runs``: consecutive keyframes (≥ 3) whose corrections are significant
+        (beyond the χ²₆ 99.9 % quantile of their covariance), with the largest correction."""
+        text = self._map.labels_json
+        return None if text is None else dict(json.loads(text))
+
+    @property
+    def label_poses(self) -> NDArray[np.float64] | None:
+        """The pose labels as given (K, 4, 4), or None when they were not adjusted."""
+        return self._map.label_poses
+
+    @property
+    def keyframe_poses(self) -> NDArray[np.float64]:
+        """The keyframe poses (K, 4, 4) in the labels' convention: the adjusted ones when the
+        labels were adjusted, else the labels."""
+        return self._map.keyframe_poses
+
+    @property
+    def camera_poses(self) -> NDArray[np.float64]:
+        """The keyframes' camera poses world_from_cam (K, 4, 4): the labels moved by the
+        adjustment and the label-to-camera offset (the labels when not adjusted)."""
+        return self._map.camera_poses
 
     @property
     def model_points(self) -> int | None:

@@ -94,6 +94,7 @@ class Map:
         estimate_noise: bool = True,
         model: bool = False,
         refine_intrinsics: bool = True,
+        adjust_labels: bool = False,
         progress: ProgressCallback | None = None,
     ) -> Map:
         """Build a map from ``sequence`` (every ``keyframe_step``-th frame becomes a keyframe).
@@ -111,7 +112,13 @@ class Map:
         lengths, principal point and lens distortion, with the poses known — and corrects the
         keyframes' and every query's keypoints with it (:attr:`self_calibration`; it says why
         not when the recording does not determine the camera, and the sequence's camera is
-        then used as it is). With both, the keyframe pairs are matched once for the two.
+        then used as it is). ``adjust_labels`` (default False; it will become the default once its build time and
+        the localization figures are confirmed on every fold) corrects the sequence's pose
+        labels by bundle adjustment — keyframe poses, points and one label-to-camera offset,
+        the labels as robust priors whose σ is estimated — so that the map agrees with its
+        images (:attr:`labels`, :attr:`keyframe_poses`, :attr:`label_poses`); localization
+        results stay in the labels' convention. The keyframe pairs are matched once for all
+        of these steps.
         """
         from .datasets import Sequence
 
@@ -152,6 +159,7 @@ class Map:
             estimate_noise=bool(estimate_noise),
             model=bool(model),
             refine_intrinsics=bool(refine_intrinsics),
+            adjust_labels=bool(adjust_labels),
         )
         frontend = {
             "version": FRONTEND_VERSION,
@@ -166,6 +174,21 @@ class Map:
     def camera(self) -> Camera:
         """The camera the map was built with (queries must use the same intrinsics)."""
         return self._feature_map.camera
+
+    @property
+    def labels(self) -> dict[str, Any] | None:
+        """The labels' correction report; see :attr:`geoloc.localizer.FeatureMap.labels`."""
+        return self._feature_map.labels
+
+    @property
+    def keyframe_poses(self) -> NDArray[np.float64]:
+        """The keyframe poses in the labels' convention (adjusted when the labels were)."""
+        return self._feature_map.keyframe_poses
+
+    @property
+    def label_poses(self) -> NDArray[np.float64] | None:
+        """The pose labels as given, or None when they were not adjusted."""
+        return self._feature_map.label_poses
 
     @property
     def map_noise(self) -> dict[str, Any]:

@@ -38,7 +38,7 @@ use nalgebra::{Matrix2x3, Matrix3, Matrix6, SMatrix, Vector2, Vector3, Vector6};
 
 use crate::camera::Camera;
 use crate::error::{GeolocError, Result};
-use crate::lie::{SE3, SO3, se3, so3};
+use crate::lie::{SE3, se3, so3};
 use crate::optim::RobustLoss;
 use crate::optim::envelope::BlockEnvelope;
 use crate::parallel::map_slice;
@@ -392,6 +392,9 @@ struct Linearized {
     j_point: Matrix2x3<f64>,
 }
 
+/// One observation's camera-side blocks: (keyframe k, U_kk, U_Xk, g_k).
+type CameraBlocks = (usize, Matrix6<f64>, Matrix6<f64>, Vector6<f64>);
+
 /// Per point: V_j, g_j, and the couplings with its observers (keyframe order) and the offset.
 struct PointBlock {
     v: Matrix3<f64>,
@@ -402,9 +405,33 @@ struct PointBlock {
     offset: Matrix6x3,
     /// The camera-side blocks this point adds: per observer, (keyframe, U_kk, U_Xk, g_k),
     /// and the offset's (U_XX, g_X).
-    camera: Vec<(usize, Matrix6<f64>, Matrix6<f64>, Vector6<f64>)>,
+    camera: Vec<CameraBlocks>,
     offset_block: (Matrix6<f64>, Vector6<f64>),
     cost: f64,
+}
+
+impl PointBlock {
+    fn empty(capacity: usize) -> Self {
+        Self {
+            v: Matrix3::zeros(),
+            g: Vector3::zeros(),
+            couplings: Vec::with_capacity(capacity),
+            offset: Matrix6x3::zeros(),
+            camera: Vec::with_capacity(capacity),
+            offset_block: (Matrix6::zeros(), Vector6::zeros()),
+            cost: 0.0,
+        }
+    }
+}
+
+/// Smallest ratio of a point block's eigenvalues for the point to be adjusted.
+const MIN_POINT_CONDITION: f64 = 1e-8;
+
+/// Whether V_j is positive definite with λ_min ≥ [`MIN_POINT_CONDITION`] λ_max.
+fn well_conditioned(v: &Matrix3<f64>) -> bool {
+    let e = v.symmetric_eigenvalues();
+    let (lo, hi) = (e.min(), e.max());
+    lo.is_finite() && hi > 0.0 && lo >= MIN_POINT_CONDITION * hi
 }
 
 /// The adjustment problem with a fixed observation set.
@@ -427,7 +454,6 @@ struct Reduced {
     s: BlockEnvelope,
     rhs: Vec<f64>,
     points: Vec<PointBlock>,
-    cost: f64,
 }
 
 /// Marginal covariances at the solution.
@@ -540,15 +566,19 @@ impl<'a> Problem<'a> {
     }
 
     fn point_block(&self, state: &State, obs: &[usize]) -> PointBlock {
-        let mut block = PointBlock {
-            v: Matrix3::zeros(),
-            g: Vector3::zeros(),
-            couplings: Vec::with_capacity(obs.len()),
-            offset: Matrix6x3::zeros(),
-            camera: Vec::with_capacity(obs.len()),
-            offset_block: (Matrix6::zeros(), Vector6::zeros()),
-            cost: 0.0,
-        };
+        let block = PointBlock::empty(obs.len());
+        let mut block = block;
+        self.accumulate(state, obs, &mut block);
+        if !well_conditioned(&block.v) {
+            // a point whose position the observations barely fix (a ray pencil with no
+            // parallax): eliminating it would only add rounding to the reduced system
+            let cost = block.cost;
+            block = PointBlock { cost, ..PointBlock::empty(obs.len()) };
+        }
+        block
+    }
+
+    fn accumulate(&self, state: &State, obs: &[usize], block: &mut PointBlock) {
         for &i in obs {
             let o = &self.observations[i];
             let Some(l) = self.linearize(state, o) else {
@@ -567,7 +597,6 @@ impl<'a> Problem<'a> {
             block.offset_block.0 += jx_t * l.j_offset;
             block.offset_block.1 += jx_t * l.r;
         }
-        block
     }
 
     /// The label prior of keyframe k: (cost, H, g) in its right perturbation.
@@ -610,27 +639,23 @@ impl<'a> Problem<'a> {
         let xo = n; // the offset's block, when estimated
         let mut u = BlockEnvelope::zeros(&self.first);
         let mut rhs = vec![0.0; 6 * self.blocks];
-        let mut cost = 0.0;
         let add_rhs = |rhs: &mut Vec<f64>, b: usize, v: &Vector6<f64>| {
             for (x, y) in rhs[6 * b..6 * b + 6].iter_mut().zip(v.iter()) {
                 *x -= y;
             }
         };
         for k in 0..n {
-            let (c, h, g) = self.label_prior(state, k);
-            cost += c;
+            let (_, h, g) = self.label_prior(state, k);
             *u.block_mut(k, k) += h;
             add_rhs(&mut rhs, k, &g);
         }
         if self.options.estimate_offset {
-            let (c, h, g) = self.offset_prior(state);
-            cost += c;
+            let (_, h, g) = self.offset_prior(state);
             *u.block_mut(xo, xo) += h;
             add_rhs(&mut rhs, xo, &g);
         }
         let points = map_slice(&self.by_point, 64, |obs| self.point_block(state, obs));
         for p in &points {
-            cost += p.cost;
             for (k, ukk, uxk, gk) in &p.camera {
                 *u.block_mut(*k, *k) += ukk;
                 add_rhs(&mut rhs, *k, gk);
@@ -666,7 +691,7 @@ impl<'a> Problem<'a> {
                 }
             }
         }
-        Reduced { s: u, rhs, points, cost }
+        Reduced { s: u, rhs, points }
     }
 
     /// Levenberg–Marquardt from `state`: (the minimum, iterations, the start cost).

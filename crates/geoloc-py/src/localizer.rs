@@ -4,11 +4,12 @@
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 
+use geoloc_core::adjust::AdjustmentOptions;
 use geoloc_core::camera::Camera;
 use geoloc_core::localizer::{
     Frame, Localization as CoreLocalization, Localizer as CoreLocalizer, LocalizerOptions, Locator, NoiseOptions,
 };
-use geoloc_core::map::{Keyframe, Map as CoreMap, ModelOptions, RetrievalMethod, SelfCalibrationHeader};
+use geoloc_core::map::{BuildSteps, Keyframe, Map as CoreMap, ModelOptions, RetrievalMethod, SelfCalibrationHeader};
 use geoloc_core::selfcal::SelfCalibrationOptions;
 use nalgebra::Vector2;
 use numpy::{PyArray2, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2, PyUntypedArrayMethods};
@@ -71,7 +72,7 @@ pub struct FeatureMap {
 #[pymethods]
 impl FeatureMap {
     #[new]
-    #[pyo3(signature = (intrinsics, poses_wc, keypoints_list, descriptors_list, *, global_descriptors=None, pose_covariances=None, retrieval="bow", branching=None, depth=None, seed=None, timestamps=None, estimate_noise=false, model=false, refine_intrinsics=false, intrinsics_model="radial-tangential"))]
+    #[pyo3(signature = (intrinsics, poses_wc, keypoints_list, descriptors_list, *, global_descriptors=None, pose_covariances=None, retrieval="bow", branching=None, depth=None, seed=None, timestamps=None, estimate_noise=false, model=false, refine_intrinsics=false, intrinsics_model="radial-tangential", adjust_labels=false))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         py: Python<'_>,
@@ -90,6 +91,7 @@ impl FeatureMap {
         model: bool,
         refine_intrinsics: bool,
         intrinsics_model: &str,
+        adjust_labels: bool,
     ) -> PyResult<Self> {
         let method: RetrievalMethod = retrieval.parse().map_err(to_py_err)?;
         let calibration =
@@ -107,12 +109,12 @@ impl FeatureMap {
         let map = py
             .detach(|| {
                 let map = CoreMap::build(camera, kfs, covs, kind, seed)?;
-                let map = match (refine_intrinsics, model) {
-                    (true, true) => map.with_refined_intrinsics_and_model(&calibration, &ModelOptions::default())?,
-                    (true, false) => map.with_refined_intrinsics(&calibration)?,
-                    (false, true) => map.with_model(&ModelOptions::default())?,
-                    (false, false) => map,
+                let steps = BuildSteps {
+                    calibration: refine_intrinsics.then_some(calibration),
+                    adjustment: adjust_labels.then(AdjustmentOptions::default),
+                    model: model.then(ModelOptions::default),
                 };
+                let map = map.with_build_steps(&steps)?;
                 if estimate_noise { map.with_estimated_noise(ts, &NoiseOptions::default()) } else { Ok(map) }
             })
             .map_err(to_py_err)?;
@@ -140,6 +142,37 @@ impl FeatureMap {
             .map(|s| serde_json::to_string(&SelfCalibrationHeader::from_self_calibration(s)))
             .transpose()
             .map_err(|e| invalid("self_calibration", e.to_string()))
+    }
+
+    /// The labels' adjustment report (JSON text), or None when the labels were not adjusted.
+    #[getter]
+    fn labels_json(&self) -> Option<String> {
+        self.inner.labels.as_ref().map(|l| l.report_json().to_string())
+    }
+
+    /// The pose labels as given (K, 4, 4), or None when the labels were not adjusted.
+    #[getter]
+    fn label_poses<'py>(&self, py: Python<'py>) -> Option<Bound<'py, numpy::PyArray3<f64>>> {
+        let l = self.inner.labels.as_ref()?;
+        Some(matrices_to_array3(py, &l.labels.iter().map(|p| p.matrix()).collect::<Vec<_>>()))
+    }
+
+    /// The keyframe poses in the labels' convention (K, 4, 4): adjusted when the labels were
+    /// adjusted, else the labels.
+    #[getter]
+    fn keyframe_poses<'py>(&self, py: Python<'py>) -> Bound<'py, numpy::PyArray3<f64>> {
+        let poses = self.inner.poses();
+        let poses = match &self.inner.labels {
+            Some(l) => l.label_poses(&poses),
+            None => poses,
+        };
+        matrices_to_array3(py, &poses.iter().map(|p| p.matrix()).collect::<Vec<_>>())
+    }
+
+    /// The keyframes' camera poses (K, 4, 4) world_from_cam (adjusted when the labels were).
+    #[getter]
+    fn camera_poses<'py>(&self, py: Python<'py>) -> Bound<'py, numpy::PyArray3<f64>> {
+        matrices_to_array3(py, &self.inner.poses().iter().map(|p| p.matrix()).collect::<Vec<_>>())
     }
 
     /// Points of the map-level 3D model, or None when the map has no model.
@@ -193,6 +226,8 @@ impl FeatureMap {
 #[pyclass(module = "geoloc._core", frozen, name = "Localization")]
 pub struct Localization {
     inner: CoreLocalization,
+    /// The camera pose (world_from_cam), when the map's labels sit on another frame.
+    camera: Option<geoloc_core::localizer::Estimate>,
 }
 
 /// A square matrix as an (n, n) float64 array.
@@ -205,7 +240,15 @@ fn square<'py, const N: usize>(
 
 #[pymethods]
 impl Localization {
-    /// world_from_cam (4, 4), or None when lost.
+    /// The camera's own pose world_from_cam (4, 4) — differs from `pose` when the map
+    /// adjusted its labels and found a label-to-camera offset — or None when lost.
+    #[getter]
+    fn camera_pose<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyArray2<f64>>>> {
+        self.camera.or(self.inner.estimate).map(|e| square(py, &e.world_from_cam.matrix())).transpose()
+    }
+
+    /// The pose in the labels' convention (world_from_cam when the labels are the camera's)
+    /// (4, 4), or None when lost.
     #[getter]
     fn pose<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyArray2<f64>>>> {
         self.inner.estimate.map(|e| square(py, &e.world_from_cam.matrix())).transpose()
@@ -275,6 +318,8 @@ impl Localization {
 #[pyclass(module = "geoloc._core", frozen)]
 pub struct FeatureLocalizer {
     inner: Mutex<CoreLocalizer>,
+    /// The map's label record (results are returned in the labels' convention).
+    labels: Option<geoloc_core::map::LabelAdjustment>,
 }
 
 #[pymethods]
@@ -304,7 +349,7 @@ impl FeatureLocalizer {
         options.triangulation.pixel_sigma = pixel_sigma;
         options.triangulation.max_residual_px = max_residual;
         let inner = py.detach(|| CoreLocalizer::new(Arc::clone(&map.inner), options)).map_err(to_py_err)?;
-        Ok(Self { inner: Mutex::new(inner) })
+        Ok(Self { inner: Mutex::new(inner), labels: map.inner.labels.clone() })
     }
 
     /// Localizes one frame (keypoints (N, 2) undistorted pixels, descriptors (N, W), optional
@@ -348,13 +393,24 @@ impl FeatureLocalizer {
             .detach(|| self.inner.lock().ok().map(|mut loc| loc.localize(&frame)))
             .ok_or_else(|| invalid("localizer", "a previous call panicked; create a new localizer"))?
             .map_err(to_py_err)?;
-        Ok(Localization { inner })
+        Ok(in_label_convention(inner, self.labels.as_ref()))
     }
 
     fn reset(&self) -> PyResult<()> {
         self.inner.lock().map_err(|_| invalid("localizer", "a previous call panicked"))?.reset();
         Ok(())
     }
+}
+
+/// A localization with its pose and covariance in the labels' convention (the camera pose kept).
+fn in_label_convention(
+    mut inner: CoreLocalization,
+    labels: Option<&geoloc_core::map::LabelAdjustment>,
+) -> Localization {
+    let Some(l) = labels else { return Localization { inner, camera: None } };
+    let camera = inner.estimate;
+    inner.estimate = camera.map(|e| l.estimate_to_label(&e));
+    Localization { inner, camera }
 }
 
 /// Registers the classes on the module.

@@ -14,6 +14,8 @@
 //! | `vocabulary.node_offsets` | i64 (nodes + 1) | BoW only: see [`crate::bow::VocabularyArrays`] |
 //! | `vocabulary.centres` | u8 or f32 (R, W) | BoW only: the tree's cluster centres |
 //! | `vocabulary.children` | i64 (R) | BoW only: child node index, or −word − 1 |
+//! | `keyframes.labels` | f64 (K, 4, 4) | with `labels` in the header: the pose labels as given (world_from_label); `keyframes.world_from_cam` then holds the adjusted camera poses |
+//! | `keyframes.label_corrections` | f64 (K, 7) | with `labels`: per keyframe log(L⁻¹B) (6, translation first) and its significance |
 //! | `model.points` | f64 (P, 3) | optional 3D model ([`super::SceneModel`]): world points |
 //! | `model.point_covariances` | f64 (P, 3, 3) | model: Σ_X per point |
 //! | `model.descriptors` | u8 or f32 (P, W) | model: representative descriptor per point |
@@ -35,7 +37,7 @@ use nalgebra::{Matrix3, Matrix4, Matrix6, Vector2, Vector3, Vector6};
 use serde::{Deserialize, Serialize};
 
 use super::file::{self, MapFile, Tensor, TensorData};
-use super::{Keyframe, Map, MapNoise, Retrieval, SceneModel};
+use super::{Keyframe, LabelAdjustment, Map, MapNoise, Retrieval, SceneModel};
 use crate::bow::{BowDatabase, Vocabulary, VocabularyArrays};
 use crate::camera::{Camera, Distortion};
 use crate::error::{GeolocError, Result};
@@ -116,6 +118,83 @@ pub struct MapHeader {
     /// maps written before it existed). With a correction, `keypoints` are stored corrected.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub self_calibration: Option<SelfCalibrationHeader>,
+    /// The labels' adjustment, when the map corrected its labels (absent otherwise and in
+    /// maps written before it existed).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub labels: Option<LabelsHeader>,
+}
+
+/// [`LabelAdjustment`] in the header (the per-keyframe parts are arrays).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct LabelsHeader {
+    /// X = label_from_cam, row-major 4×4 (16 values).
+    pub label_from_cam: Vec<f64>,
+    /// Covariance of X, row-major (36 values).
+    pub label_from_cam_covariance: Vec<f64>,
+    /// The labels' σ used: translation (m), rotation (rad).
+    pub label_sigma: [f64; 2],
+    /// RMS reprojection error with the labels and after the adjustment (px).
+    pub rms_px: [f64; 2],
+    /// Observations used and rejected.
+    pub observations: [usize; 2],
+}
+
+impl LabelsHeader {
+    fn from_labels(l: &LabelAdjustment) -> Self {
+        Self {
+            label_from_cam: row_major(&l.offset.matrix()),
+            label_from_cam_covariance: l.offset_covariance.transpose().iter().copied().collect(),
+            label_sigma: [l.label_sigma.translation_m, l.label_sigma.rotation_rad],
+            rms_px: [l.rms_px.0, l.rms_px.1],
+            observations: [l.observations.0, l.observations.1],
+        }
+    }
+
+    fn to_labels(&self, file: &MapFile, k: usize) -> Result<LabelAdjustment> {
+        if self.label_from_cam.len() != 16 || self.label_from_cam_covariance.len() != 36 {
+            return Err(format_error("labels: expected 16 label_from_cam and 36 covariance values"));
+        }
+        let offset = SE3::from_matrix(&Matrix4::from_row_slice(&self.label_from_cam))
+            .map_err(|e| format_error(format!("labels.label_from_cam is not a rigid transform: {e}")))?;
+        let offset_covariance = Matrix6::from_row_slice(&self.label_from_cam_covariance);
+        super::check_covariance("labels.label_from_cam_covariance", &offset_covariance).map_err(as_format)?;
+        let [t, r] = self.label_sigma;
+        if !(t.is_finite() && t > 0.0 && r.is_finite() && r > 0.0) {
+            return Err(format_error("labels.label_sigma: must be finite and > 0"));
+        }
+        let labels = read_pose_array(file, "keyframes.labels", k)?;
+        let values = f64_array(file, "keyframes.label_corrections", &[k, 7])?;
+        if values.iter().any(|v| !v.is_finite()) {
+            return Err(format_error("keyframes.label_corrections: holds a non-finite value"));
+        }
+        let corrections = values.chunks_exact(7).map(|c| Vector6::from_column_slice(&c[..6])).collect();
+        let significance = values.chunks_exact(7).map(|c| c[6]).collect();
+        Ok(LabelAdjustment {
+            labels,
+            offset,
+            offset_covariance,
+            corrections,
+            significance,
+            label_sigma: crate::adjust::LabelSigma { translation_m: t, rotation_rad: r },
+            rms_px: (self.rms_px[0], self.rms_px[1]),
+            observations: (self.observations[0], self.observations[1]),
+        })
+    }
+}
+
+fn label_tensors(l: &LabelAdjustment) -> Result<Vec<(String, Tensor)>> {
+    let k = l.labels.len();
+    let poses = l.labels.iter().flat_map(|p| row_major(&p.matrix())).collect();
+    let corrections = l
+        .corrections
+        .iter()
+        .zip(&l.significance)
+        .flat_map(|(e, m)| e.iter().copied().chain(std::iter::once(if m.is_finite() { *m } else { f64::MAX })))
+        .collect();
+    Ok(vec![
+        tensor("keyframes.labels", vec![k, 4, 4], TensorData::F64(poses))?,
+        tensor("keyframes.label_corrections", vec![k, 7], TensorData::F64(corrections))?,
+    ])
 }
 
 /// [`SelfCalibration`] in the header: the estimated camera (absent when there is no
@@ -334,9 +413,13 @@ impl Map {
             map_noise: NoiseHeader::from_noise(&self.noise),
             model: self.model.as_ref().map(|m| ModelHeader { points: m.len() }),
             self_calibration: self.self_calibration.as_ref().map(SelfCalibrationHeader::from_self_calibration),
+            labels: self.labels.as_ref().map(LabelsHeader::from_labels),
         };
         if let Some(model) = &self.model {
             tensors.extend(model_tensors(model)?);
+        }
+        if let Some(labels) = &self.labels {
+            tensors.extend(label_tensors(labels)?);
         }
         let header = serde_json::to_string(&header).map_err(|e| format_error(e.to_string()))?;
         Ok(MapFile { header, tensors: tensors.into_iter().collect() })
@@ -403,7 +486,8 @@ impl Map {
         let model = header.model.map(|h| read_model(file, h.points, &keyframes)).transpose()?;
         let self_calibration =
             header.self_calibration.as_ref().map(SelfCalibrationHeader::to_self_calibration).transpose()?;
-        Ok((Self { camera, keyframes, pose_covariances, retrieval, noise, model, self_calibration }, header))
+        let labels = header.labels.as_ref().map(|h| h.to_labels(file, k)).transpose()?;
+        Ok((Self { camera, keyframes, pose_covariances, retrieval, noise, model, self_calibration, labels }, header))
     }
 
     /// Saves the map to `path` atomically (see [`file::write`]).
@@ -478,13 +562,17 @@ fn f32_array(file: &MapFile, name: &str, shape: &[usize]) -> Result<Vec<f32>> {
 }
 
 fn read_poses(file: &MapFile, k: usize) -> Result<Vec<SE3>> {
-    let values = f64_array(file, "keyframes.world_from_cam", &[k, 4, 4])?;
+    read_pose_array(file, "keyframes.world_from_cam", k)
+}
+
+fn read_pose_array(file: &MapFile, name: &str, k: usize) -> Result<Vec<SE3>> {
+    let values = f64_array(file, name, &[k, 4, 4])?;
     values
         .chunks_exact(16)
         .enumerate()
         .map(|(i, m)| {
             SE3::from_matrix(&Matrix4::from_row_slice(m))
-                .map_err(|e| format_error(format!("keyframes.world_from_cam[{i}] is not a rigid transform: {e}")))
+                .map_err(|e| format_error(format!("{name}[{i}] is not a rigid transform: {e}")))
         })
         .collect()
 }

@@ -1,0 +1,262 @@
+//! The map's pose labels corrected by bundle adjustment ([`crate::adjust`]): what the labels
+//! were, the label-to-camera offset, each label's correction and its significance, and the
+//! runs of keyframes whose labels disagree with the images.
+//!
+//! After [`super::Map::with_adjusted_labels`] the keyframes' `world_from_cam` are the adjusted
+//! *camera* poses T_k = B_k X (what triangulation and PnP need), `pose_covariances` their
+//! marginal covariances, and [`LabelAdjustment`] keeps the labels L_k, X = label_from_cam and
+//! the report. A pose in the labels' convention is T X⁻¹ ([`LabelAdjustment::to_label`]).
+
+use nalgebra::{Matrix6, Vector6};
+
+use crate::adjust::{Adjustment, LabelSigma};
+use crate::lie::{SE3, se3};
+
+/// χ²₆ 99.9 % quantile: a correction beyond it is significant.
+pub const SIGNIFICANT_CORRECTION_CHI2: f64 = 22.457_744_484_825_32;
+
+/// Fewest consecutive keyframes with significant corrections that make a run.
+pub const MIN_RUN_LENGTH: usize = 3;
+
+/// The labels and what the adjustment found about them.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LabelAdjustment {
+    /// L_k: the labels as given (world_from_label).
+    pub labels: Vec<SE3>,
+    /// X = label_from_cam.
+    pub offset: SE3,
+    /// Covariance of X (right perturbation, translation first).
+    pub offset_covariance: Matrix6<f64>,
+    /// Per keyframe: e_k = log(L_k⁻¹ B_k) (right perturbation, translation first).
+    pub corrections: Vec<Vector6<f64>>,
+    /// Per keyframe: e_kᵀ Σ_k⁻¹ e_k with Σ_k the adjusted label pose's marginal covariance.
+    pub significance: Vec<f64>,
+    /// The labels' σ the adjustment used.
+    pub label_sigma: LabelSigma,
+    /// RMS reprojection error (px) with the labels and after the adjustment.
+    pub rms_px: (f64, f64),
+    /// Observations the adjustment used, and those it rejected.
+    pub observations: (usize, usize),
+}
+
+/// A run of consecutive keyframes whose labels the images correct significantly.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LabelRun {
+    /// First keyframe.
+    pub start: usize,
+    /// One past the last keyframe.
+    pub end: usize,
+    /// Largest translation correction in the run (m).
+    pub max_translation_m: f64,
+    /// Largest rotation correction in the run (rad).
+    pub max_rotation_rad: f64,
+}
+
+impl LabelAdjustment {
+    /// The record of `adjustment` of `labels`.
+    pub fn new(labels: Vec<SE3>, adjustment: &Adjustment) -> Self {
+        let (corrections, significance) = adjustment.corrections(&labels).into_iter().unzip();
+        let used = adjustment.inliers.iter().filter(|i| **i).count();
+        Self {
+            labels,
+            offset: adjustment.offset,
+            offset_covariance: adjustment.offset_covariance,
+            corrections,
+            significance,
+            label_sigma: adjustment.label_sigma,
+            rms_px: adjustment.rms_px,
+            observations: (used, adjustment.inliers.len() - used),
+        }
+    }
+
+    /// A world_from_cam pose T in the labels' convention: T X⁻¹.
+    pub fn to_label(&self, world_from_cam: &SE3) -> SE3 {
+        *world_from_cam * self.offset.inverse()
+    }
+
+    /// A covariance of T (right perturbation) as one of T X⁻¹: Ad_X Σ Ad_Xᵀ.
+    pub fn covariance_to_label(&self, covariance: &Matrix6<f64>) -> Matrix6<f64> {
+        let a = self.offset.adjoint();
+        a * covariance * a.transpose()
+    }
+
+    /// A localizer's estimate (camera pose) in the labels' convention.
+    pub fn estimate_to_label(&self, e: &crate::localizer::Estimate) -> crate::localizer::Estimate {
+        crate::localizer::Estimate {
+            world_from_cam: self.to_label(&e.world_from_cam),
+            covariance: self.covariance_to_label(&e.covariance),
+        }
+    }
+
+    /// The adjusted keyframe poses in the labels' convention, B_k = T_k X⁻¹, from the
+    /// keyframes' camera poses T_k.
+    pub fn label_poses(&self, camera_poses: &[SE3]) -> Vec<SE3> {
+        camera_poses.iter().map(|t| self.to_label(t)).collect()
+    }
+
+    /// The report as JSON: σ, offset (translation m, rotation deg, their σ), medians, runs.
+    pub fn report_json(&self) -> serde_json::Value {
+        let (mt, mr) = self.median_correction();
+        let offset = self.offset.log();
+        let sd = |i: usize| self.offset_covariance[(i, i)].max(0.0).sqrt();
+        serde_json::json!({
+            "label_sigma_m": self.label_sigma.translation_m,
+            "label_sigma_deg": self.label_sigma.rotation_rad.to_degrees(),
+            "label_from_cam_translation_m": [self.offset.translation.x, self.offset.translation.y, self.offset.translation.z],
+            "label_from_cam_translation_sigma_m": [sd(0), sd(1), sd(2)],
+            "label_from_cam_rotation_deg": se3::phi(&offset).norm().to_degrees(),
+            "label_from_cam_rotation_sigma_deg": [sd(3).to_degrees(), sd(4).to_degrees(), sd(5).to_degrees()],
+            "median_correction_m": mt,
+            "median_correction_deg": mr.to_degrees(),
+            "rms_px": [self.rms_px.0, self.rms_px.1],
+            "observations": [self.observations.0, self.observations.1],
+            "runs": self.runs().iter().map(|r| serde_json::json!({
+                "start": r.start, "end": r.end,
+                "max_translation_m": r.max_translation_m,
+                "max_rotation_deg": r.max_rotation_rad.to_degrees(),
+            })).collect::<Vec<_>>(),
+        })
+    }
+
+    /// The runs of at least [`MIN_RUN_LENGTH`] consecutive keyframes whose corrections are
+    /// significant (beyond [`SIGNIFICANT_CORRECTION_CHI2`]).
+    pub fn runs(&self) -> Vec<LabelRun> {
+        let mut runs = Vec::new();
+        let mut k = 0;
+        let n = self.significance.len();
+        while k < n {
+            if self.significance[k] <= SIGNIFICANT_CORRECTION_CHI2 {
+                k += 1;
+                continue;
+            }
+            let start = k;
+            while k < n && self.significance[k] > SIGNIFICANT_CORRECTION_CHI2 {
+                k += 1;
+            }
+            if k - start >= MIN_RUN_LENGTH {
+                let part = &self.corrections[start..k];
+                let max = |f: fn(&Vector6<f64>) -> f64| part.iter().map(f).fold(0.0, f64::max);
+                runs.push(LabelRun {
+                    start,
+                    end: k,
+                    max_translation_m: max(|e| se3::rho(e).norm()),
+                    max_rotation_rad: max(|e| se3::phi(e).norm()),
+                });
+            }
+        }
+        runs
+    }
+
+    /// Median translation (m) and rotation (rad) corrections over the keyframes.
+    pub fn median_correction(&self) -> (f64, f64) {
+        let median = |mut v: Vec<f64>| {
+            v.sort_by(f64::total_cmp);
+            v.get(v.len() / 2).copied().unwrap_or(0.0)
+        };
+        (
+            median(self.corrections.iter().map(|e| se3::rho(e).norm()).collect()),
+            median(self.corrections.iter().map(|e| se3::phi(e).norm()).collect()),
+        )
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn record(significance: Vec<f64>) -> LabelAdjustment {
+        let n = significance.len();
+        LabelAdjustment {
+            labels: vec![SE3::identity(); n],
+            offset: SE3::identity(),
+            offset_covariance: Matrix6::identity(),
+            corrections: (0..n).map(|k| Vector6::new(0.01 * k as f64, 0.0, 0.0, 0.0, 0.0, 0.001)).collect(),
+            significance,
+            label_sigma: LabelSigma { translation_m: 0.01, rotation_rad: 0.01 },
+            rms_px: (1.0, 1.0),
+            observations: (0, 0),
+        }
+    }
+
+    /// Runs against a brute-force scan of every window.
+    #[test]
+    fn runs_are_the_maximal_windows_of_significant_corrections() {
+        let s = vec![0.0, 30.0, 30.0, 30.0, 1.0, 40.0, 40.0, 0.0, 50.0, 50.0, 50.0, 50.0];
+        let got: Vec<(usize, usize)> = record(s.clone()).runs().iter().map(|r| (r.start, r.end)).collect();
+        let mut want = Vec::new();
+        for a in 0..s.len() {
+            for b in a + MIN_RUN_LENGTH..=s.len() {
+                let maximal = (a == 0 || s[a - 1] <= SIGNIFICANT_CORRECTION_CHI2)
+                    && (b == s.len() || s[b] <= SIGNIFICANT_CORRECTION_CHI2);
+                if maximal && s[a..b].iter().all(|v| *v > SIGNIFICANT_CORRECTION_CHI2) {
+                    want.push((a, b));
+                }
+            }
+        }
+        assert_eq!(got, want);
+        let run = record(s).runs()[1];
+        assert!((run.max_translation_m - 0.11).abs() < 1e-12);
+    }
+
+    /// to_label and covariance_to_label agree with a perturbation pushed through T X⁻¹.
+    #[test]
+    fn label_convention_is_t_times_x_inverse() {
+        let mut rng = crate::testing::SplitMix64::new(3);
+        let mut r = record(vec![0.0]);
+        r.offset = SE3::exp(&rng.twist(0.1, 0.1));
+        let t = SE3::exp(&rng.twist(1.0, 2.0));
+        let d = rng.twist(1e-3, 1e-3);
+        let label = r.to_label(&t);
+        let moved = r.to_label(&(t * SE3::exp(&d)));
+        let a = r.offset.adjoint();
+        assert!(((label.inverse() * moved).log() - a * d).norm() < 1e-8);
+    }
+}
+
+/// The map pipeline: labels displaced over a run are corrected from the keyframes' own
+/// features, and the record survives the map file.
+#[cfg(test)]
+mod map_tests {
+    use crate::adjust::AdjustmentOptions;
+    use crate::lie::{SE3, se3};
+    use crate::map::model::fixture;
+    use crate::map::{Keyframe, Map, RetrievalKind};
+
+    #[test]
+    fn a_displaced_run_of_labels_is_corrected_and_stored() {
+        let (_, truth_map, _) = fixture::scene(40, false);
+        let truth = truth_map.poses();
+        let bump =
+            SE3::exp(&se3::twist(&nalgebra::Vector3::new(0.08, -0.05, 0.06), &nalgebra::Vector3::new(0.0, 0.04, 0.02)));
+        let run = 15..22;
+        let keyframes: Vec<Keyframe> = truth_map
+            .keyframes
+            .iter()
+            .enumerate()
+            .map(|(k, kf)| Keyframe {
+                world_from_cam: if run.contains(&k) { bump * kf.world_from_cam } else { kf.world_from_cam },
+                ..kf.clone()
+            })
+            .collect();
+        let kind = RetrievalKind::Bow { branching: 8, depth: 3 };
+        let map = Map::build(truth_map.camera, keyframes, None, kind, 1).expect("valid map");
+        let adjusted = map.with_adjusted_labels(&AdjustmentOptions::default()).expect("adjusts");
+        let worst =
+            adjusted.poses().iter().zip(&truth).map(|(a, t)| (a.inverse() * *t).translation.norm()).fold(0.0, f64::max);
+        // (the run was 11 cm / 2.6° off; a straight walk leaves the offset's translation, and
+        // so a common shift of the cameras, known to a few centimetres only)
+        assert!(worst < 0.04, "worst camera error {worst} m");
+        let worst_angle =
+            adjusted.poses().iter().zip(&truth).map(|(a, t)| a.rotation.distance(&t.rotation)).fold(0.0, f64::max);
+        assert!(worst_angle < 0.3f64.to_radians(), "worst camera rotation error {worst_angle} rad");
+        let record = adjusted.labels.as_ref().expect("adjusted");
+        let runs = record.runs();
+        assert!(runs.iter().any(|r| r.start <= 16 && r.end >= 21), "{runs:?}");
+        assert!(adjusted.pose_covariances.is_some());
+        let back = Map::from_map_file(&adjusted.to_map_file("{}").expect("file")).expect("loads").0;
+        assert_eq!(back.labels, adjusted.labels);
+        assert_eq!(back.poses(), adjusted.poses());
+        let err = adjusted.with_adjusted_labels(&AdjustmentOptions::default()).expect_err("twice");
+        assert!(err.to_string().contains("labels"), "{err}");
+    }
+}
