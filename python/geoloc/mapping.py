@@ -247,7 +247,10 @@ class MapLocalization:
     """One localized image: ``pose`` (4, 4) world_from_cam and ``covariance`` (6, 6, right
     perturbation, translation first) or None when lost; ``source`` "geometric" / "fused" /
     "motion" / "lost"; ``reason``; ``keyframe`` retrieved; PnP ``inliers``; ``timings`` in ms
-    per stage (``decode``, ``features``, the core's stages, ``total``)."""
+    per stage (``decode``, ``features``, the core's stages, ``total``). When the map adjusted
+    its labels, ``pose`` is in the labels' convention (world_from_label, what the sequence's
+    poses were) and ``camera_pose`` is the camera's own world_from_cam; otherwise the two are
+    equal."""
 
     pose: NDArray[np.float64] | None
     covariance: NDArray[np.float64] | None
@@ -256,6 +259,7 @@ class MapLocalization:
     keyframe: int
     inliers: int
     timings: dict[str, float] = field(default_factory=dict)
+    camera_pose: NDArray[np.float64] | None = None
 
     @property
     def timings_ms(self) -> dict[str, float]:
@@ -342,7 +346,7 @@ class Localizer:
         timings = {"decode": 1e3 * (decoded - start), "features": 1e3 * (described - decoded)}
         timings.update(r.timings_ms)
         timings["total"] = 1e3 * (end - start)
-        return MapLocalization(r.pose, r.covariance, r.source, r.reason, r.keyframe, r.inliers, timings)
+        return MapLocalization(r.pose, r.covariance, r.source, r.reason, r.keyframe, r.inliers, timings, r.camera_pose)
 
     def reset(self) -> None:
         """Forget the motion history and the last frame's keyframe (the next frame is

@@ -27,7 +27,11 @@
 //! ([`WIDE_LABEL_SIGMA`]) lets the images shape the trajectory; the robust scale of its label
 //! corrections, σ² = median(‖e‖²) / median(χ²₃), sets the priors of the next pass, and so on
 //! until σ changes by less than 10 % (at most [`SCALE_PASSES`] passes): a run of wrong labels
-//! inflates the first scale, and each robust pass pulls less towards it. Observations whose
+//! inflates the first scale, and each robust pass pulls less towards it. Label errors drift
+//! (neighbouring keyframes share them), so the final σ is that scatter times √τ, τ the
+//! corrections' integrated autocorrelation time ([`correlation_lengths`]): n i.i.d. priors
+//! of the scatter would hold the trajectory's slow shape as if they were n independent
+//! measurements of it, where they are about n/τ. Observations whose
 //! reprojection error exceeds `outlier_px` are dropped after the first pass and again before
 //! the last adjustment.
 //!
@@ -175,8 +179,11 @@ pub struct Adjustment {
     pub point_covariances: Vec<Matrix3<f64>>,
     /// Per observation: whether the last round used it.
     pub inliers: Vec<bool>,
-    /// The labels' σ the final round used (given or estimated).
+    /// The labels' σ the final round used (given, or estimated: the corrections' scatter
+    /// times √τ).
     pub label_sigma: LabelSigma,
+    /// τ of the corrections (translation, rotation; keyframes) when σ was estimated, else 1.
+    pub correlation_keyframes: (f64, f64),
     /// The final robust cost and its start.
     pub cost: (f64, f64),
     /// RMS reprojection error of the inlier observations (px) at the start and the end.
@@ -221,13 +228,33 @@ pub fn bundle_adjust(
     observations: &[Observation],
     options: &AdjustmentOptions,
 ) -> Result<Adjustment> {
+    bundle_adjust_from(camera, labels, (labels, &SE3::identity()), points, observations, options)
+}
+
+/// [`bundle_adjust`] starting from the label-convention poses and offset `start` instead of
+/// the labels and the identity (a map re-adjusted after its keypoints were corrected).
+///
+/// # Errors
+/// As [`bundle_adjust`]; `start` with another number of poses than `labels`.
+pub fn bundle_adjust_from(
+    camera: &Camera,
+    labels: &[SE3],
+    start: (&[SE3], &SE3),
+    points: &[Vector3<f64>],
+    observations: &[Observation],
+    options: &AdjustmentOptions,
+) -> Result<Adjustment> {
     options.check()?;
     check_inputs(labels, points, observations)?;
-    let mut state = State { labels: labels.to_vec(), offset: SE3::identity(), points: points.to_vec() };
+    if start.0.len() != labels.len() {
+        return Err(GeolocError::invalid("start", format!("{} poses for {} labels", start.0.len(), labels.len())));
+    }
+    let mut state = State { labels: start.0.to_vec(), offset: *start.1, points: points.to_vec() };
     let mut inliers = vec![true; observations.len()];
     let start_rms = rms_px(camera, &state, observations, &inliers);
     let mut iterations = 0;
     let mut start_cost = None;
+    let mut correlation = (1.0, 1.0);
     let label_sigma = match options.label_sigma {
         Some(s) => s,
         None => {
@@ -251,7 +278,14 @@ pub fn bundle_adjust(
                     break;
                 }
             }
-            sigma
+            // the corrections of neighbouring keyframes are correlated (labels drift): an
+            // i.i.d. prior of the scatter σ would hold the trajectory's slow shape τ times
+            // too tightly, so σ grows by √τ
+            correlation = correlation_lengths(labels, &state.labels);
+            LabelSigma {
+                translation_m: sigma.translation_m * correlation.0.sqrt(),
+                rotation_rad: sigma.rotation_rad * correlation.1.sqrt(),
+            }
         }
     };
     let problem = Problem::new(camera, labels, observations, &inliers, options, label_sigma);
@@ -276,6 +310,7 @@ pub fn bundle_adjust(
         points: state.points,
         inliers,
         label_sigma,
+        correlation_keyframes: correlation,
         cost: (start_cost.unwrap_or(c0), final_cost),
         rms_px: (start_rms, end_rms),
         iterations,
@@ -329,6 +364,60 @@ fn estimate_label_sigma(labels: &[SE3], adjusted: &[SE3]) -> LabelSigma {
         translation_m: (median(&mut t) / CHI2_3_MEDIAN).sqrt().max(MIN_LABEL_SIGMA.translation_m),
         rotation_rad: (median(&mut r) / CHI2_3_MEDIAN).sqrt().max(MIN_LABEL_SIGMA.rotation_rad),
     }
+}
+
+/// Spacing of the keyframes the correlation length is measured over: each at least this far
+/// (m) or this much turned (rad) from the last one taken. Keyframes closer than that see the
+/// same images: the adjustment moves them together whatever their labels did, and counting
+/// them would measure its own smoothing.
+pub const CORRELATION_SPACING: (f64, f64) = (0.05, 0.052_359_877_559_829_89);
+
+/// τ = 1 + 2 Σ_{l ≥ 1} r(l), the integrated autocorrelation time of the label corrections
+/// e_k = log(L_k⁻¹ B_k) along the trajectory, for the translation and the rotation axes: over
+/// the keyframes thinned to [`CORRELATION_SPACING`] in capture order, r(l) the lag-l
+/// autocorrelation averaged over the three axes, summed while positive (Geyer's initial
+/// positive sequence), τ ≥ 1 (in thinned keyframes).
+pub fn correlation_lengths(labels: &[SE3], adjusted: &[SE3]) -> (f64, f64) {
+    let mut kept: Vec<usize> = Vec::new();
+    for (k, b) in adjusted.iter().enumerate() {
+        let far = kept.last().is_none_or(|&j| {
+            let d = adjusted[j].inverse() * *b;
+            d.translation.norm() >= CORRELATION_SPACING.0 || d.rotation.angle() >= CORRELATION_SPACING.1
+        });
+        if far {
+            kept.push(k);
+        }
+    }
+    let e: Vec<Vector6<f64>> = kept.iter().map(|&k| (labels[k].inverse() * adjusted[k]).log()).collect();
+    let n = e.len();
+    let tau = |axes: std::ops::Range<usize>| {
+        let series: Vec<Vec<f64>> = axes
+            .map(|a| {
+                let mean = e.iter().map(|v| v[a]).sum::<f64>() / n as f64;
+                e.iter().map(|v| v[a] - mean).collect()
+            })
+            .collect();
+        let autocorrelation = |l: usize| {
+            let r: Vec<f64> = series
+                .iter()
+                .filter_map(|x| {
+                    let var: f64 = x.iter().map(|v| v * v).sum();
+                    (var > 0.0).then(|| x.iter().zip(&x[l..]).map(|(a, b)| a * b).sum::<f64>() / var)
+                })
+                .collect();
+            if r.is_empty() { 0.0 } else { r.iter().sum::<f64>() / r.len() as f64 }
+        };
+        let mut t = 1.0;
+        for l in 1..n / 2 {
+            let r = autocorrelation(l);
+            if r <= 0.0 {
+                break;
+            }
+            t += 2.0 * r;
+        }
+        t
+    };
+    (tau(0..3), tau(3..6))
 }
 
 /// Marks observations whose reprojection error exceeds `max_px` (or that lie behind the
@@ -485,7 +574,7 @@ const INITIAL_LAMBDA: f64 = 1e-4;
 const LAMBDA_UP: f64 = 10.0;
 const LAMBDA_DOWN: f64 = 0.3;
 /// Relative cost decrease below which the minimization has converged.
-const COST_TOLERANCE: f64 = 1e-9;
+const COST_TOLERANCE: f64 = 1e-6;
 
 impl<'a> Problem<'a> {
     fn new(

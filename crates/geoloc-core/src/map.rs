@@ -20,7 +20,7 @@ pub use persist::{
 
 use nalgebra::{Matrix6, Vector2, Vector6};
 
-use crate::adjust::{AdjustmentOptions, Observation, bundle_adjust};
+use crate::adjust::{AdjustmentOptions, Observation};
 use crate::bow::{BowDatabase, Vocabulary};
 use crate::camera::Camera;
 use crate::error::{GeolocError, Result};
@@ -302,7 +302,7 @@ impl Map {
     ///
     /// # Errors
     /// The map was adjusted already (`labels`); as [`SceneModel::build`] and
-    /// [`bundle_adjust`].
+    /// [`crate::adjust::bundle_adjust`].
     pub fn with_adjusted_labels(self, options: &AdjustmentOptions) -> Result<Self> {
         self.with_build_steps(&BuildSteps { adjustment: Some(*options), ..BuildSteps::default() })
     }
@@ -334,6 +334,13 @@ impl Map {
         }
         if let (Some(options), Some(pairs)) = (&steps.calibration, &pair_matches) {
             self.refine_intrinsics(options, &tracks, pairs)?;
+            // corrected keypoints: adjust again, from the adjusted poses, with the σ found
+            if let (Some(adjustment), Some(record)) = (&steps.adjustment, &self.labels)
+                && self.intrinsics_correction().is_some()
+            {
+                let again = AdjustmentOptions { label_sigma: Some(record.label_sigma), ..*adjustment };
+                self.adjust_labels(&again, pairs)?;
+            }
         }
         let covariances = self.pose_covariances.as_deref();
         self.model = match (&steps.model, &pair_matches) {
@@ -400,13 +407,34 @@ impl Map {
                     .filter_map(move |(id, px)| id.map(|point| Observation { keyframe: k, point, pixel: *px }))
             })
             .collect();
-        let labels = self.poses();
-        let adjustment = bundle_adjust(&self.camera, &labels, &model.points, &observations, options)?;
+        // a map adjusted before starts from its adjusted poses, its labels stay the priors
+        let (labels, start, offset, correlation) = match self.labels.take() {
+            Some(record) => (
+                record.labels.clone(),
+                record.label_poses(&self.poses()),
+                record.offset,
+                Some(record.correlation_keyframes),
+            ),
+            None => (self.poses(), self.poses(), SE3::identity(), None),
+        };
+        let adjustment = crate::adjust::bundle_adjust_from(
+            &self.camera,
+            &labels,
+            (&start, &offset),
+            &model.points,
+            &observations,
+            options,
+        )?;
         for (kf, pose) in self.keyframes.iter_mut().zip(adjustment.camera_poses()) {
             kf.world_from_cam = pose;
         }
         self.pose_covariances = Some(adjustment.camera_pose_covariances.clone());
-        self.labels = Some(LabelAdjustment::new(labels, &adjustment));
+        let mut record = LabelAdjustment::new(labels, &adjustment);
+        if let Some(tau) = correlation {
+            // re-adjusted with the σ found before: keep how it was found
+            record.correlation_keyframes = tau;
+        }
+        self.labels = Some(record);
         self.model = None;
         Ok(())
     }

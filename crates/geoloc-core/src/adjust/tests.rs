@@ -337,3 +337,37 @@ fn bad_inputs_are_refused_by_name() {
     };
     assert!(bad.check().expect_err("nan").to_string().contains("label_sigma"));
 }
+
+/// τ against the closed form of an AR(1) sequence, (1 + φ)/(1 − φ), and thinning: keyframes
+/// closer than the spacing are not counted.
+#[test]
+fn correlation_length_of_an_ar1_sequence() {
+    let mut rng = SplitMix64::new(21);
+    let n = 4000;
+    let adjusted: Vec<SE3> =
+        (0..n).map(|k| SE3::new(SO3::identity(), Vector3::new(0.1 * k as f64, 0.0, 0.0))).collect();
+    for phi in [0.0f64, 0.5, 0.8] {
+        let mut e = Vector6::zeros();
+        let labels: Vec<SE3> = adjusted
+            .iter()
+            .map(|b| {
+                let fresh = Vector6::from_fn(|_, _| rng.normal() * 0.01);
+                e = e * phi + fresh * (1.0 - phi * phi).sqrt();
+                *b * SE3::exp(&e).inverse()
+            })
+            .collect();
+        let (tt, tr) = correlation_lengths(&labels, &adjusted);
+        let want = (1.0 + phi) / (1.0 - phi);
+        for got in [tt, tr] {
+            assert!((got / want - 1.0).abs() < 0.2, "φ = {phi}: τ {got}, closed form {want}");
+        }
+    }
+    // the same sequence with each keyframe repeated 4 times 1 cm apart gives the same τ
+    let dense: Vec<SE3> = (0..4 * n / 4)
+        .map(|k| SE3::new(SO3::identity(), Vector3::new(0.1 * (k / 4) as f64 + 0.01 * (k % 4) as f64, 0.0, 0.0)))
+        .collect();
+    let labels: Vec<SE3> =
+        dense.iter().map(|b| *b * SE3::exp(&(Vector6::from_fn(|_, _| rng.normal()) * 0.01))).collect();
+    let (tt, _) = correlation_lengths(&labels, &dense);
+    assert!(tt < 1.3, "repeated keyframes counted: τ {tt}");
+}

@@ -33,6 +33,9 @@ pub struct LabelAdjustment {
     pub significance: Vec<f64>,
     /// The labels' σ the adjustment used.
     pub label_sigma: LabelSigma,
+    /// τ of the label corrections (translation, rotation; keyframes): how many neighbouring
+    /// keyframes share a label error ([`crate::adjust::correlation_lengths`]).
+    pub correlation_keyframes: (f64, f64),
     /// RMS reprojection error (px) with the labels and after the adjustment.
     pub rms_px: (f64, f64),
     /// Observations the adjustment used, and those it rejected.
@@ -64,6 +67,7 @@ impl LabelAdjustment {
             corrections,
             significance,
             label_sigma: adjustment.label_sigma,
+            correlation_keyframes: adjustment.correlation_keyframes,
             rms_px: adjustment.rms_px,
             observations: (used, adjustment.inliers.len() - used),
         }
@@ -102,6 +106,7 @@ impl LabelAdjustment {
         serde_json::json!({
             "label_sigma_m": self.label_sigma.translation_m,
             "label_sigma_deg": self.label_sigma.rotation_rad.to_degrees(),
+            "correlation_keyframes": [self.correlation_keyframes.0, self.correlation_keyframes.1],
             "label_from_cam_translation_m": [self.offset.translation.x, self.offset.translation.y, self.offset.translation.z],
             "label_from_cam_translation_sigma_m": [sd(0), sd(1), sd(2)],
             "label_from_cam_rotation_deg": se3::phi(&offset).norm().to_degrees(),
@@ -173,6 +178,7 @@ mod tests {
             corrections: (0..n).map(|k| Vector6::new(0.01 * k as f64, 0.0, 0.0, 0.0, 0.0, 0.001)).collect(),
             significance,
             label_sigma: LabelSigma { translation_m: 0.01, rotation_rad: 0.01 },
+            correlation_keyframes: (1.0, 1.0),
             rms_px: (1.0, 1.0),
             observations: (0, 0),
         }

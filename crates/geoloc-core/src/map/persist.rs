@@ -137,6 +137,13 @@ pub struct LabelsHeader {
     pub rms_px: [f64; 2],
     /// Observations used and rejected.
     pub observations: [usize; 2],
+    /// τ of the label corrections (translation, rotation; keyframes).
+    #[serde(default = "no_correlation")]
+    pub correlation_keyframes: [f64; 2],
+}
+
+fn no_correlation() -> [f64; 2] {
+    [1.0, 1.0]
 }
 
 impl LabelsHeader {
@@ -147,6 +154,7 @@ impl LabelsHeader {
             label_sigma: [l.label_sigma.translation_m, l.label_sigma.rotation_rad],
             rms_px: [l.rms_px.0, l.rms_px.1],
             observations: [l.observations.0, l.observations.1],
+            correlation_keyframes: [l.correlation_keyframes.0, l.correlation_keyframes.1],
         }
     }
 
@@ -176,6 +184,7 @@ impl LabelsHeader {
             corrections,
             significance,
             label_sigma: crate::adjust::LabelSigma { translation_m: t, rotation_rad: r },
+            correlation_keyframes: (self.correlation_keyframes[0], self.correlation_keyframes[1]),
             rms_px: (self.rms_px[0], self.rms_px[1]),
             observations: (self.observations[0], self.observations[1]),
         })
