@@ -12,6 +12,7 @@ pub mod bow;
 pub mod camera;
 pub mod checksum;
 pub mod error;
+pub mod essential;
 pub mod frames;
 pub mod fusion;
 pub mod keyframes;
