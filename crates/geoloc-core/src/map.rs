@@ -323,14 +323,15 @@ impl Map {
             o.check()?;
         }
         let tracks = calibration_tracks();
-        let needs_pairs = steps.calibration.is_some() || steps.adjustment.is_some();
+        // (the adjustment matches its own skeleton's pairs)
+        let needs_pairs = steps.calibration.is_some() || (steps.adjustment.is_some() && steps.model.is_some());
         let pair_matches = if needs_pairs { Some(PairMatches::compute(&self.keyframes, &tracks)?) } else { None };
         // the labels first: a camera estimated with the labels' poses absorbs their fixed
         // rotation from the camera into the principal point (measured on 7-Scenes 0-599,
         // every third frame: 1.00 cm / 1.03 deg against the reference with the camera
         // estimated first, 0.77 cm / 0.81 deg with the labels adjusted on the nominal camera)
-        if let (Some(options), Some(pairs)) = (&steps.adjustment, &pair_matches) {
-            self.adjust_labels(options, pairs)?;
+        if let Some(options) = &steps.adjustment {
+            self.adjust_labels(options)?;
         }
         if let (Some(options), Some(pairs)) = (&steps.calibration, &pair_matches) {
             self.refine_intrinsics(options, &tracks, pairs)?;
@@ -339,7 +340,7 @@ impl Map {
                 && self.intrinsics_correction().is_some()
             {
                 let again = AdjustmentOptions { label_sigma: Some(record.label_sigma), ..*adjustment };
-                self.adjust_labels(&again, pairs)?;
+                self.adjust_labels(&again)?;
             }
         }
         let covariances = self.pose_covariances.as_deref();
@@ -393,20 +394,14 @@ impl Map {
         Ok(())
     }
 
-    fn adjust_labels(&mut self, options: &AdjustmentOptions, pair_matches: &PairMatches) -> Result<()> {
-        let tracks = adjustment_tracks();
-        let model = SceneModel::assemble(&self.camera, &self.keyframes, None, &tracks, pair_matches)?;
-        let observations: Vec<Observation> = model
-            .point_ids
-            .iter()
-            .enumerate()
-            .flat_map(|(k, ids)| {
-                let keypoints = &self.keyframes[k].keypoints;
-                ids.iter()
-                    .zip(keypoints)
-                    .filter_map(move |(id, px)| id.map(|point| Observation { keyframe: k, point, pixel: *px }))
-            })
-            .collect();
+    /// Adjusts the skeleton of keyframes ([`skeleton`]: each at least
+    /// [`crate::adjust::CORRELATION_SPACING`] from the last) and carries the corrections to
+    /// the keyframes between by interpolation: Δ_k = L_k⁻¹ B_k, interpolated on SE(3) between
+    /// the skeleton keyframes around k by capture index (label errors drift over tens of
+    /// frames; keyframes closer than the spacing see the same images and add little but
+    /// rounds and time). A keyframe between takes the marginal covariance of its nearer
+    /// skeleton keyframe.
+    fn adjust_labels(&mut self, options: &AdjustmentOptions) -> Result<()> {
         // a map adjusted before starts from its adjusted poses, its labels stay the priors
         let (labels, start, offset, correlation) = match self.labels.take() {
             Some(record) => (
@@ -417,19 +412,40 @@ impl Map {
             ),
             None => (self.poses(), self.poses(), SE3::identity(), None),
         };
+        let chosen = skeleton(&start);
+        let keyframes: Vec<Keyframe> = chosen.iter().map(|&k| self.keyframes[k].clone()).collect();
+        let tracks = adjustment_tracks();
+        let pairs = PairMatches::compute(&keyframes, &tracks)?;
+        let model = SceneModel::assemble(&self.camera, &keyframes, None, &tracks, &pairs)?;
+        let observations: Vec<Observation> = model
+            .point_ids
+            .iter()
+            .enumerate()
+            .flat_map(|(k, ids)| {
+                let keypoints = &keyframes[k].keypoints;
+                ids.iter()
+                    .zip(keypoints)
+                    .filter_map(move |(id, px)| id.map(|point| Observation { keyframe: k, point, pixel: *px }))
+            })
+            .collect();
+        let pick = |v: &[SE3]| chosen.iter().map(|&k| v[k]).collect::<Vec<_>>();
         let adjustment = crate::adjust::bundle_adjust_from(
             &self.camera,
-            &labels,
-            (&start, &offset),
+            &pick(&labels),
+            (&pick(&start), &offset),
             &model.points,
             &observations,
             options,
         )?;
-        for (kf, pose) in self.keyframes.iter_mut().zip(adjustment.camera_poses()) {
-            kf.world_from_cam = pose;
+        let (adjusted, nearest) = interpolated_corrections(&labels, &chosen, &adjustment.label_poses);
+        let x = adjustment.offset;
+        for (kf, b) in self.keyframes.iter_mut().zip(&adjusted) {
+            kf.world_from_cam = *b * x;
         }
-        self.pose_covariances = Some(adjustment.camera_pose_covariances.clone());
-        let mut record = LabelAdjustment::new(labels, &adjustment);
+        self.pose_covariances = Some(nearest.iter().map(|&s| adjustment.camera_pose_covariances[s]).collect());
+        let label_covariances: Vec<Matrix6<f64>> =
+            nearest.iter().map(|&s| adjustment.label_pose_covariances[s]).collect();
+        let mut record = LabelAdjustment::with_poses(labels, &adjusted, &label_covariances, &adjustment);
         if let Some(tau) = correlation {
             // re-adjusted with the σ found before: keep how it was found
             record.correlation_keyframes = tau;
@@ -565,6 +581,54 @@ pub fn adjustment_tracks() -> ModelOptions {
         triangulation: TriangulationOptions { max_residual_px: 12.0, ..calibration.triangulation },
         ..calibration
     }
+}
+
+/// The skeleton of a trajectory in capture order: the first pose, then each pose at least
+/// [`crate::adjust::CORRELATION_SPACING`] (translation or rotation) from the last one taken,
+/// and the last pose.
+pub fn skeleton(poses: &[SE3]) -> Vec<usize> {
+    let (min_m, min_rad) = crate::adjust::CORRELATION_SPACING;
+    let mut kept: Vec<usize> = Vec::new();
+    for (k, p) in poses.iter().enumerate() {
+        let far = kept.last().is_none_or(|&j| {
+            let d = poses[j].inverse() * *p;
+            d.translation.norm() >= min_m || d.rotation.angle() >= min_rad
+        });
+        if far {
+            kept.push(k);
+        }
+    }
+    if let (Some(&last), Some(n)) = (kept.last(), poses.len().checked_sub(1))
+        && last != n
+    {
+        kept.push(n);
+    }
+    kept
+}
+
+/// The adjusted poses B_k = L_k Δ_k of every keyframe from those of the skeleton `chosen`
+/// (B_s for s ∈ chosen, in order): Δ interpolated on SE(3) by capture index between the
+/// skeleton keyframes around k (the nearest one's outside them); and for each keyframe the
+/// position in `chosen` of its nearer skeleton keyframe.
+fn interpolated_corrections(labels: &[SE3], chosen: &[usize], adjusted: &[SE3]) -> (Vec<SE3>, Vec<usize>) {
+    let delta: Vec<SE3> = chosen.iter().zip(adjusted).map(|(&k, b)| labels[k].inverse() * *b).collect();
+    let mut poses = Vec::with_capacity(labels.len());
+    let mut nearest = Vec::with_capacity(labels.len());
+    let mut i = 0;
+    for (k, label) in labels.iter().enumerate() {
+        while i + 1 < chosen.len() && chosen[i + 1] <= k {
+            i += 1;
+        }
+        let (d, n) = if k <= chosen[i] || i + 1 == chosen.len() {
+            (delta[i], i)
+        } else {
+            let alpha = (k - chosen[i]) as f64 / (chosen[i + 1] - chosen[i]) as f64;
+            (delta[i].interpolate(&delta[i + 1], alpha), if alpha < 0.5 { i } else { i + 1 })
+        };
+        poses.push(*label * d);
+        nearest.push(n);
+    }
+    (poses, nearest)
 }
 
 /// Every keyframe: as many finite keypoints as descriptors, descriptors valid and of

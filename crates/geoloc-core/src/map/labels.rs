@@ -56,9 +56,30 @@ pub struct LabelRun {
 }
 
 impl LabelAdjustment {
-    /// The record of `adjustment` of `labels`.
+    /// The record of `adjustment` of `labels` (one adjusted pose per label).
     pub fn new(labels: Vec<SE3>, adjustment: &Adjustment) -> Self {
-        let (corrections, significance) = adjustment.corrections(&labels).into_iter().unzip();
+        Self::with_poses(labels, &adjustment.label_poses, &adjustment.label_pose_covariances, adjustment)
+    }
+
+    /// The record of `labels` adjusted to `adjusted` (world_from_label) with the marginal
+    /// covariances `covariances`, the rest from `adjustment` (which may have adjusted a
+    /// subset of the keyframes).
+    pub fn with_poses(
+        labels: Vec<SE3>,
+        adjusted: &[SE3],
+        covariances: &[Matrix6<f64>],
+        adjustment: &Adjustment,
+    ) -> Self {
+        let (corrections, significance) = labels
+            .iter()
+            .zip(adjusted)
+            .zip(covariances)
+            .map(|((l, b), c)| {
+                let e = (l.inverse() * *b).log();
+                let m = c.try_inverse().map_or(f64::INFINITY, |i| (e.transpose() * i * e)[0]);
+                (e, m)
+            })
+            .unzip();
         let used = adjustment.inliers.iter().filter(|i| **i).count();
         Self {
             labels,
