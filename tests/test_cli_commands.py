@@ -13,6 +13,8 @@ import numpy as np
 import pytest
 
 import geoloc
+from cli_runner import one_line_error as _one_line_error
+from cli_runner import run_geoloc as _run
 from geoloc import datasets, evaluation
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -28,23 +30,6 @@ REAL_SLICE_MEDIAN_M = 0.06
 #: The keys DESIGN.md §7 fixes for the result JSON (plus nees_coverage).
 RESULT_KEYS = {"median_translation_m", "median_rotation_deg", "frames", "sources", "recall", "timing_ms", "nees_coverage", "per_frame"}
 PLOTS = ("trajectory.png", "errors.png", "error_cdf.png", "calibration.png")
-
-
-def _run(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join([str(Path(geoloc.__file__).parents[1]), env.get("PYTHONPATH", "")])
-    return subprocess.run([sys.executable, "-m", "geoloc", *args], capture_output=True, text=True, cwd=cwd, env=env)
-
-
-def _one_line_error(result: subprocess.CompletedProcess[str], *names: str) -> str:
-    """The run failed with exit 2 and one error line (no traceback) naming ``names``."""
-    assert result.returncode == 2, result.stdout + result.stderr
-    assert "Traceback" not in result.stderr, result.stderr
-    errors = [line for line in result.stderr.splitlines() if "error" in line]
-    assert len(errors) == 1, result.stderr
-    for name in names:
-        assert name in errors[0], result.stderr
-    return errors[0]
 
 
 def _is_png(path: Path) -> bool:

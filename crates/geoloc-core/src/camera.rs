@@ -72,6 +72,21 @@ impl Camera {
         )
     }
 
+    /// K⁻¹ = [[1/f_x, 0, −c_x/f_x], [0, 1/f_y, −c_y/f_y], [0, 0, 1]].
+    pub fn inverse_matrix(&self) -> nalgebra::Matrix3<f64> {
+        nalgebra::Matrix3::new(
+            1.0 / self.fx,
+            0.0,
+            -self.cx / self.fx,
+            0.0,
+            1.0 / self.fy,
+            -self.cy / self.fy,
+            0.0,
+            0.0,
+            1.0,
+        )
+    }
+
     /// The bearing K⁻¹ (u, v, 1) of an (undistorted) pixel, with z = 1.
     #[inline]
     pub fn unproject(&self, uv: &Vector2<f64>) -> Vector3<f64> {

@@ -344,17 +344,7 @@ struct Problem {
 
 impl Problem {
     fn new(camera: &Camera, ka: &[Vector2<f64>], kb: &[Vector2<f64>], matches: &[Match], max_px: f64) -> Self {
-        let k_inv = Matrix3::new(
-            1.0 / camera.fx,
-            0.0,
-            -camera.cx / camera.fx,
-            0.0,
-            1.0 / camera.fy,
-            -camera.cy / camera.fy,
-            0.0,
-            0.0,
-            1.0,
-        );
+        let k_inv = camera.inverse_matrix();
         let pixels: Vec<_> = matches.iter().map(|m| (ka[m.a], kb[m.b])).collect();
         let normalized = pixels.iter().map(|(a, b)| (camera.unproject(a), camera.unproject(b))).collect();
         let (inv_fx2, inv_fy2) = (1.0 / (camera.fx * camera.fx), 1.0 / (camera.fy * camera.fy));

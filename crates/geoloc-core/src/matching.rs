@@ -397,17 +397,7 @@ fn float_nearest(from: &[f32], to: &[f32], width: usize) -> Result<Vec<usize>> {
 pub fn fundamental_matrix(camera: &Camera, pose_a: &SE3, pose_b: &SE3) -> Matrix3<f64> {
     let b_from_a = pose_b.inverse() * *pose_a;
     let e = so3::hat(&b_from_a.translation) * b_from_a.rotation.matrix();
-    let k_inv = Matrix3::new(
-        1.0 / camera.fx,
-        0.0,
-        -camera.cx / camera.fx,
-        0.0,
-        1.0 / camera.fy,
-        -camera.cy / camera.fy,
-        0.0,
-        0.0,
-        1.0,
-    );
+    let k_inv = camera.inverse_matrix();
     k_inv.transpose() * e * k_inv
 }
 

@@ -175,6 +175,17 @@ impl SceneModel {
         Ok(Self { points, covariances, descriptors, point_ids, observers, observed })
     }
 
+    /// Every observation of a point: (keyframe, point, the keypoint's pixel in `keyframes`,
+    /// the keyframes the model was built from), keyframe by keyframe in keypoint order.
+    pub fn observations<'a>(
+        &'a self,
+        keyframes: &'a [Keyframe],
+    ) -> impl Iterator<Item = (usize, usize, Vector2<f64>)> + 'a {
+        self.point_ids.iter().zip(keyframes).enumerate().flat_map(|(k, (ids, kf))| {
+            ids.iter().zip(&kf.keypoints).filter_map(move |(id, px)| id.map(|point| (k, point, *px)))
+        })
+    }
+
     /// Number of points.
     pub fn len(&self) -> usize {
         self.points.len()
