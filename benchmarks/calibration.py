@@ -9,6 +9,13 @@ model + gated fusion) — and the synthetic room. Per fold × mode: median error
 NEES, sources; and the map's estimated noise (√diag C_map, acceleration PSD).
 
     PYTHONPATH=python python benchmarks/calibration.py [--folds 0,6] [--synthetic] [--json out.json]
+        [--keep-labels] [--reference FILE]
+
+``--keep-labels`` builds every map on the labels as they are (by default ``Map.build``
+corrects them by bundle adjustment); with the
+SfM reference (``--reference``, default the shared one when present) every fold × mode is
+scored a second time, against the reference aligned on the fold's training frames to the
+map's keyframe poses (``vs ref`` rows), beside the labels (``vs labels``).
 
 Not a test: a full run takes several minutes (7 map builds of ~600 frames). ``--json`` also
 records the held-out samples of each map and every frame's error, covariance and source, so
@@ -103,15 +110,20 @@ from geoloc.evaluation import CHI2_6_95, summarize_results
 from geoloc.lie import se3_inverse, se3_log
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "7scenes-redkitchen"
+REFERENCE = DATA.parent / "7scenes-redkitchen-reference" / "sfm-poses.txt"
 BLOCK = 100
 MARGIN = 15
 
 
-def evaluate(train: Any, test: Any, locator: str = "paper") -> dict[str, Any]:
+def evaluate(
+    train: Any, test: Any, locator: str = "paper", adjust_labels: bool = True, reference: Any = None
+) -> dict[str, Any]:
     """Build the map on ``train``, localize ``test`` in both modes; the summaries, the map noise
-    and (under ``"frames"``) the per-frame errors δ = log(T_gt⁻¹T_est), covariances and sources."""
+    and (under ``"frames"``) the per-frame errors δ = log(T_gt⁻¹T_est), covariances and sources;
+    with ``reference`` ((N, 4, 4) poses of every frame of the dataset) also the summaries against
+    it (``"<mode> vs reference"``), aligned on the training frames to the map's keyframe poses."""
     t0 = time.perf_counter()
-    m = geoloc.Map.build(train, model=locator == "model")
+    m = geoloc.Map.build(train, model=locator == "model", adjust_labels=adjust_labels)
     build_s = time.perf_counter() - t0
     noise = m.map_noise
     h = noise["holdout"]
@@ -133,8 +145,18 @@ def evaluate(train: Any, test: Any, locator: str = "paper") -> dict[str, Any]:
         "frames": {},
     }
     gt = test.poses
+    alignment = None
+    if reference is not None:
+        from geoloc.reference import align_reference
+
+        alignment = align_reference(reference[train.indices], m.keyframe_poses)
+        out["alignment"] = alignment.statistics()
     for mode in ("single", "sequential"):
         results = geoloc.Localizer(m, locator=locator).localize_sequence(test, mode)
+        if alignment is not None:
+            ref = summarize_results(results, alignment.apply(reference[test.indices]))
+            ref.pop("per_frame", None)
+            out[f"{mode} vs reference"] = ref
         s = summarize_results(results, gt)
         s.pop("per_frame", None)
         sig = [isometric_sigmas(r.covariance)[0] for r in results if r.covariance is not None]
@@ -210,7 +232,18 @@ def main() -> int:
     ap.add_argument("--json", help="write the summaries here")
     ap.add_argument("--locator", choices=("paper", "model"), default="paper",
                     help="the geometric locator (model: the map is built with its 3D model, C_map measured with it)")
+    ap.add_argument("--keep-labels", dest="adjust_labels", action="store_false",
+                    help="maps keep their labels as the truth (default: corrected by bundle adjustment)")
+    ap.add_argument("--reference", type=Path, default=REFERENCE if REFERENCE.is_file() else None,
+                    help="SfM reference poses to score against as well (default: the shared one, when present)")
     args = ap.parse_args()
+    reference = None
+    if args.reference is not None:
+        from geoloc.reference import load_reference
+
+        keys, poses = load_reference(args.reference)
+        reference = np.full((int(keys.max()) + 1, 4, 4), np.nan)
+        reference[keys] = poses
     report: dict[str, Any] = {}
     header = f"{'fold':<10} {'mode':<10} {'median':>18} {'median, lost=∞':>18} {'5cm/5°':>7} {'NEES':>6} {'axis min':>8} {'med NEES':>8} {'σ_p med':>8}  sources"
     print(header, flush=True)
@@ -218,11 +251,13 @@ def main() -> int:
         seq = geoloc.datasets.load_7scenes(DATA)[:700]
         for b in (int(x) for x in args.folds.split(",")):
             train, test = fold(seq, b)
-            r = evaluate(train, test, args.locator)
+            r = evaluate(train, test, args.locator, args.adjust_labels, reference)
             name = f"{b * BLOCK}-{b * BLOCK + len(test) - 1}"
             report[name] = r
             for mode in ("single", "sequential"):
                 print(row(name, mode, r[mode]), flush=True)
+                if f"{mode} vs reference" in r:
+                    print(row("", f"{mode[:3]} vs ref", r[f"{mode} vs reference"]), flush=True)
             print(f"{'':<10} NEES coverage by PnP inliers, single: {coverage_by_inliers(r['frames']['single'])}", flush=True)
             n = r["map_noise"]
             print(f"{'':<10} map noise √diag C_map {np.round(n['sqrt_diag'], 4).tolist()} "

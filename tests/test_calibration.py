@@ -31,9 +31,10 @@ def test_map_records_its_noise_and_keeps_it(room: tuple[Any, Any, geoloc.Map], t
     c = noise["pose_covariance"]
     assert c.shape == (6, 6) and np.all(np.isfinite(c)) and np.all(np.linalg.eigvalsh(c) >= 0)
     assert noise["acceleration_psd"].shape == (6,) and np.all(noise["acceleration_psd"] > 0)
-    # the velocity prior: the training frames' body velocities, mean and variance
+    # the velocity prior: the keyframes' (camera) body velocities, mean and variance
     dt = np.diff(train.timestamps)
-    v = np.array([se3_log(se3_inverse(a) @ b) / d for a, b, d in zip(train.poses[:-1], train.poses[1:], dt)])
+    poses = m.camera_poses
+    v = np.array([se3_log(se3_inverse(a) @ b) / d for a, b, d in zip(poses[:-1], poses[1:], dt)])
     np.testing.assert_allclose(noise["velocity_mean"], v.mean(0), rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(noise["velocity_variance"], v.var(0), rtol=1e-9, atol=1e-12)
     m.save(tmp_path / "room.geoloc")

@@ -39,12 +39,13 @@ def test_the_labels_record_survives_the_file_and_results_keep_the_labels_convent
     bump[:3, :3] = [[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]]
     bump[:3, 3] = [0.06, -0.04, 0.05]
     labelled = _bumped(room, slice(8, 13), bump)
-    plain = Map.build(labelled, estimate_noise=False, refine_intrinsics=False)
+    plain = Map.build(labelled, estimate_noise=False, refine_intrinsics=False, adjust_labels=False)
     adjusted = Map.build(labelled, estimate_noise=False, refine_intrinsics=False, adjust_labels=True)
     assert plain.labels is None and plain.label_poses is None
     np.testing.assert_array_equal(plain.keyframe_poses, labelled.poses)
     report = adjusted.labels
     assert report is not None and report["label_sigma_m"] > 0 and len(report["rms_px"]) == 2
+    assert isinstance(report["applied"], bool)
     np.testing.assert_array_equal(adjusted.label_poses, labelled.poses)
     path = tmp_path / "adjusted.geoloc"
     adjusted.save(path)
@@ -91,4 +92,4 @@ def test_adjusted_keyframes_agree_with_the_image_reference(kitchen: tuple[Sequen
     assert np.percentile(t, 95) <= 0.04 and np.percentile(r, 95) <= 1.5, (np.percentile(t, 95), np.percentile(r, 95))
     assert np.median(r) < 0.7 * np.median(r_labels), (np.median(r), np.median(r_labels))
     report = m.labels
-    assert report is not None and report["rms_px"][1] < report["rms_px"][0]
+    assert report is not None and report["applied"] and report["rms_px"][1] < report["rms_px"][0]

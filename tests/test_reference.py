@@ -15,6 +15,8 @@ import numpy as np
 import pytest
 
 import geoloc
+from cli_runner import one_line_error as _one_line_error
+from cli_runner import run_geoloc as _run
 from geoloc import datasets, evaluation, lie
 from geoloc.exceptions import DatasetError, InvalidInputError
 from geoloc.reference import ReferenceAlignment, align_reference, load_reference, match_reference
@@ -351,21 +353,6 @@ def test_sfm_reference_agrees_with_the_labels_to_the_documented_level() -> None:
 ROOM_FRAMES = 60
 
 
-def _run(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join([str(Path(geoloc.__file__).parents[1]), env.get("PYTHONPATH", "")])
-    return subprocess.run([sys.executable, "-m", "geoloc", *args], capture_output=True, text=True, cwd=cwd, env=env)
-
-
-def _one_line_error(result: subprocess.CompletedProcess[str], *names: str) -> None:
-    assert result.returncode == 2, result.stdout + result.stderr
-    assert "Traceback" not in result.stderr, result.stderr
-    errors = [line for line in result.stderr.splitlines() if "error" in line]
-    assert len(errors) == 1, result.stderr
-    for name in names:
-        assert name in errors[0], result.stderr
-
-
 def _room_reference(tmp_path: Path, fmt: str, frames: slice = slice(None)) -> Path:
     """The synthetic room's labels M_i as a reference in another frame: R_i = S⁻¹ M_i X⁻¹ as
     4×4 products, with M_i's rotation block scaled by s (the inverse of :func:`_compose`)."""
@@ -399,7 +386,7 @@ def test_evaluate_against_a_reference_prints_both_rows_and_writes_the_alignment(
     assert "training residuals median" in result.stdout
     data = json.loads((tmp_path / "r.json").read_text())
     against = data["against_reference"]
-    assert against["format"] == fmt and against["fitted_to"] == "labels"
+    assert against["format"] == fmt and against["fitted_to"] == "map keyframe poses"
     s, _, _, _ = _true_s_and_x()
     assert against["alignment"]["scale"] == pytest.approx(s, rel=1e-9)
     assert against["alignment"]["training"]["frames"] == ROOM_FRAMES // 2

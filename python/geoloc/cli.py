@@ -193,6 +193,12 @@ def _calibration_option(parser: argparse.ArgumentParser) -> None:
         help="use --intrinsics as they are; by default the map estimates the real camera (focal lengths, "
         "principal point, lens distortion) from its own keyframes and corrects every keypoint with it",
     )
+    parser.add_argument(
+        "--keep-labels", dest="adjust_labels", action="store_false",
+        help="use the sequence's pose labels as the keyframes' truth; by default the map corrects them by "
+        "bundle adjustment (keyframe poses, points and one label-to-camera offset, the labels as robust "
+        "priors) so that it agrees with its images",
+    )
 
 
 def _add_demo(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> Handler:

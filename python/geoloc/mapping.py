@@ -94,7 +94,7 @@ class Map:
         estimate_noise: bool = True,
         model: bool = False,
         refine_intrinsics: bool = True,
-        adjust_labels: bool = False,
+        adjust_labels: bool = True,
         progress: ProgressCallback | None = None,
     ) -> Map:
         """Build a map from ``sequence`` (every ``keyframe_step``-th frame becomes a keyframe).
@@ -112,8 +112,7 @@ class Map:
         lengths, principal point and lens distortion, with the poses known — and corrects the
         keyframes' and every query's keypoints with it (:attr:`self_calibration`; it says why
         not when the recording does not determine the camera, and the sequence's camera is
-        then used as it is). ``adjust_labels`` (default False; it will become the default once its build time and
-        the localization figures are confirmed on every fold) corrects the sequence's pose
+        then used as it is). ``adjust_labels`` (default True) corrects the sequence's pose
         labels by bundle adjustment — keyframe poses, points and one label-to-camera offset,
         the labels as robust priors whose σ is estimated — so that the map agrees with its
         images (:attr:`labels`, :attr:`keyframe_poses`, :attr:`label_poses`); localization
@@ -189,6 +188,12 @@ class Map:
     def label_poses(self) -> NDArray[np.float64] | None:
         """The pose labels as given, or None when they were not adjusted."""
         return self._feature_map.label_poses
+
+    @property
+    def camera_poses(self) -> NDArray[np.float64]:
+        """The keyframes' camera poses world_from_cam (the frame the localizer, the motion
+        model and the map's noise work in; the labels when they were not adjusted)."""
+        return self._feature_map.camera_poses
 
     @property
     def map_noise(self) -> dict[str, Any]:

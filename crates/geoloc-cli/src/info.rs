@@ -25,6 +25,8 @@ fn summary(path: &Path, bytes: u64, map: &Map, h: &MapHeader) -> String {
     let c = h.camera;
     let _ = writeln!(s, "camera            fx {} fy {} cx {} cy {}{}", c.fx, c.fy, c.cx, c.cy, image_size(f));
     let _ = writeln!(s, "camera estimate   {}", self_calibration(h));
+    let labels = map.labels.as_ref().map_or_else(|| "as given (not adjusted)".to_string(), |l| l.summary());
+    let _ = writeln!(s, "pose labels       {labels}");
     let per = h.keypoints as f64 / h.keyframes.max(1) as f64;
     let _ = writeln!(s, "keyframes         {}", h.keyframes);
     let _ = writeln!(s, "keypoints         {} ({per:.1} per keyframe)", h.keypoints);

@@ -86,6 +86,8 @@ pub fn run(args: &Args) -> Result<(), String> {
 fn localize(args: &Args) -> Result<(), String> {
     let start = Instant::now();
     let (map, header) = Map::load(&args.map).map_err(|e| format!("--map: {e}"))?;
+    // results in the labels' convention, as the Python Localizer returns them
+    let labels = map.labels.clone();
     let mut localizer = Localizer::new(Arc::new(map), options(args)).map_err(|e| e.to_string())?;
     let records = open_input(&args.input, args.format)?;
     let mut out = open_output(&args.output)?;
@@ -107,6 +109,10 @@ fn localize(args: &Args) -> Result<(), String> {
             pixel_sigmas: Some(&record.pixel_sigmas),
         };
         let result = localizer.localize(&frame).map_err(|e| format!("{}: frame {index}: {e}", args.input))?;
+        let result = match &labels {
+            Some(l) => l.localization_to_label(result),
+            None => result,
+        };
         writeln!(out, "{}", output::line(record.timestamp, &result)).and_then(|()| out.flush()).map_err(write_err)?;
         stats.push(result.timings, result.source);
     }

@@ -378,16 +378,7 @@ pub const CORRELATION_SPACING: (f64, f64) = (0.05, 0.052_359_877_559_829_89);
 /// autocorrelation averaged over the three axes, summed while positive (Geyer's initial
 /// positive sequence), τ ≥ 1 (in thinned keyframes).
 pub fn correlation_lengths(labels: &[SE3], adjusted: &[SE3]) -> (f64, f64) {
-    let mut kept: Vec<usize> = Vec::new();
-    for (k, b) in adjusted.iter().enumerate() {
-        let far = kept.last().is_none_or(|&j| {
-            let d = adjusted[j].inverse() * *b;
-            d.translation.norm() >= CORRELATION_SPACING.0 || d.rotation.angle() >= CORRELATION_SPACING.1
-        });
-        if far {
-            kept.push(k);
-        }
-    }
+    let kept = skeleton(adjusted);
     let e: Vec<Vector6<f64>> = kept.iter().map(|&k| (labels[k].inverse() * adjusted[k]).log()).collect();
     let n = e.len();
     let tau = |axes: std::ops::Range<usize>| {
@@ -418,6 +409,28 @@ pub fn correlation_lengths(labels: &[SE3], adjusted: &[SE3]) -> (f64, f64) {
         t
     };
     (tau(0..3), tau(3..6))
+}
+
+/// The skeleton of a trajectory in capture order: the first pose, then each pose at least
+/// [`CORRELATION_SPACING`] (translation or rotation) from the last one taken, and the last.
+pub fn skeleton(poses: &[SE3]) -> Vec<usize> {
+    let (min_m, min_rad) = CORRELATION_SPACING;
+    let mut kept: Vec<usize> = Vec::new();
+    for (k, p) in poses.iter().enumerate() {
+        let far = kept.last().is_none_or(|&j| {
+            let d = poses[j].inverse() * *p;
+            d.translation.norm() >= min_m || d.rotation.angle() >= min_rad
+        });
+        if far {
+            kept.push(k);
+        }
+    }
+    if let (Some(&last), Some(n)) = (kept.last(), poses.len().checked_sub(1))
+        && last != n
+    {
+        kept.push(n);
+    }
+    kept
 }
 
 /// Marks observations whose reprojection error exceeds `max_px` (or that lie behind the

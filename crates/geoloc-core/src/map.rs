@@ -366,15 +366,8 @@ impl Map {
         let covariances = self.pose_covariances.as_deref();
         let model = SceneModel::assemble(&self.camera, &self.keyframes, covariances, tracks, pair_matches)?;
         let observations: Vec<TrackObservation> = model
-            .point_ids
-            .iter()
-            .enumerate()
-            .flat_map(|(k, ids)| {
-                let keypoints = &self.keyframes[k].keypoints;
-                ids.iter()
-                    .zip(keypoints)
-                    .filter_map(move |(id, px)| id.map(|point| TrackObservation { keyframe: k, point, pixel: *px }))
-            })
+            .observations(&self.keyframes)
+            .map(|(keyframe, point, pixel)| TrackObservation { keyframe, point, pixel })
             .collect();
         let mut calibration = self_calibrate(&self.camera, &self.poses(), &model.points, &observations, options)?;
         if let Some(correction) = calibration.correction {
@@ -394,7 +387,7 @@ impl Map {
         Ok(())
     }
 
-    /// Adjusts the skeleton of keyframes ([`skeleton`]: each at least
+    /// Adjusts the skeleton of keyframes ([`crate::adjust::skeleton`]: each at least
     /// [`crate::adjust::CORRELATION_SPACING`] from the last) and carries the corrections to
     /// the keyframes between by interpolation: Δ_k = L_k⁻¹ B_k, interpolated on SE(3) between
     /// the skeleton keyframes around k by capture index (label errors drift over tens of
@@ -412,21 +405,14 @@ impl Map {
             ),
             None => (self.poses(), self.poses(), SE3::identity(), None),
         };
-        let chosen = skeleton(&start);
+        let chosen = crate::adjust::skeleton(&start);
         let keyframes: Vec<Keyframe> = chosen.iter().map(|&k| self.keyframes[k].clone()).collect();
         let tracks = adjustment_tracks();
         let pairs = PairMatches::compute(&keyframes, &tracks)?;
         let model = SceneModel::assemble(&self.camera, &keyframes, None, &tracks, &pairs)?;
         let observations: Vec<Observation> = model
-            .point_ids
-            .iter()
-            .enumerate()
-            .flat_map(|(k, ids)| {
-                let keypoints = &keyframes[k].keypoints;
-                ids.iter()
-                    .zip(keypoints)
-                    .filter_map(move |(id, px)| id.map(|point| Observation { keyframe: k, point, pixel: *px }))
-            })
+            .observations(&keyframes)
+            .map(|(keyframe, point, pixel)| Observation { keyframe, point, pixel })
             .collect();
         let pick = |v: &[SE3]| chosen.iter().map(|&k| v[k]).collect::<Vec<_>>();
         let adjustment = crate::adjust::bundle_adjust_from(
@@ -438,17 +424,25 @@ impl Map {
             options,
         )?;
         let (adjusted, nearest) = interpolated_corrections(&labels, &chosen, &adjustment.label_poses);
-        let x = adjustment.offset;
-        for (kf, b) in self.keyframes.iter_mut().zip(&adjusted) {
-            kf.world_from_cam = *b * x;
-        }
-        self.pose_covariances = Some(nearest.iter().map(|&s| adjustment.camera_pose_covariances[s]).collect());
         let label_covariances: Vec<Matrix6<f64>> =
             nearest.iter().map(|&s| adjustment.label_pose_covariances[s]).collect();
         let mut record = LabelAdjustment::with_poses(labels, &adjusted, &label_covariances, &adjustment);
         if let Some(tau) = correlation {
             // re-adjusted with the σ found before: keep how it was found
             record.correlation_keyframes = tau;
+        }
+        // labels the images do not contradict stay as they are (the record says so)
+        record.applied = record.significant();
+        if record.applied {
+            let x = adjustment.offset;
+            for (kf, b) in self.keyframes.iter_mut().zip(&adjusted) {
+                kf.world_from_cam = *b * x;
+            }
+            self.pose_covariances = Some(nearest.iter().map(|&s| adjustment.camera_pose_covariances[s]).collect());
+        } else {
+            for (kf, l) in self.keyframes.iter_mut().zip(&record.labels) {
+                kf.world_from_cam = *l;
+            }
         }
         self.labels = Some(record);
         self.model = None;
@@ -581,29 +575,6 @@ pub fn adjustment_tracks() -> ModelOptions {
         triangulation: TriangulationOptions { max_residual_px: 12.0, ..calibration.triangulation },
         ..calibration
     }
-}
-
-/// The skeleton of a trajectory in capture order: the first pose, then each pose at least
-/// [`crate::adjust::CORRELATION_SPACING`] (translation or rotation) from the last one taken,
-/// and the last pose.
-pub fn skeleton(poses: &[SE3]) -> Vec<usize> {
-    let (min_m, min_rad) = crate::adjust::CORRELATION_SPACING;
-    let mut kept: Vec<usize> = Vec::new();
-    for (k, p) in poses.iter().enumerate() {
-        let far = kept.last().is_none_or(|&j| {
-            let d = poses[j].inverse() * *p;
-            d.translation.norm() >= min_m || d.rotation.angle() >= min_rad
-        });
-        if far {
-            kept.push(k);
-        }
-    }
-    if let (Some(&last), Some(n)) = (kept.last(), poses.len().checked_sub(1))
-        && last != n
-    {
-        kept.push(n);
-    }
-    kept
 }
 
 /// The adjusted poses B_k = L_k Δ_k of every keyframe from those of the skeleton `chosen`

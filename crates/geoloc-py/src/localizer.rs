@@ -403,14 +403,10 @@ impl FeatureLocalizer {
 }
 
 /// A localization with its pose and covariance in the labels' convention (the camera pose kept).
-fn in_label_convention(
-    mut inner: CoreLocalization,
-    labels: Option<&geoloc_core::map::LabelAdjustment>,
-) -> Localization {
+fn in_label_convention(inner: CoreLocalization, labels: Option<&geoloc_core::map::LabelAdjustment>) -> Localization {
     let Some(l) = labels else { return Localization { inner, camera: None } };
     let camera = inner.estimate;
-    inner.estimate = camera.map(|e| l.estimate_to_label(&e));
-    Localization { inner, camera }
+    Localization { inner: l.localization_to_label(inner), camera }
 }
 
 /// Registers the classes on the module.

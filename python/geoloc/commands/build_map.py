@@ -28,6 +28,7 @@ def run(args: argparse.Namespace) -> int:
         keyframe_step=args.step,
         model=bool(getattr(args, "model", False)),
         refine_intrinsics=not getattr(args, "nominal_intrinsics", False),
+        adjust_labels=bool(getattr(args, "adjust_labels", True)),
         progress=Progress("map", then=MAP_DONE),
     )
     built = time.perf_counter() - start

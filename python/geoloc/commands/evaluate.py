@@ -134,6 +134,7 @@ def evaluate_split(
     options: tuple[str, str] = ("--train", "--test"),
     locator: str = "paper",
     nominal_intrinsics: bool = False,
+    adjust_labels: bool = True,
     reference: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Build the map from ``sequence[train]``, localize ``sequence[test]`` in each mode.
@@ -141,7 +142,8 @@ def evaluate_split(
     Returns ``{"map": Map, "build_s": float, "test": Sequence, "summaries": {mode: dict}}``,
     each summary :func:`geoloc.evaluation.summarize_results` plus per-frame ``frame`` (the
     dataset's frame index) and ``reason``. ``locator`` is "paper" or "model";
-    ``nominal_intrinsics`` keeps the sequence's camera as it is (no self-calibration).
+    ``nominal_intrinsics`` keeps the sequence's camera as it is (no self-calibration);
+    ``adjust_labels`` corrects the training labels by bundle adjustment (:meth:`Map.build`).
     With ``reference`` (:func:`load_reference_option`), also ``"reference"``: the file, the
     :class:`~geoloc.reference.ReferenceAlignment` fitted on the training frames that the
     reference has, and ``summaries`` ({mode: dict}) against the aligned reference.
@@ -173,6 +175,7 @@ def evaluate_split(
         features=features,
         n_features=n_features,
         refine_intrinsics=not nominal_intrinsics,
+        adjust_labels=adjust_labels,
         progress=Progress("map", then=MAP_DONE),
     )
     build_s = time.perf_counter() - start
@@ -341,7 +344,8 @@ def run(args: argparse.Namespace) -> int:
     test = args.test or default_test
     result = evaluate_split(
         sequence, train, test, _modes(args.mode), features=args.features, n_features=args.n_features, retrieval=args.retrieval,
-        locator=args.locator, nominal_intrinsics=args.nominal_intrinsics, reference=reference,
+        locator=args.locator, nominal_intrinsics=args.nominal_intrinsics, adjust_labels=args.adjust_labels,
+        reference=reference,
     )
     data = report(sequence, result, dataset=args.dataset, fmt=args.format, train=train, test=test, timings=args.timings)
     if args.json:

@@ -40,6 +40,11 @@ pub struct LabelAdjustment {
     pub rms_px: (f64, f64),
     /// Observations the adjustment used, and those it rejected.
     pub observations: (usize, usize),
+    /// Whether the map uses the adjustment: false when no label correction and not the
+    /// offset is significant ([`LabelAdjustment::significant`]) — the images then agree with
+    /// the labels, and the map keeps them (its keyframes hold the labels, results need no
+    /// conversion).
+    pub applied: bool,
 }
 
 /// A run of consecutive keyframes whose labels the images correct significantly.
@@ -91,16 +96,28 @@ impl LabelAdjustment {
             correlation_keyframes: adjustment.correlation_keyframes,
             rms_px: adjustment.rms_px,
             observations: (used, adjustment.inliers.len() - used),
+            applied: true,
         }
+    }
+
+    /// Whether the images disagree with the labels: some correction or the offset beyond
+    /// [`SIGNIFICANT_CORRECTION_CHI2`] (e_Xᵀ Σ_X⁻¹ e_X for the offset, e_X = log(X)).
+    pub fn significant(&self) -> bool {
+        let e = self.offset.log();
+        let offset = self.offset_covariance.try_inverse().map_or(0.0, |i| (e.transpose() * i * e)[0]);
+        offset > SIGNIFICANT_CORRECTION_CHI2 || self.significance.iter().any(|m| *m > SIGNIFICANT_CORRECTION_CHI2)
     }
 
     /// A world_from_cam pose T in the labels' convention: T X⁻¹.
     pub fn to_label(&self, world_from_cam: &SE3) -> SE3 {
-        *world_from_cam * self.offset.inverse()
+        if self.applied { *world_from_cam * self.offset.inverse() } else { *world_from_cam }
     }
 
     /// A covariance of T (right perturbation) as one of T X⁻¹: Ad_X Σ Ad_Xᵀ.
     pub fn covariance_to_label(&self, covariance: &Matrix6<f64>) -> Matrix6<f64> {
+        if !self.applied {
+            return *covariance;
+        }
         let a = self.offset.adjoint();
         a * covariance * a.transpose()
     }
@@ -111,6 +128,33 @@ impl LabelAdjustment {
             world_from_cam: self.to_label(&e.world_from_cam),
             covariance: self.covariance_to_label(&e.covariance),
         }
+    }
+
+    /// A localization with its estimate in the labels' convention (what the bindings and the
+    /// robot binary return).
+    pub fn localization_to_label(&self, mut l: crate::localizer::Localization) -> crate::localizer::Localization {
+        l.estimate = l.estimate.map(|e| self.estimate_to_label(&e));
+        l
+    }
+
+    /// One line for people: σ, τ, the offset, the median correction, the runs.
+    pub fn summary(&self) -> String {
+        let (mt, mr) = self.median_correction();
+        let x = self.offset.log();
+        let state = if self.applied { "adjusted" } else { "kept (the images agree with them)" };
+        format!(
+            "{state}: label σ {:.1} mm / {:.2}°, offset label_from_cam {:.1} cm / {:.2}°, median correction {:.1} mm / \
+             {:.2}°, {} run(s) of significant corrections, reprojection {:.2} -> {:.2} px rms",
+            1e3 * self.label_sigma.translation_m,
+            self.label_sigma.rotation_rad.to_degrees(),
+            1e2 * self.offset.translation.norm(),
+            se3::phi(&x).norm().to_degrees(),
+            1e3 * mt,
+            mr.to_degrees(),
+            self.runs().len(),
+            self.rms_px.0,
+            self.rms_px.1,
+        )
     }
 
     /// The adjusted keyframe poses in the labels' convention, B_k = T_k X⁻¹, from the
@@ -125,6 +169,7 @@ impl LabelAdjustment {
         let offset = self.offset.log();
         let sd = |i: usize| self.offset_covariance[(i, i)].max(0.0).sqrt();
         serde_json::json!({
+            "applied": self.applied,
             "label_sigma_m": self.label_sigma.translation_m,
             "label_sigma_deg": self.label_sigma.rotation_rad.to_degrees(),
             "correlation_keyframes": [self.correlation_keyframes.0, self.correlation_keyframes.1],
@@ -202,6 +247,7 @@ mod tests {
             correlation_keyframes: (1.0, 1.0),
             rms_px: (1.0, 1.0),
             observations: (0, 0),
+            applied: true,
         }
     }
 

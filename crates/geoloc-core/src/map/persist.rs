@@ -140,6 +140,13 @@ pub struct LabelsHeader {
     /// τ of the label corrections (translation, rotation; keyframes).
     #[serde(default = "no_correlation")]
     pub correlation_keyframes: [f64; 2],
+    /// Whether the map uses the adjustment (false: the images agreed with the labels).
+    #[serde(default = "applied")]
+    pub applied: bool,
+}
+
+fn applied() -> bool {
+    true
 }
 
 fn no_correlation() -> [f64; 2] {
@@ -155,6 +162,7 @@ impl LabelsHeader {
             rms_px: [l.rms_px.0, l.rms_px.1],
             observations: [l.observations.0, l.observations.1],
             correlation_keyframes: [l.correlation_keyframes.0, l.correlation_keyframes.1],
+            applied: l.applied,
         }
     }
 
@@ -187,6 +195,7 @@ impl LabelsHeader {
             correlation_keyframes: (self.correlation_keyframes[0], self.correlation_keyframes[1]),
             rms_px: (self.rms_px[0], self.rms_px[1]),
             observations: (self.observations[0], self.observations[1]),
+            applied: self.applied,
         })
     }
 }
