@@ -13,6 +13,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
+import numpy as np
+
 
 from ..exceptions import DatasetError, InvalidInputError
 from ..mapping import SEQUENCE_MODES
@@ -235,4 +237,19 @@ def describe_self_calibration(found: dict[str, Any] | None) -> str:
         f"k1 {k1:+.4f} k2 {k2:+.4f} p1 {p1:+.5f} p2 {p2:+.5f}; track residuals {found['rms_before_px']:.2f} -> "
         f"{found['rms_after_px']:.2f} px rms over {found['observations']} observations (correction 1σ "
         f"{found['correction_sigma_px']:.2f} px)"
+    )
+
+
+def describe_labels(found: dict[str, Any] | None) -> str:
+    """One line on what the map's bundle adjustment found about its pose labels (``Map.labels``)."""
+    if found is None:
+        return "labels: kept as the keyframes' truth (--keep-labels)"
+    state = "corrected" if found["applied"] else "kept (the images agree with them)"
+    runs = ", ".join(f"{r['start']}-{r['end'] - 1}" for r in found["runs"]) or "none"
+    before, after = found["rms_px"]
+    return (
+        f"labels {state}: σ {1e3 * found['label_sigma_m']:.1f} mm / {found['label_sigma_deg']:.2f}°, median correction "
+        f"{1e3 * found['median_correction_m']:.1f} mm / {found['median_correction_deg']:.2f}°, label-to-camera offset "
+        f"{100 * float(np.linalg.norm(found['label_from_cam_translation_m'])):.1f} cm / {found['label_from_cam_rotation_deg']:.2f}°; "
+        f"track residuals {before:.2f} -> {after:.2f} px rms; runs of significant corrections (keyframes): {runs}"
     )

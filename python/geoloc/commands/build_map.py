@@ -6,7 +6,7 @@ import argparse
 import time
 
 from ..exceptions import InvalidInputError
-from ._common import MAP_DONE, Progress, describe_self_calibration, load_dataset, open_retrieval, select
+from ._common import MAP_DONE, Progress, describe_labels, describe_self_calibration, load_dataset, open_retrieval, select
 
 __all__ = ["run"]
 
@@ -39,4 +39,5 @@ def run(args: argparse.Namespace) -> int:
         f"{args.retrieval} retrieval; camera {cam.width}×{cam.height}, fx={cam.intrinsics[0]:g}) in {built:.1f} s"
     )
     print(describe_self_calibration(the_map.self_calibration))
+    print(describe_labels(the_map.labels))
     return 0

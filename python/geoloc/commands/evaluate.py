@@ -29,6 +29,7 @@ from ._common import (
     MAP_DONE,
     MODES,
     Progress,
+    describe_labels,
     describe_self_calibration,
     load_dataset,
     localize_sequence,
@@ -259,6 +260,7 @@ def report(
         file=out,
     )
     print(describe_self_calibration(run["map"].self_calibration), file=out)
+    print(describe_labels(run["map"].labels), file=out)
     print(format_table(table_rows, reference), file=out)
     if against is not None:
         print(describe_alignment(against), file=out)
