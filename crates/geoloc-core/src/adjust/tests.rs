@@ -1,7 +1,8 @@
 use nalgebra::{DMatrix, DVector};
 
+use super::problem::*;
 use super::*;
-use crate::lie::SO3;
+use crate::lie::{SO3, se3};
 use crate::testing::{SplitMix64, look_at};
 
 /// A scene for the adjustment: `count` landmarks in a box 3–7 m in front, `n` cameras on a

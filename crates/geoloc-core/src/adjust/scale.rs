@@ -1,0 +1,102 @@
+//! How sure the labels are: the robust scale of the adjustment's label corrections, their
+//! correlation along the trajectory, and the skeleton of keyframes both are measured over.
+
+use nalgebra::Vector6;
+
+use super::LabelSigma;
+use crate::lie::{SE3, se3};
+
+/// The median of the χ²₃ distribution: median(‖e‖²/σ²) of a 3-D isotropic Gaussian.
+const CHI2_3_MEDIAN: f64 = 2.365_973_884_375_61;
+
+/// Smallest estimated label σ (1 mm, 0.05°): labels that agree with the images to the
+/// last bit still get a finite prior.
+const MIN_LABEL_SIGMA: LabelSigma = LabelSigma { translation_m: 1e-3, rotation_rad: 8.726_646_259_971_648e-4 };
+
+/// σ² = median(‖e‖²) / median(χ²₃) of the translation and rotation parts of the label
+/// corrections e_k = log(L_k⁻¹ B_k), floored at [`MIN_LABEL_SIGMA`].
+pub(super) fn estimate_label_sigma(labels: &[SE3], adjusted: &[SE3]) -> LabelSigma {
+    let (mut t, mut r): (Vec<f64>, Vec<f64>) = labels
+        .iter()
+        .zip(adjusted)
+        .map(|(l, b)| {
+            let e = (l.inverse() * *b).log();
+            (se3::rho(&e).norm_squared(), se3::phi(&e).norm_squared())
+        })
+        .unzip();
+    let median = |v: &mut Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    LabelSigma {
+        translation_m: (median(&mut t) / CHI2_3_MEDIAN).sqrt().max(MIN_LABEL_SIGMA.translation_m),
+        rotation_rad: (median(&mut r) / CHI2_3_MEDIAN).sqrt().max(MIN_LABEL_SIGMA.rotation_rad),
+    }
+}
+
+/// Spacing of the keyframes the correlation length is measured over: each at least this far
+/// (m) or this much turned (rad) from the last one taken. Keyframes closer than that see the
+/// same images: the adjustment moves them together whatever their labels did, and counting
+/// them would measure its own smoothing.
+pub const CORRELATION_SPACING: (f64, f64) = (0.05, 0.052_359_877_559_829_89);
+
+/// τ = 1 + 2 Σ_{l ≥ 1} r(l), the integrated autocorrelation time of the label corrections
+/// e_k = log(L_k⁻¹ B_k) along the trajectory, for the translation and the rotation axes: over
+/// the keyframes thinned to [`CORRELATION_SPACING`] in capture order, r(l) the lag-l
+/// autocorrelation averaged over the three axes, summed while positive (Geyer's initial
+/// positive sequence), τ ≥ 1 (in thinned keyframes).
+pub fn correlation_lengths(labels: &[SE3], adjusted: &[SE3]) -> (f64, f64) {
+    let kept = skeleton(adjusted);
+    let e: Vec<Vector6<f64>> = kept.iter().map(|&k| (labels[k].inverse() * adjusted[k]).log()).collect();
+    let n = e.len();
+    let tau = |axes: std::ops::Range<usize>| {
+        let series: Vec<Vec<f64>> = axes
+            .map(|a| {
+                let mean = e.iter().map(|v| v[a]).sum::<f64>() / n as f64;
+                e.iter().map(|v| v[a] - mean).collect()
+            })
+            .collect();
+        let autocorrelation = |l: usize| {
+            let r: Vec<f64> = series
+                .iter()
+                .filter_map(|x| {
+                    let var: f64 = x.iter().map(|v| v * v).sum();
+                    (var > 0.0).then(|| x.iter().zip(&x[l..]).map(|(a, b)| a * b).sum::<f64>() / var)
+                })
+                .collect();
+            if r.is_empty() { 0.0 } else { r.iter().sum::<f64>() / r.len() as f64 }
+        };
+        let mut t = 1.0;
+        for l in 1..n / 2 {
+            let r = autocorrelation(l);
+            if r <= 0.0 {
+                break;
+            }
+            t += 2.0 * r;
+        }
+        t
+    };
+    (tau(0..3), tau(3..6))
+}
+
+/// The skeleton of a trajectory in capture order: the first pose, then each pose at least
+/// [`CORRELATION_SPACING`] (translation or rotation) from the last one taken, and the last.
+pub fn skeleton(poses: &[SE3]) -> Vec<usize> {
+    let (min_m, min_rad) = CORRELATION_SPACING;
+    let mut kept: Vec<usize> = Vec::new();
+    for (k, p) in poses.iter().enumerate() {
+        let far = kept.last().is_none_or(|&j| {
+            let d = poses[j].inverse() * *p;
+            d.translation.norm() >= min_m || d.rotation.angle() >= min_rad
+        });
+        if far {
+            kept.push(k);
+        }
+    }
+    if let (Some(&last), Some(n)) = (kept.last(), poses.len().checked_sub(1))
+        && last != n
+    {
+        kept.push(n);
+    }
+    kept
+}
