@@ -86,9 +86,8 @@ pub fn run(args: &Args) -> Result<(), String> {
 fn localize(args: &Args) -> Result<(), String> {
     let start = Instant::now();
     let (map, header) = Map::load(&args.map).map_err(|e| format!("--map: {e}"))?;
-    // results in the labels' convention, as the Python Localizer returns them
-    let labels = map.labels.clone();
-    let mut localizer = Localizer::new(Arc::new(map), options(args)).map_err(|e| e.to_string())?;
+    let map = Arc::new(map);
+    let mut localizer = Localizer::new(Arc::clone(&map), options(args)).map_err(|e| e.to_string())?;
     let records = open_input(&args.input, args.format)?;
     let mut out = open_output(&args.output)?;
     let write_err = |e: std::io::Error| format!("--output {}: {e}", args.output);
@@ -109,10 +108,8 @@ fn localize(args: &Args) -> Result<(), String> {
             pixel_sigmas: Some(&record.pixel_sigmas),
         };
         let result = localizer.localize(&frame).map_err(|e| format!("{}: frame {index}: {e}", args.input))?;
-        let result = match &labels {
-            Some(l) => l.localization_to_label(result),
-            None => result,
-        };
+        // in the labels' convention, as the Python Localizer returns it
+        let result = map.to_label_convention(result);
         writeln!(out, "{}", output::line(record.timestamp, &result)).and_then(|()| out.flush()).map_err(write_err)?;
         stats.push(result.timings, result.source);
     }

@@ -193,13 +193,18 @@ impl Adjustment {
             .iter()
             .zip(&self.label_poses)
             .zip(&self.label_pose_covariances)
-            .map(|((l, b), c)| {
-                let e = (l.inverse() * *b).log();
-                let m = c.try_inverse().map_or(f64::INFINITY, |i| (e.transpose() * i * e)[0]);
-                (e, m)
-            })
+            .map(|((l, b), c)| correction(l, b, c))
             .collect()
     }
+}
+
+/// The correction of label `label` (world_from_label) to `adjusted`, e = log(L⁻¹ B) (right
+/// perturbation, translation first), and its significance eᵀ Σ⁻¹ e under `covariance` Σ
+/// (infinite when Σ is singular).
+pub fn correction(label: &SE3, adjusted: &SE3, covariance: &Matrix6<f64>) -> (Vector6<f64>, f64) {
+    let e = (label.inverse() * *adjusted).log();
+    let m = covariance.try_inverse().map_or(f64::INFINITY, |i| (e.transpose() * i * e)[0]);
+    (e, m)
 }
 
 /// Adjusts the map: labels `labels` (world_from_label), points `points` (world, a start), the

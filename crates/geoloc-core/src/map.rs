@@ -336,7 +336,9 @@ impl Map {
         if let (Some(options), Some(pairs)) = (&steps.calibration, &pair_matches) {
             self.refine_intrinsics(options, &tracks, pairs)?;
             // corrected keypoints: adjust again, from the adjusted poses, with the σ found
+            // (labels the first adjustment kept stay kept: there is nothing to refine)
             if let (Some(adjustment), Some(record)) = (&steps.adjustment, &self.labels)
+                && record.applied
                 && self.intrinsics_correction().is_some()
             {
                 let again = AdjustmentOptions { label_sigma: Some(record.label_sigma), ..*adjustment };
@@ -431,22 +433,38 @@ impl Map {
             // re-adjusted with the σ found before: keep how it was found
             record.correlation_keyframes = tau;
         }
-        // labels the images do not contradict stay as they are (the record says so)
-        record.applied = record.significant();
+        // labels the images do not contradict stay as they are (the record says so); the
+        // decision is the first adjustment's, a re-adjustment refines an applied one
+        record.applied = correlation.is_some() || record.significant();
         if record.applied {
             let x = adjustment.offset;
             for (kf, b) in self.keyframes.iter_mut().zip(&adjusted) {
                 kf.world_from_cam = *b * x;
             }
             self.pose_covariances = Some(nearest.iter().map(|&s| adjustment.camera_pose_covariances[s]).collect());
-        } else {
-            for (kf, l) in self.keyframes.iter_mut().zip(&record.labels) {
-                kf.world_from_cam = *l;
-            }
         }
         self.labels = Some(record);
         self.model = None;
         Ok(())
+    }
+
+    /// The keyframe poses in the labels' convention: T_k X⁻¹ when the map applied its
+    /// labels' adjustment, else the keyframes' poses (the labels).
+    pub fn keyframe_label_poses(&self) -> Vec<SE3> {
+        let poses = self.poses();
+        match &self.labels {
+            Some(l) => l.label_poses(&poses),
+            None => poses,
+        }
+    }
+
+    /// A localization against this map in the labels' convention (unchanged when the map did
+    /// not apply a labels' adjustment).
+    pub fn to_label_convention(&self, localization: crate::localizer::Localization) -> crate::localizer::Localization {
+        match &self.labels {
+            Some(l) => l.localization_to_label(localization),
+            None => localization,
+        }
     }
 
     /// The camera correction the map applies to keypoints, if any.

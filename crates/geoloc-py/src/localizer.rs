@@ -161,11 +161,7 @@ impl FeatureMap {
     /// adjusted, else the labels.
     #[getter]
     fn keyframe_poses<'py>(&self, py: Python<'py>) -> Bound<'py, numpy::PyArray3<f64>> {
-        let poses = self.inner.poses();
-        let poses = match &self.inner.labels {
-            Some(l) => l.label_poses(&poses),
-            None => poses,
-        };
+        let poses = self.inner.keyframe_label_poses();
         matrices_to_array3(py, &poses.iter().map(|p| p.matrix()).collect::<Vec<_>>())
     }
 
@@ -318,8 +314,8 @@ impl Localization {
 #[pyclass(module = "geoloc._core", frozen)]
 pub struct FeatureLocalizer {
     inner: Mutex<CoreLocalizer>,
-    /// The map's label record (results are returned in the labels' convention).
-    labels: Option<geoloc_core::map::LabelAdjustment>,
+    /// The map (results are returned in its labels' convention).
+    map: Arc<CoreMap>,
 }
 
 #[pymethods]
@@ -349,7 +345,7 @@ impl FeatureLocalizer {
         options.triangulation.pixel_sigma = pixel_sigma;
         options.triangulation.max_residual_px = max_residual;
         let inner = py.detach(|| CoreLocalizer::new(Arc::clone(&map.inner), options)).map_err(to_py_err)?;
-        Ok(Self { inner: Mutex::new(inner), labels: map.inner.labels.clone() })
+        Ok(Self { inner: Mutex::new(inner), map: Arc::clone(&map.inner) })
     }
 
     /// Localizes one frame (keypoints (N, 2) undistorted pixels, descriptors (N, W), optional
@@ -393,20 +389,15 @@ impl FeatureLocalizer {
             .detach(|| self.inner.lock().ok().map(|mut loc| loc.localize(&frame)))
             .ok_or_else(|| invalid("localizer", "a previous call panicked; create a new localizer"))?
             .map_err(to_py_err)?;
-        Ok(in_label_convention(inner, self.labels.as_ref()))
+        let camera = inner.estimate;
+        let inner = self.map.to_label_convention(inner);
+        Ok(Localization { camera: self.map.labels.as_ref().and(camera), inner })
     }
 
     fn reset(&self) -> PyResult<()> {
         self.inner.lock().map_err(|_| invalid("localizer", "a previous call panicked"))?.reset();
         Ok(())
     }
-}
-
-/// A localization with its pose and covariance in the labels' convention (the camera pose kept).
-fn in_label_convention(inner: CoreLocalization, labels: Option<&geoloc_core::map::LabelAdjustment>) -> Localization {
-    let Some(l) = labels else { return Localization { inner, camera: None } };
-    let camera = inner.estimate;
-    Localization { inner: l.localization_to_label(inner), camera }
 }
 
 /// Registers the classes on the module.

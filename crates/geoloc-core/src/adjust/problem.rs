@@ -143,6 +143,8 @@ pub(super) struct Reduced {
     pub(super) s: BlockEnvelope,
     pub(super) rhs: Vec<f64>,
     pub(super) points: Vec<PointBlock>,
+    /// (V_j + λ diag V_j)⁻¹ per point, None where singular.
+    pub(super) v_inv: Vec<Option<Matrix3<f64>>>,
 }
 
 /// Marginal covariances at the solution.
@@ -322,6 +324,16 @@ impl<'a> Problem<'a> {
         points + labels + offset
     }
 
+    /// A point's couplings W_kj with its observers, and W_Xj with the offset (its block last)
+    /// when the offset is estimated.
+    fn members(&self, p: &PointBlock) -> Vec<(usize, Matrix6x3)> {
+        let mut members = p.couplings.clone();
+        if self.options.estimate_offset {
+            members.push((self.labels.len(), p.offset));
+        }
+        members
+    }
+
     /// The normal equations at `state` with the points eliminated and damping λ (on U and V).
     pub(super) fn reduce(&self, state: &State, lambda: f64) -> Reduced {
         let n = self.labels.len();
@@ -365,12 +377,10 @@ impl<'a> Problem<'a> {
             }
         }
         // Schur complement: S = U − Σ_j W_j V_j⁻¹ W_jᵀ, rhs −= Σ_j W_j V_j⁻¹ (−g_j)
-        for p in &points {
-            let Some(v_inv) = damped_inverse(&p.v, lambda) else { continue };
-            let mut members: Vec<(usize, Matrix6x3)> = p.couplings.clone();
-            if self.options.estimate_offset {
-                members.push((xo, p.offset));
-            }
+        let v_inv: Vec<Option<Matrix3<f64>>> = points.iter().map(|p| damped_inverse(&p.v, lambda)).collect();
+        for (p, v_inv) in points.iter().zip(&v_inv) {
+            let Some(v_inv) = *v_inv else { continue };
+            let members = self.members(p);
             let y: Vec<Matrix6x3> = members.iter().map(|(_, w)| w * v_inv).collect();
             for (a, (ka, _)) in members.iter().enumerate() {
                 let ya = &y[a];
@@ -380,7 +390,7 @@ impl<'a> Problem<'a> {
                 }
             }
         }
-        Reduced { s: u, rhs, points }
+        Reduced { s: u, rhs, points, v_inv }
     }
 
     /// Levenberg–Marquardt from `state`: (the minimum, iterations, the start cost).
@@ -399,7 +409,7 @@ impl<'a> Problem<'a> {
                 continue;
             };
             let delta = factor.solve(&reduced.rhs);
-            let candidate = self.retract(&state, &delta, &reduced.points, lambda);
+            let candidate = self.retract(&state, &delta, &reduced);
             let new_cost = self.cost(&candidate);
             if new_cost.is_finite() && new_cost < cost {
                 let decrease = (cost - new_cost) / cost.max(f64::MIN_POSITIVE);
@@ -423,17 +433,17 @@ impl<'a> Problem<'a> {
 
     /// state ⊞ δ: keyframes and the offset from the reduced solution, each point by
     /// back-substitution δ_j = −V_j⁻¹ (g_j + Σ W_kjᵀ δ_k).
-    pub(super) fn retract(&self, state: &State, delta: &[f64], points: &[PointBlock], lambda: f64) -> State {
+    pub(super) fn retract(&self, state: &State, delta: &[f64], reduced: &Reduced) -> State {
         let n = self.labels.len();
         let d = |b: usize| Vector6::from_column_slice(&delta[6 * b..6 * b + 6]);
         let labels = state.labels.iter().enumerate().map(|(k, b)| *b * SE3::exp(&d(k))).collect();
         let offset = if self.options.estimate_offset { state.offset * SE3::exp(&d(n)) } else { state.offset };
         let mut new_points = state.points.clone();
-        for (j, p) in points.iter().enumerate() {
+        for (j, (p, v_inv)) in reduced.points.iter().zip(&reduced.v_inv).enumerate() {
             if p.couplings.is_empty() {
                 continue;
             }
-            let Some(v_inv) = damped_inverse(&p.v, lambda) else { continue };
+            let Some(v_inv) = *v_inv else { continue };
             let mut s = p.g;
             for (k, w) in &p.couplings {
                 s += w.transpose() * d(*k);
@@ -461,15 +471,13 @@ impl<'a> Problem<'a> {
         } else {
             (vec![Matrix6::zeros(); n], Matrix6::zeros())
         };
-        let points = map_slice(&reduced.points, 64, |p| {
-            let Some(v_inv) = damped_inverse(&p.v, 0.0) else { return Matrix3::zeros() };
+        let blocks: Vec<(&PointBlock, &Option<Matrix3<f64>>)> = reduced.points.iter().zip(&reduced.v_inv).collect();
+        let points = map_slice(&blocks, 64, |&(p, v_inv)| {
+            let Some(v_inv) = *v_inv else { return Matrix3::zeros() };
             if p.couplings.is_empty() {
                 return Matrix3::zeros();
             }
-            let mut members: Vec<(usize, Matrix6x3)> = p.couplings.clone();
-            if self.options.estimate_offset {
-                members.push((n, p.offset));
-            }
+            let members = self.members(p);
             let mut m = Matrix3::zeros();
             for (ka, wa) in &members {
                 for (kb, wb) in &members {

@@ -100,3 +100,19 @@ pub fn skeleton(poses: &[SE3]) -> Vec<usize> {
     }
     kept
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::testing::SplitMix64;
+
+    /// CHI2_3_MEDIAN against the sample median of ‖z‖² for 400 000 standard normal 3-vectors.
+    #[test]
+    fn chi2_3_median_matches_sampling() {
+        let mut rng = SplitMix64::new(17);
+        let mut v: Vec<f64> = (0..400_000).map(|_| (0..3).map(|_| rng.normal().powi(2)).sum::<f64>()).collect();
+        v.sort_by(f64::total_cmp);
+        let median = v[v.len() / 2];
+        assert!((median - CHI2_3_MEDIAN).abs() < 0.01, "{median}");
+    }
+}

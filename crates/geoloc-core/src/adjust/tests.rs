@@ -177,7 +177,7 @@ fn the_reduced_step_equals_the_dense_step() {
     let state = State { labels: labels.clone(), offset: SE3::exp(&rng.twist(0.02, 0.02)), points };
     let reduced = problem.reduce(&state, 0.0);
     let delta = reduced.s.cholesky().expect("SPD").solve(&reduced.rhs);
-    let stepped = problem.retract(&state, &delta, &reduced.points, 0.0);
+    let stepped = problem.retract(&state, &delta, &reduced);
     // dense: H δ = −g
     let n = labels.len();
     let h = dense_normal_matrix(&problem, &state, landmarks.len());

@@ -9,7 +9,7 @@
 
 use nalgebra::{Matrix6, Vector6};
 
-use crate::adjust::{Adjustment, LabelSigma};
+use crate::adjust::{Adjustment, LabelSigma, correction};
 use crate::lie::{SE3, se3};
 
 /// χ²₆ 99.9 % quantile: a correction beyond it is significant.
@@ -75,16 +75,8 @@ impl LabelAdjustment {
         covariances: &[Matrix6<f64>],
         adjustment: &Adjustment,
     ) -> Self {
-        let (corrections, significance) = labels
-            .iter()
-            .zip(adjusted)
-            .zip(covariances)
-            .map(|((l, b), c)| {
-                let e = (l.inverse() * *b).log();
-                let m = c.try_inverse().map_or(f64::INFINITY, |i| (e.transpose() * i * e)[0]);
-                (e, m)
-            })
-            .unzip();
+        let (corrections, significance) =
+            labels.iter().zip(adjusted).zip(covariances).map(|((l, b), c)| correction(l, b, c)).unzip();
         let used = adjustment.inliers.iter().filter(|i| **i).count();
         Self {
             labels,
@@ -249,6 +241,15 @@ mod tests {
             observations: (0, 0),
             applied: true,
         }
+    }
+
+    /// The significance threshold is the χ²₆ 99.9 % quantile: the closed-form CDF
+    /// 1 − e^{−x/2}(1 + x/2 + x²/8) there is 0.999.
+    #[test]
+    fn significance_threshold_is_the_chi2_6_999_quantile() {
+        let x = SIGNIFICANT_CORRECTION_CHI2;
+        let cdf = 1.0 - (-x / 2.0).exp() * (1.0 + x / 2.0 + x * x / 8.0);
+        assert!((cdf - 0.999).abs() < 1e-12, "{cdf}");
     }
 
     /// Runs against a brute-force scan of every window.
