@@ -327,8 +327,28 @@ mod map_tests {
         let runs = record.runs();
         assert!(runs.iter().any(|r| r.start <= 16 && r.end >= 21), "{runs:?}");
         assert!(adjusted.pose_covariances.is_some());
-        let back = Map::from_map_file(&adjusted.to_map_file("{}").expect("file")).expect("loads").0;
+        let file = adjusted.to_map_file("{}").expect("file");
+        let back = Map::from_map_file(&file).expect("loads").0;
         assert_eq!(back.labels, adjusted.labels);
+        // a damaged record is refused with the field or array named
+        let header: serde_json::Value = serde_json::from_str(&file.header).expect("json");
+        let damaged = |edit: &dyn Fn(&mut serde_json::Value)| {
+            let mut h = header.clone();
+            edit(&mut h["labels"]);
+            let mut f = file.clone();
+            f.header = h.to_string();
+            Map::from_map_file(&f).expect_err("damaged labels").to_string()
+        };
+        let err = damaged(&|l| l["label_from_cam"][1] = 0.5.into());
+        assert!(err.contains("labels.label_from_cam"), "{err}");
+        let err = damaged(&|l| l["label_from_cam_covariance"] = serde_json::json!([1.0, 2.0]));
+        assert!(err.contains("labels"), "{err}");
+        let err = damaged(&|l| l["label_sigma"][0] = (-1.0).into());
+        assert!(err.contains("labels.label_sigma"), "{err}");
+        let mut missing = file.clone();
+        missing.tensors.remove("keyframes.labels");
+        let err = Map::from_map_file(&missing).expect_err("missing labels").to_string();
+        assert!(err.contains("keyframes.labels"), "{err}");
         assert_eq!(back.poses(), adjusted.poses());
         let err = adjusted.with_adjusted_labels(&AdjustmentOptions::default()).expect_err("twice");
         assert!(err.to_string().contains("labels"), "{err}");
