@@ -9,6 +9,7 @@ from numpy.typing import NDArray
 
 __version__: str
 PARALLEL_MIN_ITEMS: int
+MIN_NOISE_SAMPLES: int
 
 def so3_hat(phi: NDArray[np.float64], *, single: bool = False) -> NDArray[np.float64]: ...
 def so3_vee(m: NDArray[np.float64], *, single: bool = False) -> NDArray[np.float64]: ...

@@ -43,6 +43,19 @@ def _keypoints(x: ArrayLike, name: str, n: int | None = None) -> Array:
     return np.ascontiguousarray(k)
 
 
+def _noise_source(cov: NDArray[np.float64], samples: int) -> str:
+    """Where C_map came from, in words (the core picks; this only describes)."""
+    if not np.any(cov):
+        return "none (the map's noise was not estimated)"
+    if samples < _core.MIN_NOISE_SAMPLES:
+        sigma = np.sqrt(np.diag(cov))
+        return (
+            f"default: {samples} held-out keyframes < {_core.MIN_NOISE_SAMPLES} cannot estimate it "
+            f"(σ {100 * sigma[0]:.0f} cm / {np.degrees(sigma[3]):.0f}° per axis)"
+        )
+    return f"estimated from {samples} held-out keyframes"
+
+
 class FeatureMap:
     """Keyframes (poses + features) and their retrieval structure; see the module doc.
 
@@ -178,7 +191,9 @@ class FeatureMap:
         returned covariance), ``acceleration_psd`` (6,) of the motion model's process noise,
         ``velocity_mean`` and ``velocity_variance`` (6,) of its velocity prior (per twist axis,
         from the keyframes' timestamps and poses; zero in maps saved before it: no prior),
-        ``holdout_samples`` (held-out keyframes C_map comes from) and, for a map built in this
+        ``holdout_samples`` (held-out keyframes C_map comes from; with fewer than
+        ``geoloc._core.MIN_NOISE_SAMPLES`` C_map is a conservative default, never zero),
+        ``pose_covariance_source`` (which of the two, in words) and, for a map built in this
         process (not stored in the file), ``holdout``: the held-out re-localizations
         (``keyframe`` (n,), ``delta`` (n, 6) = log(T_label⁻¹T_est), ``covariance`` (n, 6, 6) C_G,
         ``used`` (n,) bool)."""
@@ -196,6 +211,7 @@ class FeatureMap:
             "velocity_mean": np.asarray(velocity_mean),
             "velocity_variance": np.asarray(velocity_variance),
             "holdout_samples": samples,
+            "pose_covariance_source": _noise_source(cov, samples),
             "holdout": holdout,
         }
 

@@ -29,12 +29,14 @@ use crate::matching::{Descriptors, MatchOptions, epipolar_filter, match_descript
 use crate::motion::{motion_predict_with_noise, motion_predict_with_prior};
 use crate::optim::covariance::{isometric_sigmas, spd_inverse};
 
+mod acceptance;
 mod grid;
 mod model;
 mod noise;
 use crate::pnp::{PnpOptions, PointUncertainty, SharedPoseUncertainty, solve_pnp_with_pixel_sigmas};
 use crate::triangulate::{TrackStatus, TriangulationOptions, triangulate};
-pub use noise::NoiseOptions;
+pub use acceptance::{AcceptanceOptions, rejection as acceptance_rejection, viewpoint_consistent};
+pub use noise::{DEFAULT_MAP_SIGMA_DEG, DEFAULT_MAP_SIGMA_M, MIN_NOISE_SAMPLES, NoiseOptions, default_map_covariance};
 
 /// Options of the [`Localizer`], defaults from the paper.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -75,6 +77,8 @@ pub struct LocalizerOptions {
     pub guided_rounds: usize,
     /// Model locator: how the 3D model is built when the map has none.
     pub model: ModelOptions,
+    /// When a geometric pose may be reported (both locators; see [`AcceptanceOptions`]).
+    pub acceptance: AcceptanceOptions,
 }
 
 /// Which geometric locator a [`Localizer`] uses.
@@ -136,6 +140,7 @@ impl Default for LocalizerOptions {
             guided_radius_px: 6.0,
             guided_rounds: 2,
             model: ModelOptions::default(),
+            acceptance: AcceptanceOptions::default(),
         }
     }
 }
@@ -156,6 +161,7 @@ impl LocalizerOptions {
             return Err(GeolocError::invalid("top_k", "must be ≥ 1"));
         }
         self.model.check()?;
+        self.acceptance.check()?;
         let positive = [
             ("guided_radius", self.guided_radius_px),
             ("gate_sigma", self.gate_sigma),
@@ -469,7 +475,7 @@ impl Localizer {
         let t = Instant::now();
         let points = self.map_points(seed, &group)?;
         timings.map_points_ms += ms(t);
-        self.geometric_pose(frame, &points, group.len(), timings)
+        self.geometric_pose(frame, seed, &points, group.len(), timings)
     }
 
     /// The frame's own checks (the map checks what it compares against).
@@ -511,6 +517,7 @@ impl Localizer {
     fn geometric_pose(
         &self,
         frame: &Frame<'_>,
+        seed: usize,
         points: &MapPoints,
         group_len: usize,
         timings: &mut Timings,
@@ -547,12 +554,21 @@ impl Localizer {
         )?;
         timings.pnp_ms += ms(t);
         let inliers = res.inliers.iter().filter(|b| **b).count();
-        let pose = if res.success {
-            Ok(Estimate { world_from_cam: res.world_from_cam, covariance: res.covariance })
-        } else {
-            Err(res.reason)
-        };
-        Ok((pose, inliers))
+        if !res.success {
+            return Ok((Err(res.reason), inliers));
+        }
+        // every group point is a track of the seed's keypoints, matched by the seed's descriptor
+        let seen = vec![self.map.keyframes[seed].world_from_cam.translation];
+        let inlier_points: Vec<Vector3<f64>> =
+            pts.iter().zip(&res.inliers).filter(|(_, i)| **i).map(|(x, _)| *x).collect();
+        let observers = vec![seen; inlier_points.len()];
+        let center = res.world_from_cam.translation;
+        if let Some(why) =
+            acceptance::rejection(&center, &res.covariance, &inlier_points, &observers, &self.options.acceptance)
+        {
+            return Ok((Err(why), inliers));
+        }
+        Ok((Ok(Estimate { world_from_cam: res.world_from_cam, covariance: res.covariance }), inliers))
     }
 
     /// (d) the constant-velocity prediction T_M, C_M at `timestamp` from the last fused

@@ -108,8 +108,8 @@ pub struct MapNoise {
     /// The motion model's velocity prior: mean and variance of the body velocity per twist
     /// axis, from the keyframes' timestamps and poses; none (all zero) in maps saved before it.
     pub velocity_prior: VelocityPrior,
-    /// Held-out keyframes placed within the gross-failure bounds (C_map's samples; fewer than
-    /// 12 leave C_map zero).
+    /// Held-out keyframes placed within the gross-failure bounds (C_map's samples; with fewer
+    /// than 12 C_map is a conservative default, never zero).
     pub holdout_samples: usize,
     /// The held-out re-localizations themselves (build-time diagnostics, not stored in the
     /// map file: a loaded map has none).

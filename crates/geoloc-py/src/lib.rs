@@ -21,6 +21,7 @@ use pyo3::prelude::*;
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     m.add("PARALLEL_MIN_ITEMS", geoloc_core::parallel::PARALLEL_MIN_ITEMS)?;
+    m.add("MIN_NOISE_SAMPLES", geoloc_core::localizer::MIN_NOISE_SAMPLES)?;
     lie::register(m)?;
     geometry::register(m)?;
     temporal::register(m)?;

@@ -40,4 +40,5 @@ def run(args: argparse.Namespace) -> int:
     )
     print(describe_self_calibration(the_map.self_calibration))
     print(describe_labels(the_map.labels))
+    print(f"map noise C_map: {the_map.map_noise['pose_covariance_source']}")
     return 0

@@ -82,6 +82,7 @@ impl Localizer {
         }
         let tau = first.iter().zip(&res.inliers).filter(|(_, i)| **i).map(|(c, _)| c.distance).fold(0.0, f32::max);
         let mut best = res;
+        let mut best_matches = first;
         let t = Instant::now();
         let grid = KeypointGrid::new(frame.keypoints, self.options.guided_radius_px);
         timings.matching_ms += ms(t);
@@ -103,12 +104,35 @@ impl Localizer {
             };
             timings.pnp_ms += ms(t);
             match next {
-                Some(r) if r.success && count(&r.inliers) >= count(&best.inliers) => best = r,
+                Some(r) if r.success && count(&r.inliers) >= count(&best.inliers) => {
+                    best = r;
+                    best_matches = guided;
+                }
                 _ => break,
             }
         }
         let inliers = count(&best.inliers);
+        if let Some(why) = self.model_rejection(model, &best, &best_matches) {
+            return Ok((top[0], Err(why), inliers));
+        }
         Ok((top[0], Ok(Estimate { world_from_cam: best.world_from_cam, covariance: best.covariance }), inliers))
+    }
+
+    /// The acceptance rule ([`super::acceptance`]) for the model locator's pose: each inlier
+    /// point with the centres of every keyframe that observes it.
+    fn model_rejection(&self, model: &SceneModel, res: &PnpResult, matches: &[Correspondence]) -> Option<String> {
+        let kf = &self.map.keyframes;
+        let (points, observers): (Vec<Vector3<f64>>, Vec<Vec<Vector3<f64>>>) = matches
+            .iter()
+            .zip(&res.inliers)
+            .filter(|(_, i)| **i)
+            .map(|(c, _)| {
+                let seen = model.observers(c.point).iter().map(|&k| kf[k].world_from_cam.translation).collect();
+                (model.points[c.point], seen)
+            })
+            .unzip();
+        let center = res.world_from_cam.translation;
+        super::acceptance::rejection(&center, &res.covariance, &points, &observers, &self.options.acceptance)
     }
 
     /// Step 2: the query matched against the model points of each retrieved keyframe, made

@@ -42,8 +42,23 @@ use crate::lie::SE3;
 use crate::map::{HoldoutSample, Map, MapNoise};
 use crate::motion::{VelocityPrior, estimate_acceleration_psd, estimate_velocity_prior};
 
-/// Fewest held-out samples for a C_map estimate (below: zero; `holdout_samples` says how many there were).
-const MIN_SAMPLES: usize = 12;
+/// Fewest held-out samples for a C_map estimate (below: [`default_map_covariance`];
+/// `holdout_samples` says how many there were).
+pub const MIN_NOISE_SAMPLES: usize = 12;
+/// Per-axis translation σ of C_map when too few held-out samples estimate it (m).
+pub const DEFAULT_MAP_SIGMA_M: f64 = 0.05;
+/// Per-axis rotation σ of C_map when too few held-out samples estimate it (degrees).
+pub const DEFAULT_MAP_SIGMA_DEG: f64 = 2.0;
+
+/// C_map of a map too small to estimate it (fewer than [`MIN_NOISE_SAMPLES`] held-out
+/// keyframes): diag(σ_p², σ_p², σ_p², σ_r², σ_r², σ_r²) with σ_p = 5 cm, σ_r = 2°, the size of
+/// the label errors measured on 7-Scenes tracks (1–10 cm and 0.8–4° per 100-frame block
+/// against an SfM reference). Never zero: a map that cannot measure its own error must not
+/// claim it has none.
+pub fn default_map_covariance() -> Matrix6<f64> {
+    let (p, r) = (DEFAULT_MAP_SIGMA_M.powi(2), DEFAULT_MAP_SIGMA_DEG.to_radians().powi(2));
+    Matrix6::from_diagonal(&Vector6::new(p, p, p, r, r, r))
+}
 
 /// How the map's noise is estimated ([`Map::with_estimated_noise`]).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -150,13 +165,14 @@ fn holdout_residuals(loc: &mut Localizer, options: &NoiseOptions) -> Result<Vec<
 }
 
 /// C_map = diag(Π₊(mean δδᵀ − mean C_G))·n/(n − 7) over every held-out sample; with which
-/// samples were used (all, or none when there are fewer than 12: C_map is then zero). The
+/// samples were used (all, or none when there are fewer than 12: C_map is then
+/// [`default_map_covariance`]). The
 /// factor n/(n − p − 1), p = 6, is the finite-sample inflation of a covariance estimated
 /// from n samples when it is used to test a new one (Hotelling's T²: a new sample's
 /// E[δᵀŜ⁻¹δ] ≈ p·n/(n − p − 1), so Ŝ scaled by it keeps the χ²₆ mean).
 fn map_covariance(samples: &[HoldoutSample]) -> (Matrix6<f64>, Vec<bool>) {
-    if samples.len() < MIN_SAMPLES {
-        return (Matrix6::zeros(), vec![false; samples.len()]);
+    if samples.len() < MIN_NOISE_SAMPLES {
+        return (default_map_covariance(), vec![false; samples.len()]);
     }
     let n = samples.len() as f64;
     let (second, measured) = samples
@@ -193,7 +209,7 @@ impl Localizer {
         let group: Vec<usize> =
             select_keyframes(&poses, local, &self.options.keyframes)?.into_iter().map(|j| allowed[j]).collect();
         let points = self.map_points(seed, &group)?;
-        let (pose, _) = self.geometric_pose(&frame, &points, group.len(), &mut Timings::default())?;
+        let (pose, _) = self.geometric_pose(&frame, seed, &points, group.len(), &mut Timings::default())?;
         Ok(pose.ok())
     }
 }
@@ -222,5 +238,18 @@ mod tests {
         assert!(used.iter().all(|u| *u));
         let want = (0.09 / 6.0 - 0.001) * 12.0 / 5.0;
         assert!((c - Matrix6::identity() * want).amax() < 1e-12, "{c}");
+    }
+
+    #[test]
+    fn too_few_samples_give_the_conservative_default_never_zero() {
+        let sample = HoldoutSample { keyframe: 0, delta: Vector6::zeros(), covariance: Matrix6::zeros(), used: false };
+        for n in [0, 1, MIN_NOISE_SAMPLES - 1] {
+            let (c, used) = map_covariance(&vec![sample; n]);
+            assert!(used.iter().all(|u| !*u));
+            // 5 cm and 2° per axis, written out
+            let deg2 = (2.0 * std::f64::consts::PI / 180.0f64).powi(2);
+            let want = Matrix6::from_diagonal(&Vector6::new(0.0025, 0.0025, 0.0025, deg2, deg2, deg2));
+            assert!((c - want).amax() < 1e-15, "{n}: {c}");
+        }
     }
 }
