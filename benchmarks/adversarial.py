@@ -1,10 +1,11 @@
-"""The long profile of the adversarial suite (tests/adversarial): ≥ 10 000 generated cases
-over every public module, each run in the crash-isolated worker, printing per module the
+"""The long profile of the adversarial suite (tests/adversarial): ≥ 20 000 generated cases
+over every public module and the file cases (odd paths, FIFOs, concurrent writers, aliased
+outputs, memory limits, crafted checksummed maps), each run in the crash-isolated worker, printing per module the
 number of cases, how many passed (a valid result, or an InvalidInputError naming the
 argument) and the failures by kind (wrong-type, wrong-name, panic, crash, hang, invariant),
 with up to five reproducers of each.
 
-    PYTHONPATH=$PWD/python python benchmarks/adversarial.py            # 10 000+ cases
+    PYTHONPATH=$PWD/python python benchmarks/adversarial.py            # 20 000+ cases
     PYTHONPATH=$PWD/python python benchmarks/adversarial.py --per-module 50 --modules lie,geometry
 
 Exit status 1 when any case failed.
@@ -27,17 +28,17 @@ import cases  # noqa: E402  (tests/adversarial on sys.path)
 from harness import GOOD, Tally, Worker  # noqa: E402
 
 #: Share of the cases per module (the heavy modules, which build maps or plots, get fewer).
-WEIGHTS = {"cli": 0.3, "mapping": 0.25, "plots": 0.1, "datasets": 0.3, "descriptor": 0.5, "features": 0.6, "localizer": 0.6}
+WEIGHTS = {"files": 0.3, "cli": 0.3, "mapping": 0.25, "plots": 0.1, "datasets": 0.3, "descriptor": 0.5, "features": 0.6, "localizer": 0.6}
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--per-module", type=int, default=1100, help="cases for a module of weight 1 (default 1100)")
+    ap.add_argument("--per-module", type=int, default=2000, help="cases for a module of weight 1 (default 2000: ≥ 20 000 in all)")
     ap.add_argument("--modules", default="", help="comma-separated subset")
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
     with_onnx = importlib.util.find_spec("torch") is not None
-    modules = [*cases.all_specs(with_onnx), "cli"]
+    modules = [*cases.all_specs(with_onnx), "cli", "files"]
     if args.modules:
         modules = [m for m in modules if m in args.modules.split(",")]
     tally = Tally()

@@ -10,11 +10,15 @@ from pathlib import Path
 import geoloc
 
 
-def run_geoloc(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
-    """`python -m geoloc ARGS` with this checkout's package first on the path."""
+def run_geoloc(*args: str, cwd: Path | None = None, timeout: float | None = None) -> subprocess.CompletedProcess[str]:
+    """`python -m geoloc ARGS` with this checkout's package first on the path (``timeout``:
+    seconds before subprocess.TimeoutExpired, for runs that could block)."""
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([str(Path(geoloc.__file__).parents[1]), env.get("PYTHONPATH", "")])
-    return subprocess.run([sys.executable, "-m", "geoloc", *args], capture_output=True, text=True, cwd=cwd, env=env)
+    return subprocess.run(
+        [sys.executable, "-m", "geoloc", *args], capture_output=True, text=True, cwd=cwd, env=env, timeout=timeout,
+        errors="surrogateescape",
+    )
 
 
 def one_line_error(result: subprocess.CompletedProcess[str], *names: str) -> str:

@@ -1,37 +1,154 @@
-"""Writing files atomically: a temp file in the same folder, fsync, then rename.
+"""Reading input files safely and writing output files atomically.
 
-An interrupted write never leaves a half-written file and never destroys the previous one.
+Inputs: :func:`check_input_file` / :func:`read_bytes` accept only a regular file (a FIFO, a
+socket, a device or a folder is named as such and never opened, so a FIFO cannot block a
+run) and name the argument and the path (its ``repr``, so odd bytes show). Paths go to C
+libraries only as bytes read by Python: OpenCV gets :func:`read_bytes`' data, never a path.
+
+Outputs: a temp file in the same folder (a unique ``mkstemp`` name), fsync, then rename, so an
+interrupted write never leaves a half-written file and never destroys the previous one.
 Missing parent folders are **not** created: a path in a folder that does not exist is a
-mistake the user should hear about, not a directory tree silently made for them.
+mistake the user should hear about, not a directory tree silently made for them. A path
+ending in a separator means a folder and is refused as a file to write. :func:`refuse_alias`
+refuses an output that is the same file as one of the inputs (same path, ``./`` alias,
+symlink or hard link).
 """
 
 from __future__ import annotations
 
+import errno
 import json
 import os
+import stat
 import tempfile
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any, Callable, TextIO
 
 from .exceptions import InvalidInputError
 
-__all__ = ["check_output_path", "write_json_atomic", "write_text_atomic"]
+__all__ = [
+    "check_input_file",
+    "check_output_path",
+    "read_bytes",
+    "refuse_alias",
+    "shown",
+    "special_kind",
+    "write_bytes_atomic",
+    "write_json_atomic",
+    "write_text_atomic",
+]
+
+#: The longest temp-name stem taken from the target's name (the temp name must fit NAME_MAX too).
+_TEMP_STEM = 64
+_KINDS = (
+    (stat.S_ISDIR, "a folder"),
+    (stat.S_ISFIFO, "a FIFO"),
+    (stat.S_ISSOCK, "a socket"),
+    (stat.S_ISCHR, "a character device"),
+    (stat.S_ISBLK, "a block device"),
+)
 
 
 def as_path(path: Any, name: str = "path") -> Path:
     """``path`` (a str or os.PathLike) as a Path; anything else (a number, an array, None, a
     string with a NUL byte) is an InvalidInputError naming ``name`` rather than a TypeError."""
-    if not isinstance(path, (str, os.PathLike)) or "\x00" in os.fspath(path):
+    if not isinstance(path, (str, os.PathLike)) or not isinstance(os.fspath(path), str) or "\x00" in os.fspath(path):
         raise InvalidInputError(f"{name}: expected a file path (str or os.PathLike), got {type(path).__name__}")
     return Path(path)
 
 
-def check_output_path(path: str | os.PathLike[str], name: str = "path") -> Path:
-    """``path`` as a Path whose parent folder exists and is writable; else InvalidInputError naming ``name``."""
+def shown(path: Any) -> str:
+    """``path`` as printable text: bytes that are not UTF-8 (surrogate escapes) as ``\\xNN``,
+    so printing a path never raises UnicodeEncodeError."""
+    text = os.fspath(path) if isinstance(path, (str, os.PathLike)) else str(path)
+    if isinstance(text, bytes):
+        text = os.fsdecode(text)
+    return text.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+
+
+def _kind(mode: int) -> str:
+    return next((what for test, what in _KINDS if test(mode)), "not a regular file")
+
+
+def _reason(e: OSError) -> str:
+    if e.errno == errno.ENAMETOOLONG:
+        return "its name is too long for the file system"
+    return e.strerror or str(e)
+
+
+def special_kind(path: Any) -> str | None:
+    """What ``path`` is when it exists and is not a regular file ("a FIFO", "a folder" …);
+    None for a regular file or a path that cannot be examined (the reader then says why)."""
+    try:
+        mode = os.stat(path).st_mode
+    except (OSError, ValueError):
+        return None
+    return None if stat.S_ISREG(mode) else _kind(mode)
+
+
+def check_input_file(path: Any, name: str = "path", error: type[InvalidInputError] = InvalidInputError) -> Path:
+    """``path`` as a Path when it is an existing regular file (symlinks followed); else
+    ``error`` naming ``name``, the path, and what it is (missing, a folder, a FIFO …)."""
     target = as_path(path, name)
+    try:
+        mode = os.stat(target).st_mode
+    except FileNotFoundError:
+        raise error(f"{name}: file {str(target)!r} does not exist") from None
+    except OSError as e:
+        raise error(f"{name}: cannot read {str(target)!r} ({_reason(e)})") from None
+    if not stat.S_ISREG(mode):
+        raise error(f"{name}: {str(target)!r} is {_kind(mode)}, not a regular file")
+    return target
+
+
+def read_bytes(path: Any, name: str = "path", error: type[InvalidInputError] = InvalidInputError) -> bytes:
+    """The contents of the regular file ``path`` (see :func:`check_input_file`). Opened
+    non-blocking and checked again on the open descriptor, so a FIFO swapped in after the
+    check cannot block the read."""
+    target = check_input_file(path, name, error)
+    try:
+        fd = os.open(target, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
+    except OSError as e:
+        raise error(f"{name}: cannot read {str(target)!r} ({_reason(e)})") from None
+    with os.fdopen(fd, "rb") as f:
+        mode = os.fstat(fd).st_mode
+        if not stat.S_ISREG(mode):
+            raise error(f"{name}: {str(target)!r} is {_kind(mode)}, not a regular file")
+        try:
+            return f.read()
+        except OSError as e:
+            raise error(f"{name}: cannot read {str(target)!r} ({_reason(e)})") from None
+
+
+def check_output_path(path: Any, name: str = "path") -> Path:
+    """``path`` as a Path to a file whose parent folder exists and is writable; else
+    InvalidInputError naming ``name``. A path ending in a separator names a folder and is
+    refused; so is a name longer than the file system allows."""
+    target = as_path(path, name)
+    text = os.fspath(path)
+    if text.endswith(os.sep) or (os.altsep is not None and text.endswith(os.altsep)):
+        raise InvalidInputError(f"{name}: {text!r} ends in {text[-1]!r}, which names a folder; expected a file path")
     parent = target.parent
-    if target.is_dir():
+    try:
+        name_max = os.pathconf(parent, "PC_NAME_MAX")
+    except (OSError, ValueError):
+        name_max = 255
+    size = len(os.fsencode(target.name))
+    if size > name_max:
+        raise InvalidInputError(f"{name}: the file name {target.name[:40]!r}… is {size} bytes; the folder allows {name_max}")
+    try:
+        mode = os.stat(target).st_mode
+    except FileNotFoundError:
+        mode = None
+    except OSError as e:
+        if e.errno != errno.ENOTDIR:
+            raise InvalidInputError(f"{name}: cannot write {str(target)!r} ({_reason(e)})") from None
+        mode = None
+    if mode is not None and stat.S_ISDIR(mode):
         raise InvalidInputError(f"{name}: {str(target)!r} is a folder, expected a file path")
+    if mode is not None and not stat.S_ISREG(mode):
+        raise InvalidInputError(f"{name}: {str(target)!r} is {_kind(mode)}, not a regular file to replace")
     if not parent.is_dir():
         raise InvalidInputError(f"{name}: folder {str(parent)!r} does not exist (create it first)")
     if not os.access(parent, os.W_OK | os.X_OK):
@@ -39,32 +156,76 @@ def check_output_path(path: str | os.PathLike[str], name: str = "path") -> Path:
     return target
 
 
-def _write_atomic(path: str | os.PathLike[str], name: str, write: Callable[[TextIO], object]) -> None:
-    target = check_output_path(path, name)
+def _identity(path: Any) -> tuple[int, int] | None:
     try:
-        fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=f".{target.name}.", suffix=".tmp")
+        st = os.stat(path)
+    except (OSError, ValueError):
+        return None
+    return (st.st_dev, st.st_ino)
+
+
+def refuse_alias(output: Any, output_name: str, inputs: Iterable[tuple[str, Any]]) -> None:
+    """InvalidInputError naming ``output_name`` and the input when the file ``output`` would
+    be written to is one of ``inputs`` (``(name, path)`` pairs; None paths are skipped): the
+    same resolved path, or the same device and inode (a symlink or a hard link). An output
+    that does not exist yet is never the same file as an input."""
+    if output is None:
+        return
+    out = _identity(output)
+    if out is None:
+        return
+    real = os.path.realpath(output)
+    for name, path in inputs:
+        if path is None:
+            continue
+        if _identity(path) == out or os.path.realpath(path) == real:
+            alias = "" if os.fspath(path) == os.fspath(output) else f" ({str(path)!r})"
+            raise InvalidInputError(
+                f"{output_name}: {str(output)!r} is the same file as the input {name}{alias}; writing it would "
+                "replace that input (choose another output)"
+            )
+
+
+def _temp(target: Path, name: str, text: bool) -> tuple[int, str]:
+    try:
+        return tempfile.mkstemp(dir=target.parent, prefix=f".{target.name[:_TEMP_STEM]}.", suffix=".tmp", text=text)
     except OSError as e:
-        raise InvalidInputError(f"{name}: cannot write to {str(target.parent)!r}: {e.strerror}") from None
+        raise InvalidInputError(f"{name}: cannot write to {str(target.parent)!r}: {_reason(e)}") from None
+
+
+def _write_atomic(path: Any, name: str, write: Callable[[Any], object], binary: bool = False) -> None:
+    target = check_output_path(path, name)
+    fd, tmp = _temp(target, name, not binary)
     try:
-        with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as f:
+        f: Any = os.fdopen(fd, "wb") if binary else os.fdopen(fd, "w", encoding="utf-8", newline="\n")
+        with f:
             write(f)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, target)
     except OSError as e:
         Path(tmp).unlink(missing_ok=True)
-        raise InvalidInputError(f"{name}: cannot write {str(target)!r} ({e.strerror or e})") from None
+        raise InvalidInputError(f"{name}: cannot write {str(target)!r} ({_reason(e)})") from None
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
 
 
-def write_text_atomic(path: str | os.PathLike[str], text: str, name: str = "path") -> None:
+def write_bytes_atomic(path: Any, data: bytes, name: str = "path") -> None:
+    """Write ``data`` to ``path`` atomically."""
+    _write_atomic(path, name, lambda f: f.write(data), binary=True)
+
+
+def write_text_atomic(path: Any, text: str, name: str = "path") -> None:
     """Write ``text`` (UTF-8, '\\n' line ends) to ``path`` atomically."""
-    _write_atomic(path, name, lambda f: f.write(text))
+
+    def write(f: TextIO) -> None:
+        f.write(text)
+
+    _write_atomic(path, name, write)
 
 
-def write_json_atomic(path: str | os.PathLike[str], data: Any, name: str = "path") -> None:
+def write_json_atomic(path: Any, data: Any, name: str = "path") -> None:
     """Write ``data`` as indented JSON to ``path`` atomically (non-finite floats refused)."""
     text = json.dumps(data, indent=2, allow_nan=False) + "\n"
     write_text_atomic(path, text, name)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import sys
 import traceback
 from pathlib import Path
@@ -110,12 +111,14 @@ intrinsics.__name__ = "intrinsics"
 
 
 def existing_file(text: str) -> str:
-    """An argparse ``type`` for a file to read: it must exist."""
-    path = Path(text)
-    if path.is_dir():
-        raise argparse.ArgumentTypeError(f"{text!r} is a folder, expected a file")
-    if not path.is_file():
-        raise argparse.ArgumentTypeError(f"file {text!r} does not exist")
+    """An argparse ``type`` for a file to read: an existing regular file (a folder, a FIFO or
+    a device is named as such and never opened)."""
+    from ._io import check_input_file
+
+    try:
+        check_input_file(text, "path")
+    except GeolocError as e:
+        raise argparse.ArgumentTypeError(str(e).removeprefix("path: ")) from None
     return text
 
 
@@ -123,10 +126,14 @@ def new_folder(text: str) -> str:
     """An argparse ``type`` for a folder to write into: an existing folder, or a new one
     whose parent exists (it is created then; nothing above it ever is)."""
     path = Path(text)
-    if path.exists() and not path.is_dir():
-        raise argparse.ArgumentTypeError(f"{text!r} is a file, expected a folder")
-    if not path.exists() and not path.parent.is_dir():
-        raise argparse.ArgumentTypeError(f"folder {str(path.parent)!r} does not exist (create it first)")
+    try:
+        exists = os.path.lexists(path)
+        if exists and not path.is_dir():
+            raise argparse.ArgumentTypeError(f"{text!r} exists and is not a folder")
+        if not exists and not path.parent.is_dir():
+            raise argparse.ArgumentTypeError(f"folder {str(path.parent)!r} does not exist (create it first)")
+    except OSError as e:  # a name too long for the file system, a loop of symlinks
+        raise argparse.ArgumentTypeError(f"cannot use {text!r} as a folder ({e.strerror or e})") from None
     return text
 
 
@@ -136,9 +143,12 @@ def retrieval(text: str) -> str:
     if text == "bow":
         return text
     if text.endswith(".onnx"):
-        path = Path(text)
-        if not path.is_file():
-            raise argparse.ArgumentTypeError(f"model file {text!r} does not exist")
+        from ._io import check_input_file
+
+        try:
+            check_input_file(text, "path")
+        except GeolocError as e:
+            raise argparse.ArgumentTypeError("model " + str(e).removeprefix("path: ")) from None
         return text
     raise argparse.ArgumentTypeError(f"expected bow or a MODEL.onnx file, got {text!r}")
 
@@ -269,8 +279,8 @@ def _add_localize(commands: argparse._SubParsersAction[argparse.ArgumentParser])
         "localize",
         formatter_class=_HelpFormatter,
         help="localize images against a map; writes a TUM trajectory",
-        description="Localize every image of a folder (sorted by name; timestamps from numeric "
-        "names, else index/30 s) or of a dataset against a map built by build-map, and write the "
+        description="Localize every image of a folder (numeric names in number order, their number "
+        "the timestamp; other names sorted by name, timestamps index/30 s) or of a dataset against a map built by build-map, and write the "
         "poses (world_from_cam) as a TUM trajectory (timestamp tx ty tz qx qy qz qw), atomically. "
         "Lost frames are left out of the file and counted in the summary line on stderr.",
         epilog=_example(
@@ -279,7 +289,11 @@ def _add_localize(commands: argparse._SubParsersAction[argparse.ArgumentParser])
         ),
     )
     loc.add_argument("--map", type=existing_file, required=True, metavar="scene.geoloc", help="map file (from build-map)")
-    loc.add_argument("--images", metavar="DIR", help="a folder of images of the map camera's size")
+    loc.add_argument(
+        "--images", metavar="DIR",
+        help="a folder of images of the map camera's size, localized in order: by number when every name is a number "
+        "(9.png before 10.png; the number is the timestamp in seconds), else by name (timestamps index/30 s)",
+    )
     _dataset_options(loc, required=False, intrinsics_default="the map's camera")
     loc.add_argument("--frames", type=frame_range, metavar="A:B", help="frame positions A..B-1 (A:B:K every K-th; default: all)")
     loc.add_argument(
@@ -457,6 +471,8 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``geoloc`` with ``argv`` (default: ``sys.argv[1:]``); return the exit status."""
+    from ._io import shown
+
     parser, handlers = build_parser()
     args = parser.parse_args(argv)
     if args.command is None:
@@ -471,14 +487,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.debug:
             traceback.print_exc()
         status = EXIT_USAGE if isinstance(e, (GeolocError, ValueError)) else EXIT_FAILURE
-        message = " ".join(str(e).split()) or type(e).__name__
+        message = shown(" ".join(str(e).split()) or type(e).__name__)
         print(f"geoloc {args.command}: error: {message}", file=sys.stderr)
         return status
     except Exception as e:  # a bug, not the user's fault: still one line unless --debug
         if args.debug:
             traceback.print_exc()
         print(
-            f"geoloc {args.command}: internal error: {type(e).__name__}: {e} (rerun with --debug for the traceback)",
+            f"geoloc {args.command}: internal error: {type(e).__name__}: {shown(str(e))} (rerun with --debug for the traceback)",
             file=sys.stderr,
         )
         return EXIT_FAILURE

@@ -24,7 +24,7 @@ from typing import Any, Mapping, Sequence, Union
 import numpy as np
 from numpy.typing import NDArray
 
-from ._io import as_path
+from ._io import as_path, read_bytes
 from .exceptions import GeolocError, InvalidInputError
 
 __all__ = [
@@ -157,9 +157,30 @@ def tiny_image_descriptors(images: Images, size: tuple[int, int] = TINY_IMAGE_SI
     return small
 
 
-def _l2_normalize(x: NDArray[np.float32]) -> NDArray[np.float32]:
-    norm = np.linalg.norm(x, axis=1, keepdims=True)
-    out: NDArray[np.float32] = np.divide(x, np.maximum(norm, np.float32(1e-12)), dtype=np.float32)
+class _BadRow(InvalidInputError):
+    """A descriptor row the network got wrong (row ``row`` of its batch)."""
+
+    def __init__(self, name: str, row: int, what: str) -> None:
+        super().__init__(f"{name}[{row}]: {what}")
+        self.row, self.what = row, what
+
+
+def _checked_l2_normalize(x: NDArray[np.float32], model: str, name: str) -> NDArray[np.float32]:
+    """Rows scaled to unit length; a non-finite row or an all-zero row (which has no
+    direction) is refused, naming the row of ``name`` and the model, rather than returned as
+    NaN or zeros."""
+    norm = np.linalg.norm(x.astype(np.float64), axis=1)
+    bad = np.flatnonzero(~np.isfinite(norm) | ~np.isfinite(x).all(axis=1))
+    if bad.size:
+        raise _BadRow(name, int(bad[0]), f"the network {model!r} gave a non-finite descriptor (NaN or inf)")
+    zero = np.flatnonzero(norm == 0)
+    if zero.size:
+        raise _BadRow(name, int(zero[0]), f"the network {model!r} gave an all-zero descriptor, which cannot be L2-normalised")
+    norm32 = np.linalg.norm(x, axis=1, keepdims=True)
+    if np.isfinite(norm32).all():  # float32 arithmetic, as the descriptors were always normalised
+        out: NDArray[np.float32] = np.divide(x, np.maximum(norm32, np.float32(1e-12)), dtype=np.float32)
+    else:  # rows so large that their float32 norm overflows
+        out = (x / norm[:, None]).astype(np.float32)
     return out
 
 
@@ -194,9 +215,9 @@ class OnnxDescriptor:
         self.batch_size = _positive_int(batch_size, "batch_size", MAX_BATCH)
         self.path = as_path(path, "path")
         try:
-            data = self.path.read_bytes()
-        except OSError as e:
-            raise InvalidInputError(f"path: cannot read the model file {str(self.path)!r} ({e.strerror or e})") from None
+            data = read_bytes(self.path, "path")  # a FIFO or folder is refused, never opened
+        except InvalidInputError as e:
+            raise InvalidInputError(f"path: cannot read the model file ({str(e).removeprefix('path: ')})") from None
         self.sha256 = hashlib.sha256(data).hexdigest()
         try:
             import onnxruntime as ort  # type: ignore[import-untyped]
@@ -235,6 +256,11 @@ class OnnxDescriptor:
             raise InvalidInputError(
                 f"path: {str(self.path)!r} was trained with preprocessing {recorded!r}, this geoloc uses {PREPROCESS_ID!r}"
             )
+        # A model exported with a fixed batch size (often 1) is run that many images at a time.
+        fixed = shape_in[0]
+        if isinstance(fixed, int) and not 1 <= fixed <= MAX_BATCH:
+            raise InvalidInputError(f"path: {str(self.path)!r} has a fixed batch size of {fixed}")
+        self.fixed_batch: int | None = fixed if isinstance(fixed, int) else None
         self._input_name = inputs[0].name
         self._output_name = outputs[0].name
         self.name: str = meta.get(META_NAME) or self.path.stem
@@ -264,10 +290,21 @@ class OnnxDescriptor:
         x = np.asarray(batch)
         if x.dtype != np.float32 or x.ndim != 4 or x.shape[1:] != (1, *INPUT_SIZE):
             raise InvalidInputError(f"batch: expected (N, 1, {INPUT_SIZE[0]}, {INPUT_SIZE[1]}) float32, got {x.dtype} {x.shape}")
-        if x.shape[0] == 0:
+        n = x.shape[0]
+        if n == 0:
             return np.zeros((0, self.dim), dtype=np.float32)
-        (out,) = self._session.run([self._output_name], {self._input_name: np.ascontiguousarray(x)})
-        return _l2_normalize(np.asarray(out, dtype=np.float32))
+        step = self.fixed_batch or n
+        rows = []
+        for start in range(0, n, step):
+            chunk = np.ascontiguousarray(x[start : start + step])
+            if len(chunk) < step:  # a fixed-size batch, padded with copies of its first image
+                chunk = np.concatenate([chunk, np.repeat(chunk[:1], step - len(chunk), axis=0)])
+            (out,) = self._session.run([self._output_name], {self._input_name: chunk})
+            rows.append(np.asarray(out, dtype=np.float32).reshape(step, -1)[: min(step, n - start)])
+        raw = np.concatenate(rows)
+        if raw.shape != (n, self.dim):
+            raise InvalidInputError(f"path: {str(self.path)!r} gave descriptors of shape {raw.shape} for {n} images, expected ({n}, {self.dim})")
+        return _checked_l2_normalize(raw, self.name, "batch")
 
     def __call__(self, images: Images) -> NDArray[np.float32]:
         """(N, D) float32 L2-normalized descriptors of ``images``."""
@@ -275,5 +312,8 @@ class OnnxDescriptor:
         out = np.empty((len(frames), self.dim), dtype=np.float32)
         for start in range(0, len(frames), self.batch_size):
             chunk = frames[start : start + self.batch_size]
-            out[start : start + len(chunk)] = self.run_preprocessed(preprocess(chunk))
+            try:
+                out[start : start + len(chunk)] = self.run_preprocessed(preprocess(chunk))
+            except _BadRow as e:
+                raise InvalidInputError(f"images[{start + e.row}]: {e.what}") from None
         return out

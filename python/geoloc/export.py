@@ -65,9 +65,10 @@ def export_frames(
         raise InvalidInputError(f"map: expected a geoloc.Map, got {type(map).__name__}")
     if format not in ("binary", "jsonl"):
         raise InvalidInputError(f"format: expected 'binary' or 'jsonl', got {format!r}")
-    from ._io import check_output_path
+    from ._io import check_output_path, refuse_alias
 
     target = check_output_path(path, "path")
+    refuse_alias(target, "path", [("frames", f) for f in getattr(frames, "files", ())])
     # The Localizer checks the network against the map and decodes images as localize does.
     localizer = Localizer(map, global_descriptor=global_descriptor)
     writer = FrameWriter(os.fspath(target), format=format)

@@ -23,7 +23,7 @@ from . import _core
 from ._core import Localization as LocalizationResult
 from ._validation import as_batch, as_float64, choice, real_scalar
 from .camera import Camera
-from .exceptions import InvalidInputError
+from .exceptions import FileAccessError, InvalidInputError
 from .retrieval import _f32_rows, _local_descriptors
 
 #: The camera models ``FeatureMap(refine_intrinsics=True)`` can estimate (geoloc-core's
@@ -221,8 +221,11 @@ class FeatureMap:
     def save(self, path: str | os.PathLike[str], frontend: Mapping[str, Any] | None = None) -> None:
         """Write the map to one ``.geoloc`` file (safetensors), atomically: an interrupted save
         keeps the previous file. ``frontend`` (a JSON-able dict) records the caller's settings."""
+        from ._io import check_output_path
+
+        target = check_output_path(path, "path")
         text = json.dumps(dict(frontend or {}), sort_keys=True, allow_nan=False)
-        self._map.save(os.fspath(path), text)
+        self._map.save(os.fspath(target), text)
 
     @classmethod
     def load(cls, path: str | os.PathLike[str], camera: Camera | None = None) -> FeatureMap:
@@ -230,7 +233,13 @@ class FeatureMap:
         other-version file raises :class:`geoloc.exceptions.FileFormatError`. ``camera`` gives
         the image size and distortion (the file stores the intrinsics); its intrinsics must
         match. The caller's settings are in ``.frontend``."""
-        core, text = _core.FeatureMap.load(os.fspath(path))
+        from ._io import as_path, shown, special_kind
+
+        source = as_path(path, "path")
+        kind = special_kind(source)
+        if kind is not None:  # never opened: a FIFO would block the reader
+            raise FileAccessError(f"{shown(source)}: cannot read the map: it is {kind}, not a regular file")
+        core, text = _core.FeatureMap.load(os.fspath(source))
         intrinsics = core.intrinsics
         if camera is None:
             camera = Camera(*intrinsics)

@@ -26,8 +26,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .camera import Camera
+from ._io import shown
 from ._validation import real_scalar
-from .exceptions import InvalidInputError
+from .exceptions import FileFormatError, InvalidInputError
 from .features import FeatureExtractor, Features
 from .localizer import FeatureLocalizer, FeatureMap, LocalizationResult
 
@@ -60,7 +61,8 @@ def _descriptor_record(descriptor: Any) -> dict[str, Any]:
     for key in ("name", "sha256", "input_size", "dim"):
         value = getattr(descriptor, key, None)
         if isinstance(value, (str, int, float)) or (isinstance(value, tuple) and all(isinstance(v, int) for v in value)):
-            record[key] = list(value) if isinstance(value, tuple) else value
+            # names from file names may hold bytes that are not UTF-8: recorded as \xNN text
+            record[key] = list(value) if isinstance(value, tuple) else shown(value) if isinstance(value, str) else value
     return record
 
 
@@ -165,7 +167,7 @@ class Map:
             "features": {"kind": extractor.kind, "n_features": extractor.n_features, "root_sift": extractor.root_sift},
             "camera": {"width": camera.width, "height": camera.height, "dist": list(camera.dist or ())},
             "retrieval": "bow" if isinstance(retrieval, str) else _descriptor_record(retrieval),
-            "source": {"sequence": sequence.name, "frames": [int(i) for i in indices]},
+            "source": {"sequence": shown(sequence.name), "frames": [int(i) for i in indices]},
         }
         return cls(feature_map, extractor, frontend)
 
@@ -238,13 +240,44 @@ class Map:
         frontend = feature_map.frontend
         if not isinstance(frontend, dict) or frontend.get("version") != FRONTEND_VERSION:
             raise InvalidInputError(f"path: {str(path)!r} was not written by this version of geoloc's Python package")
-        f = frontend["features"]
-        cam = frontend["camera"]
-        core_camera = feature_map.camera
-        fx, fy, cx, cy = core_camera.intrinsics
-        camera = Camera(fx, fy, cx, cy, width=cam["width"], height=cam["height"], dist=cam["dist"] or None)
+        extractor, camera = _frontend_parts(frontend, feature_map.camera.intrinsics, str(path))
         feature_map.camera = camera
-        return cls(feature_map, FeatureExtractor(f["kind"], f["n_features"], root_sift=f["root_sift"]), frontend)
+        return cls(feature_map, extractor, frontend)
+
+
+def _record(frontend: dict[str, Any], key: str, fields: dict[str, type | tuple[type, ...]], path: str) -> dict[str, Any]:
+    """``frontend[key]``, a dict holding ``fields`` of the given types; else FileFormatError
+    naming the file and the field."""
+    record = frontend.get(key)
+    if not isinstance(record, dict):
+        raise FileFormatError(f"path: {path!r}: the map's frontend header has no {key!r} record (got {type(record).__name__})")
+    for name, kind in fields.items():
+        value = record.get(name)
+        if not isinstance(value, kind) or (isinstance(value, bool) and kind is int):
+            raise FileFormatError(f"path: {path!r}: the map's frontend field {key}.{name} is missing or malformed ({value!r:.40})")
+    return record
+
+
+def _frontend_parts(
+    frontend: dict[str, Any], intrinsics: tuple[float, float, float, float], path: str
+) -> tuple[FeatureExtractor, Camera]:
+    """The feature extractor and camera a map file's frontend header records (checked field
+    by field: a hand-made or damaged header is a FileFormatError naming the field)."""
+    f = _record(frontend, "features", {"kind": str, "n_features": int, "root_sift": bool}, path)
+    cam = _record(frontend, "camera", {"width": int, "height": int, "dist": list}, path)
+    retrieval = frontend.get("retrieval")
+    if retrieval != "bow" and not isinstance(retrieval, dict):
+        raise FileFormatError(f"path: {path!r}: the map's frontend field retrieval is missing or malformed ({retrieval!r:.40})")
+    try:
+        extractor = FeatureExtractor(f["kind"], f["n_features"], root_sift=f["root_sift"])
+    except InvalidInputError as e:
+        raise FileFormatError(f"path: {path!r}: the map's frontend field features is not valid ({e})") from None
+    try:
+        fx, fy, cx, cy = intrinsics
+        camera = Camera(fx, fy, cx, cy, width=cam["width"], height=cam["height"], dist=cam["dist"] or None)
+    except (InvalidInputError, TypeError) as e:
+        raise FileFormatError(f"path: {path!r}: the map's frontend field camera is not valid ({e})") from None
+    return extractor, camera
 
 
 @dataclass(frozen=True)
@@ -324,13 +357,9 @@ class Localizer:
 
     def _decode(self, image: Any) -> NDArray[np.uint8]:
         if isinstance(image, (str, os.PathLike)):
-            from ._opencv import import_cv2
+            from ._images import read_image
 
-            cv2 = import_cv2("reading images")
-            gray = cv2.imread(os.fspath(image), cv2.IMREAD_GRAYSCALE)
-            if gray is None:
-                raise InvalidInputError(f"image: cannot read {os.fspath(image)!r} (missing or not an image)")
-            return np.asarray(gray, dtype=np.uint8)
+            return read_image(image, "image", gray=True)
         return np.asarray(image)
 
     def localize(self, image: Any, timestamp: float) -> MapLocalization:

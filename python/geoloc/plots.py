@@ -18,6 +18,7 @@ Each function takes the result dictionary of :func:`geoloc.evaluation.summarize`
 
 from __future__ import annotations
 
+import io
 import math
 import os
 from collections.abc import Mapping
@@ -26,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from ._io import as_path
+from ._io import as_path, check_output_path, write_bytes_atomic
 from ._opencv import import_figure
 from .evaluation import CHI2_6_95, chi2_6_quantile
 from .exceptions import InvalidInputError
@@ -38,6 +39,8 @@ CHI2_2_95 = -2.0 * math.log(0.05)
 ELLIPSE_POINTS = 48
 SOURCE_COLOURS = {"geometric": "tab:blue", "fused": "tab:green", "motion": "tab:orange", "lost": "tab:red"}
 FIGURE_DPI = 110
+#: The files :func:`write_all` writes, by plot.
+PLOT_FILES = {"trajectory": "trajectory.png", "errors": "errors.png", "error_cdf": "error_cdf.png", "calibration": "calibration.png"}
 CALIBRATION_Y_RANGE = 4.0
 """The calibration plot shows NEES up to this multiple of its x range; larger ones are
 marked at the top edge (over-confident frames would otherwise squash the plot)."""
@@ -54,10 +57,16 @@ def _frames(results: Results) -> list[dict[str, Any]]:
 
 
 def _save(fig: Any, path: str | os.PathLike[str]) -> Path:
-    target = as_path(path, "path")
-    if not target.parent.is_dir():
-        raise InvalidInputError(f"path: folder {str(target.parent)!r} does not exist")
-    fig.savefig(target, dpi=FIGURE_DPI)
+    """Render ``fig`` as PNG in memory, then write it atomically (never a half-written file;
+    matplotlib never gets the path)."""
+    target = check_output_path(path, "path")
+    buffer = io.BytesIO()
+    fmt = target.suffix.lstrip(".").lower() or "png"
+    try:
+        fig.savefig(buffer, format=fmt, dpi=FIGURE_DPI)
+    except ValueError as e:  # a format matplotlib does not write
+        raise InvalidInputError(f"path: cannot write a plot as {fmt!r} ({e})") from None
+    write_bytes_atomic(target, buffer.getvalue(), "path")
     return target
 
 
@@ -202,9 +211,5 @@ def write_all(results: Results, directory: str | os.PathLike[str]) -> dict[str, 
         folder.mkdir(exist_ok=True)
     except OSError as exc:
         raise InvalidInputError(f"directory: cannot create {str(folder)!r} ({exc.strerror})") from None
-    return {
-        "trajectory": plot_trajectory(results, folder / "trajectory.png"),
-        "errors": plot_errors_over_time(results, folder / "errors.png"),
-        "error_cdf": plot_error_cdf(results, folder / "error_cdf.png"),
-        "calibration": plot_calibration(results, folder / "calibration.png"),
-    }
+    draw = {"trajectory": plot_trajectory, "errors": plot_errors_over_time, "error_cdf": plot_error_cdf, "calibration": plot_calibration}
+    return {key: draw[key](results, folder / name) for key, name in PLOT_FILES.items()}

@@ -45,7 +45,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from . import lie
-from ._io import as_path
+from ._io import as_path, read_bytes
 from ._validation import as_float64, choice, real_scalar
 from .exceptions import DatasetError, InvalidInputError
 
@@ -74,12 +74,12 @@ _MIN_FRAMES = 3
 def _numbered_rows(path: Path) -> list[tuple[int, list[str]]]:
     """(line number, fields) of the data lines of a UTF-8 text file; DatasetError naming the
     file (and the line of a non-UTF-8 byte) when it cannot be read."""
-    try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        raise DatasetError(f"reference file {str(path)!r} does not exist") from None
-    except OSError as exc:
-        raise DatasetError(f"reference file {str(path)!r} cannot be read ({exc.strerror or exc})") from None
+    if not os.path.lexists(path):
+        raise DatasetError(f"reference file {str(path)!r} does not exist")
+    try:  # a FIFO or a folder is refused, never opened
+        data = read_bytes(path, "reference file")
+    except InvalidInputError as e:
+        raise DatasetError(f"reference file {str(path)!r} cannot be read ({str(e).removeprefix('reference file: ')})") from None
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError as exc:

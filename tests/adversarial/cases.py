@@ -597,6 +597,12 @@ def all_specs(with_onnx: bool = False) -> dict[str, list[Spec]]:
 def module_cases(module: str, with_onnx: bool = False) -> st.SearchStrategy[dict[str, Any]]:
     if module == "cli":
         return st.one_of([cli_cases(c) for c in CLI if with_onnx or c != "train"])
+    if module == "files":
+        try:
+            from . import file_cases
+        except ImportError:  # imported as a top-level module (benchmarks/adversarial.py)
+            import file_cases  # type: ignore[no-redef]
+        return file_cases.file_cases()
     if module.startswith("cli:"):
         return cli_cases(module[4:])
     specs = all_specs(with_onnx)[module]

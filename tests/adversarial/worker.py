@@ -59,6 +59,14 @@ def _fresh(suffix: str = "") -> Path:
     return Path(name)
 
 
+def _cached(key: str) -> Any:
+    if key not in _CACHE:
+        import fixtures
+
+        _CACHE[key] = getattr(fixtures, key)(_TMP)
+    return _CACHE[key]
+
+
 def evaluate(expr: Any) -> Any:
     if isinstance(expr, tuple) and expr and isinstance(expr[0], str):
         tag = expr[0]
@@ -69,11 +77,7 @@ def evaluate(expr: Any) -> Any:
         if tag == "attr":
             return getattr(evaluate(expr[1]), expr[2])
         if tag == "cached":
-            if expr[1] not in _CACHE:
-                import fixtures
-
-                _CACHE[expr[1]] = getattr(fixtures, expr[1])(_TMP)
-            return _CACHE[expr[1]]
+            return _cached(expr[1])
         if tag == "file":
             p = _fresh(expr[2])
             p.write_bytes(expr[1])
@@ -110,6 +114,8 @@ def run_case(case: dict[str, Any]) -> dict[str, Any]:
     import invariants
 
     try:
+        if case.get("files") is not None:
+            return _run_file_case(case)
         if case.get("cli") is not None:
             return invariants.run_cli(case, evaluate)
         result = evaluate(case["expr"])
@@ -136,6 +142,50 @@ def run_case(case: dict[str, Any]) -> dict[str, Any]:
         problem = f"invariant check raised {type(e).__name__}: {e}"
     if problem:
         return {"kind": "invariant", "detail": problem[:300]}
+    return {"kind": "ok", "detail": ""}
+
+
+def _classify(e: BaseException, case: dict[str, Any]) -> dict[str, Any]:
+    import geoloc
+
+    if isinstance(e, geoloc.FileAccessError):
+        return {"kind": "rejected", "detail": str(e)[:200]}
+    if isinstance(e, geoloc.InvalidInputError):
+        if not isinstance(e, geoloc.FileFormatError) and not _names_argument(str(e), case.get("names", [])):
+            return {"kind": "wrong-name", "detail": f"{type(e).__name__}: {str(e)[:300]}"}
+        return {"kind": "rejected", "detail": str(e)[:200]}
+    if isinstance(e, MemoryError) and case["files"]["kind"] == "limited":
+        return {"kind": "rejected", "detail": "MemoryError under RLIMIT_AS"}
+    return {"kind": "wrong-type", "detail": f"{type(e).__name__}: {str(e)[:300]}", "tb": traceback.format_exc()[-1500:]}
+
+
+def _run_file_case(case: dict[str, Any]) -> dict[str, Any]:
+    """A file case (``file_cases.py``): run by ``files_runner``, then the CLI it asks for,
+    then the file invariants (no half-written or replaced input)."""
+    import files_runner
+    import invariants
+
+    try:
+        out = files_runner.run(case, _TMP, _cached)
+    except Exception as e:  # noqa: BLE001 — classifying is the point
+        return _classify(e, case)
+    if out.get("problem"):
+        return {"kind": "invariant", "detail": out["problem"][:300]}
+    if "error" in out:
+        return _classify(out["error"], case)
+    if "cli" in out:
+        result = invariants.run_cli({"cli": out["cli"], "names": case.get("names", [])}, evaluate)
+        if "unchanged" in out:
+            path, before = out["unchanged"]
+            if Path(path).read_bytes() != before:
+                return {"kind": "invariant", "detail": f"the input {path!r} was changed by the command"}
+        if out.get("must_fail") and result["kind"] == "ok":
+            return {"kind": "invariant", "detail": "an output aliasing an input was accepted"}
+        return result
+    if "result" in out:
+        problem = invariants.check(case.get("check", "any"), out["result"], case)
+        if problem:
+            return {"kind": "invariant", "detail": problem[:300]}
     return {"kind": "ok", "detail": ""}
 
 

@@ -24,6 +24,7 @@ __all__ = [
     "MODES",
     "FrameRange",
     "Progress",
+    "dataset_inputs",
     "load_dataset",
     "localize_sequence",
     "select",
@@ -151,6 +152,17 @@ def _load_files(args: argparse.Namespace, fmt: str, root: Path, given: Any) -> A
     if trajectory is not None and not (root / trajectory).is_file():
         raise InvalidInputError(f"--trajectory: file {str(root / trajectory)!r} does not exist")
     return datasets.load_folder(root, trajectory=trajectory if trajectory is not None else "traj.txt", intrinsics=given)
+
+
+def dataset_inputs(sequence: Any, option: str) -> list[tuple[str, Any]]:
+    """``(option, file)`` for every file ``sequence`` was read from (for
+    :func:`geoloc._io.refuse_alias`: no output may replace one of them)."""
+    return [(option, f) for f in getattr(sequence, "files", ())]
+
+
+def model_input(retrieval: str | None) -> list[tuple[str, Any]]:
+    """``--retrieval``'s model file as an input (none for ``bow``)."""
+    return [] if retrieval in (None, "bow") else [("--retrieval", retrieval)]
 
 
 class Progress:

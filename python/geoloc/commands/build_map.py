@@ -6,16 +6,29 @@ import argparse
 import time
 
 from ..exceptions import InvalidInputError
-from ._common import MAP_DONE, Progress, describe_labels, describe_self_calibration, load_dataset, open_retrieval, select
+from ._common import (
+    MAP_DONE,
+    Progress,
+    dataset_inputs,
+    describe_labels,
+    describe_self_calibration,
+    load_dataset,
+    model_input,
+    open_retrieval,
+    select,
+)
 
 __all__ = ["run"]
 
 
 def run(args: argparse.Namespace) -> int:
     """The ``build-map`` command."""
+    from .._io import refuse_alias, shown
     from ..mapping import Map
 
-    sequence = select(load_dataset(args), args.frames, "--frames")
+    dataset = load_dataset(args)
+    refuse_alias(args.out, "--out", [*dataset_inputs(dataset, "--dataset"), *model_input(args.retrieval)])
+    sequence = select(dataset, args.frames, "--frames")
     if sequence.poses is None:
         hint = " (give --trajectory FILE)" if args.format == "folder" else ""
         raise InvalidInputError(f"--dataset: {sequence.name!r} has no poses; a map needs world_from_cam poses{hint}")
@@ -35,7 +48,7 @@ def run(args: argparse.Namespace) -> int:
     the_map.save(args.out)
     cam = the_map.camera
     print(
-        f"wrote {args.out}: {len(the_map)} keyframes of {sequence.name!r} ({args.features}, {args.n_features} features, "
+        f"wrote {shown(args.out)}: {len(the_map)} keyframes of {sequence.name!r} ({args.features}, {args.n_features} features, "
         f"{args.retrieval} retrieval; camera {cam.width}×{cam.height}, fx={cam.intrinsics[0]:g}) in {built:.1f} s"
     )
     print(describe_self_calibration(the_map.self_calibration))

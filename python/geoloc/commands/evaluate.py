@@ -29,10 +29,12 @@ from ._common import (
     MAP_DONE,
     MODES,
     Progress,
+    dataset_inputs,
     describe_labels,
     describe_self_calibration,
     load_dataset,
     localize_sequence,
+    model_input,
     open_retrieval,
     option_message,
     stage_table,
@@ -314,6 +316,15 @@ def describe_alignment(against: dict[str, Any]) -> str:
     )
 
 
+def plot_files(directory: str | None, modes: tuple[str, ...]) -> list[Path]:
+    """The files :func:`write_plots` writes into ``directory`` for ``modes`` (none without a directory)."""
+    from ..plots import PLOT_FILES
+
+    if directory is None:
+        return []
+    return [Path(directory) / mode / name for mode in modes for name in PLOT_FILES.values()]
+
+
 def write_plots(directory: str, summaries: dict[str, dict[str, Any]]) -> list[Path]:
     """The four PNGs of each mode into ``directory/<mode>/`` (``directory`` is created if its
     parent exists)."""
@@ -333,7 +344,7 @@ def write_plots(directory: str, summaries: dict[str, dict[str, Any]]) -> list[Pa
 
 def run(args: argparse.Namespace) -> int:
     """The ``evaluate`` command."""
-    from .._io import write_json_atomic
+    from .._io import refuse_alias, shown, write_json_atomic
 
     reference_file = getattr(args, "reference", None)
     reference_format = getattr(args, "reference_format", None)
@@ -341,6 +352,10 @@ def run(args: argparse.Namespace) -> int:
         raise InvalidInputError("--reference-format: only used with --reference FILE")
     reference = None if reference_file is None else load_reference_option(reference_file, reference_format)
     sequence = load_dataset(args)
+    inputs = [*dataset_inputs(sequence, "--dataset"), ("--reference", reference_file), *model_input(args.retrieval)]
+    refuse_alias(args.json, "--json", inputs)
+    for plot in plot_files(args.plots, _modes(args.mode)):
+        refuse_alias(plot, "--plots", inputs)
     default_train, default_test = default_split(len(sequence), args.format)
     train = args.train or default_train
     test = args.test or default_test
@@ -352,8 +367,8 @@ def run(args: argparse.Namespace) -> int:
     data = report(sequence, result, dataset=args.dataset, fmt=args.format, train=train, test=test, timings=args.timings)
     if args.json:
         write_json_atomic(args.json, data, "--json")
-        print(f"wrote {args.json}")
+        print(f"wrote {shown(args.json)}")
     if args.plots:
         write_plots(args.plots, result["summaries"])
-        print(f"wrote plots to {Path(args.plots) / ('{' + ','.join(result['summaries']) + '}')}/")
+        print(f"wrote plots to {shown(Path(args.plots) / ('{' + ','.join(result['summaries']) + '}'))}/")
     return 0

@@ -15,7 +15,16 @@ from typing import Any
 import numpy as np
 
 from ..exceptions import DatasetError, InvalidInputError
-from ._common import Progress, load_dataset, localize_sequence, open_retrieval, option_message, select
+from ._common import (
+    Progress,
+    dataset_inputs,
+    load_dataset,
+    localize_sequence,
+    model_input,
+    open_retrieval,
+    option_message,
+    select,
+)
 
 __all__ = ["run"]
 
@@ -52,9 +61,11 @@ def _images(args: argparse.Namespace, camera: Any) -> Any:
 
 def run(args: argparse.Namespace) -> int:
     """The ``localize`` command."""
+    from .._io import refuse_alias, shown
     from ..evaluation import write_tum_trajectory
     from ..mapping import Localizer
 
+    refuse_alias(args.out, "--out", [("--map", args.map), *model_input(args.retrieval)])
     the_map = _load_map(args.map)
     network = None
     if the_map.settings["retrieval"] != "bow":
@@ -80,11 +91,12 @@ def run(args: argparse.Namespace) -> int:
                 f"--intrinsics: {sequence.camera.intrinsics} differ from the map's {camera.intrinsics} "
                 "(queries must use the map's camera)"
             )
+    refuse_alias(args.out, "--out", dataset_inputs(sequence, "--images" if args.images is not None else "--dataset"))
     sequence = select(sequence, args.frames, "--frames")
     results = localize_sequence(Localizer(the_map, global_descriptor=network, locator=args.locator), sequence, args.mode, Progress("localize"))
     kept = [k for k, r in enumerate(results) if r.pose is not None]
     if not kept:
-        raise InvalidInputError(f"--out: every one of the {len(results)} frames was lost; nothing written to {args.out!r}")
+        raise InvalidInputError(f"--out: every one of the {len(results)} frames was lost; nothing written to {str(args.out)!r}")
     write_tum_trajectory(args.out, sequence.timestamps[kept], np.stack([results[k].pose for k in kept]))
     sources = Counter(r.source for r in results)
     lost = len(results) - len(kept)
@@ -92,7 +104,7 @@ def run(args: argparse.Namespace) -> int:
     total_ms = float(np.median([r.timings["total"] for r in results]))
     print(
         f"geoloc localize: {len(kept)}/{len(results)} frames localized, {lost} lost ({counts}; "
-        f"{args.mode} mode, median {total_ms:.1f} ms/frame) -> {args.out}",
+        f"{args.mode} mode, median {total_ms:.1f} ms/frame) -> {shown(args.out)}",
         file=sys.stderr,
     )
     return 0

@@ -38,11 +38,12 @@ def existing_folder(path: str | os.PathLike[str]) -> Path:
 
 def data_rows(path: Path) -> list[list[str]]:
     """Whitespace/comma-separated fields of the non-comment lines of a text file."""
+    from .._io import read_bytes
+
+    data = read_bytes(path, "path", DatasetError)  # a FIFO or folder in its place is refused, never opened
     try:
-        text = path.read_text(encoding="utf-8", errors="strict")
-    except FileNotFoundError:
-        raise DatasetError(f"file {str(path)!r} does not exist") from None
-    except (OSError, UnicodeDecodeError) as exc:
+        text = data.decode("utf-8", errors="strict")
+    except UnicodeDecodeError as exc:
         raise DatasetError(f"file {str(path)!r} cannot be read as text ({exc})") from None
     rows = []
     for line in text.splitlines():

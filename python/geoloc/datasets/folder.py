@@ -1,7 +1,8 @@
 """Any folder of images with a TUM trajectory: the dataset format of last resort.
 
 Images are all files with an image extension (png, jpg, jpeg, bmp, tif, tiff), sorted by
-name. The trajectory (``traj.txt`` by default, TUM format ``timestamp tx ty tz qx qy qz
+number when every name is a number (``9.png`` before ``10.png``: the order of their
+timestamps), else by name. The trajectory (``traj.txt`` by default, TUM format ``timestamp tx ty tz qx qy qz
 qw``) is matched to them in one of two ways (``match=``):
 
 * ``"timestamp"``: every image name (without extension) is its timestamp in seconds
@@ -29,6 +30,7 @@ import numpy as np
 from .._validation import real_scalar
 from ..camera import Camera
 from ..exceptions import DatasetError, InvalidInputError
+from .._io import read_bytes
 from ._files import existing_folder, file_loader
 from .sequence import Sequence
 from .tum import associate, read_tum_trajectory, resolve_camera
@@ -47,22 +49,20 @@ def load_folder(
     match: Literal["auto", "timestamp", "row"] = "auto",
     max_time_difference: float = 0.02,
 ) -> Sequence:
-    """Images of ``path`` (sorted by name) + an optional TUM ``trajectory`` (relative to
+    """Images of ``path`` (in number order when all names are numbers, else by name) + an optional TUM ``trajectory`` (relative to
     ``path`` unless absolute) as a :class:`Sequence`; see the module doc for ``match``.
     The camera size is the first image's; every image must have it."""
-    from .._opencv import import_cv2
+    from .._images import read_image
 
     root = existing_folder(path)
     if match not in ("auto", "timestamp", "row"):
         raise InvalidInputError(f"match: expected 'auto', 'timestamp' or 'row', got {match!r}")
-    files = sorted(p for p in root.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS and p.is_file())
+    files = _in_order([p for p in root.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS and p.is_file()])
     if not files:
         raise DatasetError(f"path: {str(root)!r} has no images ({', '.join(sorted(IMAGE_EXTENSIONS))})")
     if intrinsics is None:
         raise DatasetError(f"intrinsics: a plain image folder has no calibration; pass intrinsics=(fx, fy, cx, cy) for {str(root)!r}")
-    first = import_cv2("reading images").imread(str(files[0]), 0)
-    if first is None:
-        raise DatasetError(f"image file {str(files[0])!r} cannot be read as an image")
+    first = read_image(files[0], "path", gray=True, error=DatasetError)
     camera = resolve_camera(intrinsics, root, (first.shape[1], first.shape[0]))
     name_times = _name_timestamps(files)
 
@@ -73,7 +73,7 @@ def load_folder(
     traj_file = None if trajectory is None else (root / trajectory)
     if traj_file is None or (not traj_file.exists() and str(trajectory) == DEFAULT_TRAJECTORY):
         times = name_times if name_times is not None else np.arange(len(files)) / FALLBACK_FRAME_RATE_HZ
-        return Sequence(root.name, camera, times, None, file_loader(files, camera))
+        return Sequence(root.name, camera, times, None, file_loader(files, camera), files=files)
     if not traj_file.exists():
         raise DatasetError(f"trajectory: file {str(traj_file)!r} does not exist")
     traj_times, poses = read_tum_trajectory(traj_file)
@@ -84,7 +84,7 @@ def load_folder(
                 f"trajectory: {str(traj_file)!r} has {len(poses)} poses for {len(files)} images in {str(root)!r} "
                 "(row-for-row matching needs equal counts)"
             )
-        return Sequence(root.name, camera, traj_times, poses, file_loader(files, camera))
+        return Sequence(root.name, camera, traj_times, poses, file_loader(files, camera), files=[*files, traj_file])
     if name_times is None:
         raise DatasetError(f"match: timestamp matching needs image names that are timestamps in {str(root)!r}")
     pick = associate(name_times, traj_times, max_time_difference)
@@ -93,19 +93,37 @@ def load_folder(
         raise DatasetError(f"trajectory: no image of {str(root)!r} has a pose within {max_time_difference} s in {str(traj_file)!r}")
     kept = np.flatnonzero(keep).tolist()
     return Sequence(
-        root.name, camera, name_times[keep], poses[pick[keep]], file_loader([files[k] for k in kept], camera, kept), kept
+        root.name, camera, name_times[keep], poses[pick[keep]], file_loader([files[k] for k in kept], camera, kept), kept,
+        files=[*files, traj_file],
     )
 
 
-def _name_timestamps(files: list[Path]) -> np.ndarray | None:
+def _number(stem: str) -> float | None:
     try:
-        return np.array([float(f.stem) for f in files])
+        value = float(stem)
     except ValueError:
         return None
+    return value if math.isfinite(value) else None
+
+
+def _in_order(files: list[Path]) -> list[Path]:
+    """The images in time order: by the number when every name is a number (``9.png`` before
+    ``10.png``, as their timestamps say), else by name."""
+    numbers = [_number(p.stem) for p in files]
+    if files and all(n is not None for n in numbers):
+        return [p for _, p in sorted(zip(numbers, files), key=lambda pair: (pair[0], pair[1].name))]
+    return sorted(files)
+
+
+def _name_timestamps(files: list[Path]) -> np.ndarray | None:
+    numbers = [_number(f.stem) for f in files]
+    if any(n is None for n in numbers):
+        return None
+    return np.array(numbers, dtype=np.float64)
 
 
 def _declared_match(path: Path) -> Literal["timestamp", "row"] | None:
-    for line in path.read_text(encoding="utf-8", errors="replace").splitlines():
+    for line in read_bytes(path, "trajectory", DatasetError).decode("utf-8", errors="replace").splitlines():
         text = line.strip().lstrip("#").strip().lower().replace(" ", "")
         if line.lstrip().startswith("#") and text in ("match:row", "match:timestamp"):
             return "row" if text.endswith("row") else "timestamp"

@@ -1,7 +1,7 @@
 """A recorded image sequence: frames with timestamps and (optionally) ground-truth poses.
 
 Conventions: images are (H, W, 3) uint8 in **BGR** channel order (OpenCV's, as
-``cv2.imread`` returns them); timestamps are seconds; poses are 4×4 float64
+OpenCV decodes them); timestamps are seconds; poses are 4×4 float64
 **world_from_cam** (camera-to-world, camera axes x right, y down, z forward).
 
 A :class:`Sequence` loads its images lazily, one at a time, from an *image source* (files
@@ -12,7 +12,7 @@ nothing until a frame is read.
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, overload
@@ -20,7 +20,6 @@ from typing import Any, overload
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .._opencv import import_cv2
 from ..camera import Camera
 from ..exceptions import DatasetError, InvalidInputError
 
@@ -55,14 +54,10 @@ def load_image(path: str | os.PathLike[str], camera: Camera, gray: bool = False)
     Raises :class:`DatasetError` naming the file when it is missing, cannot be decoded or
     is not ``camera.width × camera.height``.
     """
-    cv2 = import_cv2("reading images")
-    p = Path(path)
-    if not p.is_file():
-        raise DatasetError(f"image file {str(p)!r} does not exist")
-    image = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_COLOR)
-    if image is None:
-        raise DatasetError(f"image file {str(p)!r} cannot be read as an image")
-    check_image_size(image, camera, f"image file {str(p)!r}")
+    from .._images import read_image
+
+    image = read_image(path, "path", gray, DatasetError)
+    check_image_size(image, camera, f"image file {os.fspath(path)!r}")
     return np.ascontiguousarray(image, dtype=np.uint8)
 
 
@@ -90,6 +85,8 @@ class Sequence:
         poses: ArrayLike | None,
         load: ImageLoader,
         source_indices: ArrayLike | None = None,
+        *,
+        files: Iterable[str | os.PathLike[str]] = (),
     ) -> None:
         if not isinstance(camera, Camera):
             raise InvalidInputError(f"camera: expected a geoloc.Camera, got {type(camera).__name__}")
@@ -116,6 +113,7 @@ class Sequence:
         self._poses = pose_array
         self._load = load
         self._source_indices = idx
+        self._files = tuple(Path(f) for f in files)
 
     # ------------------------------------------------------------------ properties
 
@@ -133,6 +131,12 @@ class Sequence:
     def indices(self) -> NDArray[np.int64]:
         """(N,) index of each frame in the dataset as loaded (``Frame.index``)."""
         return self._source_indices
+
+    @property
+    def files(self) -> tuple[Path, ...]:
+        """The files the dataset was read from (images, pose and list files), kept whole by
+        slicing; empty for a rendered sequence. A command refuses to write over any of them."""
+        return self._files
 
     def __len__(self) -> int:
         return len(self._timestamps)
@@ -192,6 +196,7 @@ class Sequence:
             None if self._poses is None else self._poses[picked],
             self._load,
             self._source_indices[picked],
+            files=self._files,
         )
 
     def gray(self, i: int) -> NDArray[np.uint8]:
@@ -223,7 +228,9 @@ class Sequence:
         from ..evaluation import write_tum_trajectory
         from .tum import write_camera_file
 
-        cv2 = import_cv2("writing images")
+        from .._images import write_image
+        from .._io import write_text_atomic
+
         root = Path(path)
         if not root.parent.is_dir():
             raise DatasetError(f"path: parent folder {str(root.parent)!r} does not exist")
@@ -234,10 +241,9 @@ class Sequence:
         lines = ["# color images", "# written by geoloc", "# timestamp filename"]
         for frame in self:
             name = f"rgb/{frame.timestamp:.6f}.png"
-            if not cv2.imwrite(str(root / name), frame.image):
-                raise DatasetError(f"path: cannot write {str(root / name)!r}")
+            write_image(root / name, frame.image, "path")
             lines.append(f"{frame.timestamp:.6f} {name}")
-        (root / "rgb.txt").write_text("\n".join(lines) + "\n")
+        write_text_atomic(root / "rgb.txt", "\n".join(lines) + "\n", "path")
         if self._poses is not None:
             write_tum_trajectory(root / "groundtruth.txt", self._timestamps, self._poses)
         write_camera_file(root / "camera.txt", self.camera)

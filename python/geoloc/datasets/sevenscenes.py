@@ -104,4 +104,8 @@ def load_7scenes(
             raise DatasetError(f"pose file {str(pose_file)!r} is missing (frame {n} has an image)")
         poses.append(read_7scenes_pose(pose_file))
     times = np.array(numbers, dtype=np.float64) / FRAME_RATE_HZ
-    return Sequence(root.name, camera, times, np.stack(poses), file_loader([f for _, f in frames], camera, numbers), numbers)
+    images = [f for _, f in frames]
+    read = [*images, *(root / f"frame-{n:06d}.pose.txt" for n in numbers)]
+    if intrinsics == "file":
+        read.append(root / INTRINSICS_FILE)
+    return Sequence(root.name, camera, times, np.stack(poses), file_loader(images, camera, numbers), numbers, files=read)

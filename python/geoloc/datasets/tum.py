@@ -170,6 +170,7 @@ def load_tum(
     files = [root / " ".join(r[1:]) for r in rows]
     camera = _tum_camera(intrinsics, root)
     gt_file = root / "groundtruth.txt"
+    read = [rgb, *files, *(p for p in (gt_file, root / "camera.txt") if p.exists())]
     if gt_file.exists():
         gt_times, gt_poses = read_tum_trajectory(gt_file)
         match = associate(times, gt_times, max_time_difference)
@@ -181,9 +182,10 @@ def load_tum(
             )
         kept = np.flatnonzero(keep).tolist()
         return Sequence(
-            root.name, camera, times[keep], gt_poses[match[keep]], file_loader([files[k] for k in kept], camera, kept), kept
+            root.name, camera, times[keep], gt_poses[match[keep]], file_loader([files[k] for k in kept], camera, kept), kept,
+            files=read,
         )
-    return Sequence(root.name, camera, times, None, file_loader(files, camera))
+    return Sequence(root.name, camera, times, None, file_loader(files, camera), files=read)
 
 
 # ---------------------------------------------------------------------------- helpers

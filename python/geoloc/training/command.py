@@ -68,10 +68,21 @@ def positive_float(text: str) -> float:
 
 
 def input_file(text: str) -> str:
-    """An argparse ``type`` for a file to read: it must exist."""
-    if not Path(text).is_file():
-        raise argparse.ArgumentTypeError(f"no such file: {text!r}")
+    """An argparse ``type`` for a file to read: an existing regular file (a FIFO or a folder
+    is named as such and never opened)."""
+    from .._io import check_input_file
+
+    try:
+        check_input_file(text, "path")
+    except InvalidInputError as e:
+        raise argparse.ArgumentTypeError(str(e).removeprefix("path: ")) from None
     return text
+
+
+def _dataset_files(frames: Any) -> list[tuple[str, Any]]:
+    """``("--dataset", file)`` for the files the training frames are read from."""
+    seq = getattr(frames, "frames", frames)
+    return [("--dataset", f) for f in getattr(seq, "files", ())]
 
 
 class _Subset:
@@ -198,8 +209,12 @@ def add_train_command(commands: argparse._SubParsersAction[argparse.ArgumentPars
     def run(args: argparse.Namespace) -> int:
         from . import require_torch
 
+        from .._io import refuse_alias, shown
+
         if args.resume and not args.checkpoint:
             raise InvalidInputError("--resume: needs --checkpoint FILE")
+        refuse_alias(args.out, "--out", [("--init", args.init), ("--checkpoint", args.checkpoint)])
+        refuse_alias(args.checkpoint, "--checkpoint", [("--init", args.init)])
         require_torch()
         from .export import export_onnx
         from .train import TrainConfig, load_checkpoint, train
@@ -210,6 +225,8 @@ def add_train_command(commands: argparse._SubParsersAction[argparse.ArgumentPars
             except InvalidInputError as e:
                 raise InvalidInputError(f"--init: {str(e).removeprefix('checkpoint: ')}") from None
         frames = load_frames(args.dataset, args.format, args.train, args.seed, args.trajectory, args.stride)
+        refuse_alias(args.out, "--out", _dataset_files(frames))
+        refuse_alias(args.checkpoint, "--checkpoint", _dataset_files(frames))
         epochs = args.epochs or (TINY_EPOCHS if args.tiny else PAPER_EPOCHS)
         config = TrainConfig(
             backbone="tiny" if args.tiny else "googlenet",
@@ -239,7 +256,7 @@ def add_train_command(commands: argparse._SubParsersAction[argparse.ArgumentPars
             f"({elapsed / max(len(result.epoch_seconds), 1):.2f} s/epoch incl. reading), final loss {result.losses[-1]:.4f}; "
             f"{stats['anchors_with_positive']}/{stats['images']} images have a positive partner"
         )
-        print(f"wrote {report.path} ({report.size_bytes / 1e6:.1f} MB, D = {report.dim}, sha256 {report.sha256[:16]}…)")
+        print(f"wrote {shown(report.path)} ({report.size_bytes / 1e6:.1f} MB, D = {report.dim}, sha256 {report.sha256[:16]}…)")
         return 0
 
     return run

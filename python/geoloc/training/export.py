@@ -29,6 +29,7 @@ from typing import TextIO
 import numpy as np
 import torch
 
+from .._io import check_output_path, write_bytes_atomic
 from ..descriptor import INPUT_SIZE, META_NAME, META_PREPROCESS, PREPROCESS_ID
 from ..exceptions import GeolocError, InvalidInputError
 from .network import DescriptorNet
@@ -119,9 +120,10 @@ def export_onnx(
     differ by more than ``atol``; the check's result is printed to ``log`` (default: stderr)
     unless ``quiet``.
     """
-    out = Path(path)
-    if not out.parent.is_dir():
-        raise InvalidInputError(f"out: the folder {str(out.parent)!r} does not exist")
+    try:
+        out = check_output_path(path, "out")
+    except InvalidInputError as e:
+        raise InvalidInputError(str(e).replace("out: folder", "out: the folder", 1)) from None
     model = model.eval().cpu()
     meta = {
         META_NAME: name or out.stem,
@@ -135,11 +137,5 @@ def export_onnx(
         print(f"export: onnxruntime vs torch on random inputs (batches {PARITY_BATCHES}): max |diff| = {diff:.2e} (bound {atol:.0e})", file=log or sys.stderr)
     if not diff <= atol:
         raise GeolocError(f"export: onnxruntime and torch differ by {diff:.2e} > {atol:.0e}; the file was not written")
-    tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")
-    try:
-        tmp.write_bytes(data)
-        os.replace(tmp, out)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    write_bytes_atomic(out, data, "out")
     return ExportReport(out, len(data), hashlib.sha256(data).hexdigest(), diff, model.dim)

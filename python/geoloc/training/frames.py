@@ -11,6 +11,7 @@ is not installed.
 
 from __future__ import annotations
 
+import io
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,6 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .. import lie
+from .._io import read_bytes
 from ..exceptions import InvalidInputError
 
 __all__ = ["PosedFrame", "PosedFrames", "PosedImage", "SevenScenesFrames", "gray_images", "poses_of"]
@@ -105,8 +107,9 @@ class SevenScenesFrames:
         self._poses = []
         for _, p in found:
             pose_file = p.with_name(p.name.split(".")[0] + ".pose.txt")
-            try:
-                self._poses.append(np.loadtxt(pose_file).reshape(4, 4))
+            try:  # read by Python first: a FIFO or a folder in its place is refused, not opened
+                text = read_bytes(pose_file, "dataset").decode("utf-8")
+                self._poses.append(np.loadtxt(io.StringIO(text)).reshape(4, 4))
             except (OSError, ValueError) as e:
                 raise InvalidInputError(f"dataset: cannot read the pose {str(pose_file)!r} ({e})") from None
 
@@ -114,14 +117,11 @@ class SevenScenesFrames:
         return len(self._images)
 
     def __getitem__(self, i: int) -> PosedImage:
-        import cv2
+        from .._images import read_image
 
         if not -len(self) <= i < len(self):
             raise IndexError(i)
-        image = cv2.imread(str(self._images[i]), cv2.IMREAD_COLOR)
-        if image is None:
-            raise InvalidInputError(f"dataset: cannot read the image {str(self._images[i])!r}")
-        return PosedImage(image=np.asarray(image, dtype=np.uint8), pose=self._poses[i])
+        return PosedImage(image=read_image(self._images[i], "dataset"), pose=self._poses[i])
 
     def subset(self, indices: Sequence[int]) -> list[PosedImage]:
         """The chosen frames, loaded."""

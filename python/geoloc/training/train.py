@@ -21,6 +21,7 @@ normalized per mini-batch by ``geoloc.descriptor.normalize``: the same preproces
 
 from __future__ import annotations
 
+import io
 import os
 import sys
 import time
@@ -32,6 +33,7 @@ import numpy as np
 import torch
 from numpy.typing import NDArray
 
+from .._io import special_kind, write_bytes_atomic
 from ..descriptor import normalize
 from ..exceptions import InvalidInputError
 from .frames import PosedFrames, gray_images, poses_of
@@ -168,6 +170,9 @@ def load_checkpoint(path: str | os.PathLike[str]) -> dict[str, Any]:
     """A checkpoint written by :func:`train` (or a bare state_dict, as ``{"model": …}``);
     loaded with ``weights_only=True`` (never runs code from the file)."""
     p = Path(path)
+    kind = special_kind(p)
+    if kind is not None:  # never opened: torch.load would block on a FIFO
+        raise InvalidInputError(f"checkpoint: {str(p)!r} is {kind}, not a regular file")
     try:
         data = torch.load(p, map_location="cpu", weights_only=True)
     except FileNotFoundError:
@@ -204,7 +209,6 @@ def load_network(path: str | os.PathLike[str]) -> DescriptorNet:
 
 
 def _save_checkpoint(path: Path, model: DescriptorNet, opt: torch.optim.Optimizer, epoch: int, config: TrainConfig, losses: list[float]) -> None:
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     payload = {
         "format": CHECKPOINT_FORMAT,
         "version": CHECKPOINT_VERSION,
@@ -214,12 +218,9 @@ def _save_checkpoint(path: Path, model: DescriptorNet, opt: torch.optim.Optimize
         "optimizer": opt.state_dict(),
         "losses": list(losses),
     }
-    try:
-        torch.save(payload, tmp)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    buffer = io.BytesIO()
+    torch.save(payload, buffer)
+    write_bytes_atomic(path, buffer.getvalue(), "checkpoint")  # a unique temp name: concurrent saves cannot collide
 
 
 @torch.no_grad()

@@ -1,0 +1,261 @@
+"""A robot never crashes on a path, never loses a file, never gets a wrong error: the Python
+API with odd file names (bytes that are not UTF-8), special files (FIFOs), outputs that alias
+inputs, concurrent writers, damaged map headers and misbehaving descriptor networks."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import geoloc
+from geoloc import datasets
+from geoloc._images import write_image
+from geoloc._io import check_output_path, refuse_alias, write_json_atomic
+
+#: A FIFO test that takes longer than this has blocked on the FIFO.
+FIFO_TIMEOUT_S = 60
+#: A file name byte that is not UTF-8 (Python spells it as the surrogate U+DCFF).
+ODD = os.fsdecode(b"\xff")
+WRITERS = 8
+
+
+@pytest.fixture(scope="module")
+def small_map() -> geoloc.Map:
+    room = datasets.synthetic_room(n_frames=12, seed=0)
+    return geoloc.Map.build(room[:10], n_features=300, branching=4, depth=2)
+
+
+def _python(code: str, *args: str) -> subprocess.CompletedProcess[str]:
+    """``code`` in a fresh interpreter with this checkout's package (so a crash or a blocked
+    read is a failed assertion, not a dead or hung test run)."""
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(Path(geoloc.__file__).parents[1]), env.get("PYTHONPATH", "")])
+    return subprocess.run(
+        [sys.executable, "-c", code, *args], capture_output=True, text=True, env=env, timeout=FIFO_TIMEOUT_S
+    )
+
+
+# ------------------------------------------------------------------ odd bytes in paths
+
+
+def test_localize_a_missing_path_with_odd_bytes_names_it(small_map: geoloc.Map) -> None:
+    """It segfaulted: cv2.imread got the surrogate-escaped name."""
+    code = (
+        "import geoloc, sys\n"
+        "seq = geoloc.datasets.synthetic_room(n_frames=12, seed=0)\n"
+        "loc = geoloc.Localizer(geoloc.Map.build(seq[:10], n_features=300, branching=4, depth=2))\n"
+        "try:\n    loc.localize(sys.argv[1], 0.0)\n"
+        "except geoloc.InvalidInputError as e:\n    print('refused:', e)\n"
+    )
+    result = _python(code, f"/tmp/no_such_{ODD}.jpg")
+    assert result.returncode == 0, result.stderr
+    assert "refused: image: file '/tmp/no_such_\\udcff.jpg' does not exist" in result.stdout, result.stdout
+
+
+def test_images_with_odd_bytes_in_their_names_are_read(tmp_path: Path, small_map: geoloc.Map) -> None:
+    room = datasets.synthetic_room(n_frames=12, seed=0)
+    folder = tmp_path / f"images {ODD}\n-x"
+    folder.mkdir()
+    write_image(folder / f"{ODD}\udcfe1.png", room[5].image)  # a keyframe's view
+    seq = datasets.load_folder(folder, trajectory=None, intrinsics=small_map.camera)
+    assert seq.files == (folder / f"{ODD}\udcfe1.png",)
+    np.testing.assert_array_equal(seq[0].image, room[5].image)
+    by_path = geoloc.Localizer(small_map).localize(str(seq.files[0]), 0.0)
+    by_pixels = geoloc.Localizer(small_map).localize(seq.gray(0), 0.0)
+    assert (by_path.source, by_path.reason, by_path.inliers) == (by_pixels.source, by_pixels.reason, by_pixels.inliers)
+
+
+def test_a_map_saves_and_loads_under_a_name_with_odd_bytes(tmp_path: Path, small_map: geoloc.Map) -> None:
+    path = tmp_path / f"map {ODD}\n.geoloc"
+    small_map.save(path)
+    assert os.listdir(os.fsencode(tmp_path)) == [b"map \xff\n.geoloc"]
+    assert len(geoloc.Map.load(path)) == len(small_map)
+
+
+# ------------------------------------------------------------------ special files
+
+
+@pytest.mark.parametrize(
+    "call",
+    [
+        "geoloc.Map.load(path)",
+        "geoloc.datasets.sequence.load_image(path, geoloc.Camera(525, 525, 320, 240))",
+        "geoloc.OnnxDescriptor(path)",
+        "geoloc.reference.load_reference(path)",
+        "geoloc.datasets.sevenscenes.read_7scenes_pose(path)",
+    ],
+)
+def test_a_fifo_is_named_and_never_opened(tmp_path: Path, call: str) -> None:
+    fifo = tmp_path / "in.fifo"
+    os.mkfifo(fifo)
+    code = f"import sys, geoloc, geoloc.reference\npath = sys.argv[1]\ntry:\n    {call}\nexcept (geoloc.GeolocError) as e:\n    print('refused:', e)\n"
+    result = _python(code, str(fifo))
+    assert result.returncode == 0, result.stderr
+    assert "refused:" in result.stdout and "is a FIFO, not a regular file" in result.stdout, result.stdout
+
+
+def test_a_fifo_in_place_of_a_pose_file_is_named(tmp_path: Path) -> None:
+    room = datasets.synthetic_room(n_frames=2, seed=0)
+    for i in range(2):
+        write_image(tmp_path / f"frame-{i:06d}.color.png", room[i].image)
+    np.savetxt(tmp_path / "frame-000000.pose.txt", room.poses[0])
+    os.mkfifo(tmp_path / "frame-000001.pose.txt")
+    code = "import sys, geoloc\ntry:\n    geoloc.datasets.load_7scenes(sys.argv[1])\nexcept geoloc.DatasetError as e:\n    print('refused:', e)\n"
+    result = _python(code, str(tmp_path))
+    assert "frame-000001.pose.txt' is a FIFO, not a regular file" in result.stdout, result.stdout + result.stderr
+
+
+def test_an_output_that_is_a_fifo_or_ends_in_a_separator_is_refused(tmp_path: Path) -> None:
+    os.mkfifo(tmp_path / "out.fifo")
+    with pytest.raises(geoloc.InvalidInputError, match="^out: .*is a FIFO"):
+        check_output_path(tmp_path / "out.fifo", "out")
+    with pytest.raises(geoloc.InvalidInputError, match="^out: .*names a folder"):
+        check_output_path(str(tmp_path / "x") + "/", "out")
+    with pytest.raises(geoloc.InvalidInputError, match="^out: the file name .* the folder allows"):
+        check_output_path(tmp_path / ("a" * 300 + ".geoloc"), "out")
+    assert sorted(os.listdir(tmp_path)) == ["out.fifo"]
+
+
+# ------------------------------------------------------------------ outputs that alias inputs
+
+
+@pytest.mark.parametrize("alias", ["same", "dot", "symlink", "hardlink", "new"])
+def test_refuse_alias_sees_through_every_spelling(tmp_path: Path, alias: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    data = tmp_path / "in.txt"
+    data.write_text("input\n")
+    out = {"same": str(data), "dot": "./in.txt", "symlink": "link.txt", "hardlink": "hard.txt", "new": "new.txt"}[alias]
+    if alias == "symlink":
+        os.symlink(data, out)
+    if alias == "hardlink":
+        os.link(data, out)
+    if alias == "new":
+        refuse_alias(out, "--out", [("--map", str(data))])  # a file that does not exist yet is never an input
+        return
+    with pytest.raises(geoloc.InvalidInputError, match="^--out: .* is the same file as the input --map"):
+        refuse_alias(out, "--out", [("--map", str(data))])
+    assert data.read_text() == "input\n"
+
+
+def test_export_frames_refuses_to_overwrite_one_of_its_frames(tmp_path: Path, small_map: geoloc.Map) -> None:
+    room = datasets.synthetic_room(n_frames=12, seed=0)
+    write_image(tmp_path / "1.png", room[10].image)
+    seq = datasets.load_folder(tmp_path, trajectory=None, intrinsics=small_map.camera)
+    before = (tmp_path / "1.png").read_bytes()
+    with pytest.raises(geoloc.InvalidInputError, match="^path: .* same file as the input frames"):
+        geoloc.export_frames(small_map, seq, tmp_path / "1.png")
+    assert (tmp_path / "1.png").read_bytes() == before
+
+
+# ------------------------------------------------------------------ concurrent writers
+
+
+def _concurrently(write: object, n: int = WRITERS) -> list[BaseException]:
+    errors: list[BaseException] = []
+    start = threading.Barrier(n)
+
+    def run(k: int) -> None:
+        start.wait()
+        try:
+            write(k)  # type: ignore[operator]
+        except BaseException as e:  # noqa: BLE001 - collected and asserted on
+            errors.append(e)
+
+    threads = [threading.Thread(target=run, args=(k,)) for k in range(n)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    return errors
+
+
+def test_map_save_from_threads_to_one_path_leaves_one_complete_map(tmp_path: Path, small_map: geoloc.Map) -> None:
+    """Eight threads save the map to one path at once: every save succeeds, the file loads and
+    no temp file is left behind (each save needs its own temp name, not one per process)."""
+    target = tmp_path / "shared.geoloc"
+    errors = _concurrently(lambda k: small_map.save(target))
+    assert not errors, [f"{type(e).__name__}: {e}" for e in errors]
+    assert len(geoloc.Map.load(target)) == len(small_map)
+    assert os.listdir(tmp_path) == ["shared.geoloc"]
+
+
+def test_map_save_from_processes_to_one_path_leaves_one_complete_map(tmp_path: Path, small_map: geoloc.Map) -> None:
+    source = tmp_path / "source.geoloc"
+    small_map.save(source)
+    target = tmp_path / "shared.geoloc"
+    code = "import sys, geoloc\ngeoloc.Map.load(sys.argv[1]).save(sys.argv[2])\n"
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(Path(geoloc.__file__).parents[1]), os.environ.get("PYTHONPATH", "")]))
+    procs = [subprocess.Popen([sys.executable, "-c", code, str(source), str(target)], env=env) for _ in range(4)]
+    assert [p.wait(timeout=120) for p in procs] == [0] * 4
+    assert len(geoloc.Map.load(target)) == len(small_map)
+    assert sorted(os.listdir(tmp_path)) == ["shared.geoloc", "source.geoloc"]
+
+
+def test_json_writers_from_threads_leave_one_complete_version(tmp_path: Path) -> None:
+    target = tmp_path / "r.json"
+    versions = [{"writer": k, "values": list(range(1000 * k, 1000 * k + 500))} for k in range(WRITERS)]
+    errors = _concurrently(lambda k: write_json_atomic(target, versions[k]))
+    assert not errors
+    assert json.loads(target.read_text()) in versions
+    assert os.listdir(tmp_path) == ["r.json"]
+
+
+# ------------------------------------------------------------------ damaged map headers
+
+
+@pytest.mark.parametrize("field", ["features", "camera", "retrieval", "features.n_features", "camera.width"])
+def test_a_map_whose_frontend_lacks_a_field_is_a_format_error(tmp_path: Path, small_map: geoloc.Map, field: str) -> None:
+    frontend = small_map.settings
+    record, _, key = field.partition(".")
+    if key:
+        del frontend[record][key]
+    else:
+        del frontend[record]
+    path = tmp_path / "m.geoloc"
+    small_map._feature_map.save(path, frontend)
+    with pytest.raises(geoloc.FileFormatError, match=f"^path: .*m.geoloc'.*frontend.*{field}"):
+        geoloc.Map.load(path)
+
+
+# ------------------------------------------------------------------ descriptor networks
+
+
+def test_a_model_with_a_fixed_batch_of_one_runs_image_by_image(tmp_path: Path) -> None:
+    onnx_models = pytest.importorskip("onnx_models")
+    pytest.importorskip("onnx")
+    images = np.random.default_rng(1).integers(0, 255, size=(5, 60, 80, 3), dtype=np.uint8)
+    free = geoloc.OnnxDescriptor(onnx_models.linear_model(tmp_path / "free.onnx"))
+    for batch in (1, 3):
+        fixed = geoloc.OnnxDescriptor(onnx_models.linear_model(tmp_path / f"fixed{batch}.onnx", batch=batch))
+        assert fixed.fixed_batch == batch
+        np.testing.assert_allclose(fixed(images), free(images), atol=1e-6)
+
+
+@pytest.mark.parametrize(("bias", "what"), [(float("inf"), "non-finite descriptor"), (0.0, "all-zero descriptor")])
+def test_a_model_that_gives_inf_or_zero_rows_is_refused(tmp_path: Path, bias: float, what: str) -> None:
+    onnx_models = pytest.importorskip("onnx_models")
+    pytest.importorskip("onnx")
+    model = geoloc.OnnxDescriptor(onnx_models.linear_model(tmp_path / "bad.onnx", weight_scale=0.0, bias=bias))
+    images = np.random.default_rng(1).integers(0, 255, size=(3, 60, 80, 3), dtype=np.uint8)
+    with pytest.raises(geoloc.InvalidInputError, match=f"^images\\[0\\]: the network 'bad' gave an? {what}"):
+        model(images)
+
+
+# ------------------------------------------------------------------ image order
+
+
+def test_numbered_images_are_in_number_order_and_their_times_agree(tmp_path: Path) -> None:
+    room = datasets.synthetic_room(n_frames=3, seed=0)
+    for k, number in enumerate((9, 10, 11)):
+        write_image(tmp_path / f"{number}.png", room[k].image)
+    seq = datasets.load_folder(tmp_path, trajectory=None, intrinsics=(525.0, 525.0, 320.0, 240.0))
+    assert [p.name for p in seq.files] == ["9.png", "10.png", "11.png"]
+    assert seq.timestamps.tolist() == [9.0, 10.0, 11.0]
+    np.testing.assert_array_equal(seq[0].image, room[0].image)
