@@ -47,7 +47,7 @@ from numpy.typing import ArrayLike, NDArray
 from . import lie
 from ._io import as_path, read_bytes
 from ._validation import as_float64, choice, real_scalar
-from .exceptions import DatasetError, InvalidInputError
+from .exceptions import DatasetError, InvalidInputError, NotARotationError
 
 __all__ = [
     "REFERENCE_FORMATS",
@@ -63,7 +63,7 @@ ReferenceFormat = Literal["auto", "7scenes-reference", "tum"]
 #: The formats :func:`load_reference` reads ("auto" tells them apart by the values per line).
 REFERENCE_FORMATS: tuple[str, ...] = ("auto", "7scenes-reference", "tum")
 #: Largest ‖RᵀR − I‖_F of a rotation block a reference file may hold (it is then projected).
-MAX_ORTHONORMALITY_ERROR = 1e-2
+MAX_ORTHONORMALITY_ERROR = lie.MAX_ORTHONORMALITY_ERROR
 _VALUES = {"7scenes-reference": 13, "tum": 8}
 _MIN_FRAMES = 3
 
@@ -130,15 +130,11 @@ def _read_7scenes_reference(path: Path, rows: list[tuple[int, list[str]]]) -> tu
         if not np.isfinite(values).all():
             raise DatasetError(f"{where}, line {number}: a number is not finite")
         top = values.reshape(3, 4)
-        rot = top[:, :3]
-        error = float(np.linalg.norm(rot.T @ rot - np.eye(3)))
-        if not error <= MAX_ORTHONORMALITY_ERROR or np.linalg.det(rot) <= 0:
-            raise DatasetError(
-                f"{where}, line {number}: the 3×3 block is not a rotation (‖RᵀR − I‖_F = {error:.3g}, "
-                f"det {np.linalg.det(rot):.4g}; at most {MAX_ORTHONORMALITY_ERROR:g} and det > 0 accepted)"
-            )
+        try:
+            poses[k, :3, :3] = lie.so3_project_near(top[:, :3], "the 3×3 block")
+        except NotARotationError as e:
+            raise DatasetError(f"{where}, line {number}: {e}") from None
         indices[k] = index
-        poses[k, :3, :3] = lie.so3_project(rot)
         poses[k, :3, 3] = top[:, 3]
     return indices, poses
 

@@ -61,9 +61,9 @@ def read_7scenes_pose(path: str | os.PathLike[str]) -> np.ndarray:
     if np.abs(pose[3] - [0, 0, 0, 1]).max() > _MAX_BOTTOM_ROW_ERROR:
         raise DatasetError(f"pose file {str(p)!r}: last row is {pose[3].tolist()}, expected [0, 0, 0, 1]")
     try:
-        pose[:3, :3] = lie.so3_project(pose[:3, :3])
-    except NotARotationError:
-        raise DatasetError(f"pose file {str(p)!r}: the 3×3 block is not near a rotation") from None
+        pose[:3, :3] = lie.so3_project_near(pose[:3, :3], "rotation block")
+    except NotARotationError as e:
+        raise DatasetError(f"pose file {str(p)!r}: {e}") from None
     pose[3] = [0.0, 0.0, 0.0, 1.0]
     return pose
 

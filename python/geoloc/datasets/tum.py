@@ -103,9 +103,15 @@ def read_tum_trajectory(path: str | os.PathLike[str]) -> tuple[NDArray[np.float6
         values[k] = floats(row, p, k + 1)
     q_xyzw = values[:, 4:8]
     norms = np.linalg.norm(q_xyzw, axis=1)
-    if (norms < 0.5).any() or (norms > 1.5).any():
-        bad = int(np.flatnonzero((norms < 0.5) | (norms > 1.5))[0])
-        raise DatasetError(f"trajectory file {str(p)!r}: pose {bad + 1} has no unit quaternion (norm {norms[bad]:.3g})")
+    # the unnormalized quaternion's matrix is |q|² R, so ‖MᵀM − I‖_F = √3 · | |q|⁴ − 1 |: the
+    # same near-rotation bound as a rotation block read from a file
+    defect = np.sqrt(3.0) * np.abs(norms**4 - 1.0)
+    if not (defect <= lie.MAX_ORTHONORMALITY_ERROR).all():
+        bad = int(np.flatnonzero(~(defect <= lie.MAX_ORTHONORMALITY_ERROR))[0])
+        raise DatasetError(
+            f"trajectory file {str(p)!r}: pose {bad + 1} has no unit quaternion (norm {norms[bad]:.6g}; "
+            f"√3·| |q|⁴ − 1 | at most {lie.MAX_ORTHONORMALITY_ERROR:g})"
+        )
     q_wxyz = np.concatenate([q_xyzw[:, 3:], q_xyzw[:, :3]], axis=1) / norms[:, None]
     poses = np.tile(np.eye(4), (len(rows), 1, 1))
     poses[:, :3, :3] = lie.so3_from_quaternion_wxyz(q_wxyz)

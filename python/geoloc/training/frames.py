@@ -53,9 +53,6 @@ class PosedImage:
     pose: NDArray[np.float64]
 
 
-#: Rotations further than this from orthonormal are refused rather than projected.
-MAX_ROTATION_DEFECT = 0.05
-
 
 def poses_of(frames: PosedFrames) -> NDArray[np.float64]:
     """The (N, 4, 4) world_from_cam poses of ``frames``, rotations projected onto SO(3)
@@ -69,11 +66,8 @@ def poses_of(frames: PosedFrames) -> NDArray[np.float64]:
         p = np.asarray(pose, dtype=np.float64)
         if p.shape != (4, 4) or not np.isfinite(p).all():
             raise InvalidInputError(f"frames[{i}].pose: expected a finite (4, 4) world_from_cam matrix, got {p.shape}")
-        r = p[:3, :3]
-        if np.abs(r.T @ r - np.eye(3)).max() > MAX_ROTATION_DEFECT or np.linalg.det(r) <= 0:
-            raise InvalidInputError(f"frames[{i}].pose: the rotation block is not close to a rotation")
         out[i] = p
-    out[:, :3, :3] = lie.so3_project(out[:, :3, :3])
+        out[i, :3, :3] = lie.so3_project_near(p[:3, :3], f"frames[{i}].pose")
     out[:, 3] = (0.0, 0.0, 0.0, 1.0)
     return out
 
