@@ -61,7 +61,8 @@ impl AtomicFile {
     ///
     /// # Errors
     /// `InvalidInput` named `path` when `path` has no file name; `Io` naming `path` when its
-    /// folder does not exist or is not writable.
+    /// folder does not exist or is not writable, or `path` exists and is not a regular file
+    /// (a folder, a FIFO, a device: replacing it by a regular file would be a surprise).
     pub fn create(path: &Path) -> Result<Self> {
         let folder = match path.parent() {
             Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
@@ -71,6 +72,15 @@ impl AtomicFile {
             path.file_name().ok_or_else(|| GeolocError::invalid("path", "expected a file path, not a folder"))?;
         if !folder.is_dir() {
             return Err(io_error(path, "folder does not exist", &std::io::Error::from(std::io::ErrorKind::NotFound)));
+        }
+        if let Ok(meta) = fs::metadata(path)
+            && !meta.is_file()
+        {
+            // renaming over /dev/null or a FIFO would replace it with a regular file
+            return Err(GeolocError::Io {
+                path: path.display().to_string(),
+                reason: format!("not a regular file ({}); refusing to replace it", kind_of(meta.file_type())),
+            });
         }
         let name = name.to_string_lossy();
         let pid = std::process::id();
@@ -313,12 +323,18 @@ mod tests {
         dropped.write_all(b"half of a new file").expect("writes");
         drop(dropped);
         assert_eq!(fs::read(&path).expect("reads"), b"old");
-        // a folder where the target should be: the rename fails
+        // a folder where the target should be: refused, the folder kept
         let folder_target = dir.join("sub");
         fs::create_dir(&folder_target).expect("folder");
         fs::write(folder_target.join("keep"), b"x").expect("writes");
         let err = write_atomic(&folder_target, b"new").expect_err("cannot replace a folder");
         assert!(matches!(err, GeolocError::Io { ref path, .. } if path.ends_with("sub")), "{err:?}");
+        assert!(err.to_string().contains("not a regular file (a folder)"), "{err}");
+        #[cfg(unix)]
+        {
+            let err = AtomicFile::create(Path::new("/dev/null")).expect_err("a device is never replaced");
+            assert!(err.to_string().contains("not a regular file (a device)"), "{err}");
+        }
         let err = write_atomic(&dir.join("missing").join("x.txt"), b"new").expect_err("no folder");
         assert!(err.to_string().contains("missing") && err.to_string().contains("folder does not exist"), "{err}");
         assert_eq!(listing(&dir), ["out.txt", "sub"], "no temp files remain");
