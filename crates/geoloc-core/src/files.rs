@@ -281,7 +281,7 @@ mod tests {
                 let mut bad_reads = 0usize;
                 while writing.load(Ordering::Relaxed) {
                     if let Ok(got) = fs::read(&path)
-                        && !contents.iter().any(|c| *c == got)
+                        && !contents.contains(&got)
                     {
                         bad_reads += 1;
                     }
@@ -309,7 +309,7 @@ mod tests {
         assert!(failures.is_empty(), "{failures:?}");
         assert_eq!(reader.join().expect("no panic"), 0, "a reader saw a partial or mixed file");
         let got = fs::read(&path).expect("the target exists");
-        assert!(contents.iter().any(|c| *c == got), "the target is not one writer's complete content");
+        assert!(contents.contains(&got), "the target is not one writer's complete content");
         assert_eq!(listing(&dir), ["map.geoloc"], "no temp files remain");
         fs::remove_dir_all(&dir).expect("cleanup");
     }
