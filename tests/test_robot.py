@@ -10,9 +10,12 @@ when it is up to date); the tests skip when neither it nor cargo is available.
 from __future__ import annotations
 
 import math
+import os
+import resource
 import shutil
 import struct
 import subprocess
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -290,3 +293,81 @@ def test_export_frames_writes_atomically_and_checks_its_arguments(room: datasets
         w.write(0.0, np.zeros((0, 2)), np.zeros(0), np.zeros((0, 32), np.uint8))
     with pytest.raises(ValueError, match="format"):
         FrameWriter(str(tmp_path / "x.bin"), format="xml")
+
+
+# ------------------------------------------------------------------ files a robot meets
+
+
+def test_an_output_that_is_an_input_is_refused_and_the_inputs_kept(
+    geoloc_rs: Path, room_map: Path, valid_stream: bytes, tmp_path: Path
+) -> None:
+    frames = tmp_path / "frames.bin"
+    frames.write_bytes(valid_stream)
+    (tmp_path / "link.bin").symlink_to(frames)
+    (tmp_path / "hard.bin").hardlink_to(frames)
+    map_bytes = room_map.read_bytes()
+    for output, aliased in ((frames, "--input"), (tmp_path / "." / "frames.bin", "--input"),
+                            (tmp_path / "link.bin", "--input"), (tmp_path / "hard.bin", "--input"),
+                            (room_map, "--map")):
+        result = _localize(geoloc_rs, room_map, frames, "--output", str(output))
+        assert result.returncode == 1, result.stderr
+        assert f"--output {output}: is the same file as {aliased}" in result.stderr, result.stderr
+        assert frames.read_bytes() == valid_stream and room_map.read_bytes() == map_bytes, output
+    out = tmp_path / "poses.txt"
+    result = _localize(geoloc_rs, room_map, tmp_path / "link.bin", "--output", str(out))
+    assert result.returncode == 0, result.stderr
+    assert len(out.read_text().splitlines()) == 1 + len(_records(valid_stream))
+    assert not [p for p in tmp_path.iterdir() if p.name.endswith(".tmp")]
+
+
+def test_a_fifo_in_place_of_a_file_is_refused_without_hanging(
+    geoloc_rs: Path, room_map: Path, valid_stream: bytes, tmp_path: Path
+) -> None:
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    frames = tmp_path / "frames.bin"
+    frames.write_bytes(valid_stream)
+    for args in (("info", str(fifo)), ("localize", "--map", str(fifo), "--input", str(frames)),
+                 ("localize", "--map", str(room_map), "--input", str(fifo))):
+        result = subprocess.run([str(geoloc_rs), *args], capture_output=True, text=True, timeout=30)
+        assert result.returncode == 1, (args, result.stderr)
+        assert f"{fifo}: not a regular file (a FIFO)" in result.stderr, (args, result.stderr)
+    # the Python loader goes through the same core reader (a subprocess: a hang fails, not stalls)
+    load = subprocess.run([sys.executable, "-c", f"import geoloc; geoloc.Map.load({str(fifo)!r})"],
+                          capture_output=True, text=True, timeout=60)
+    assert load.returncode != 0 and "not a regular file" in load.stderr, load.stderr[-2000:]
+
+
+def _huge_claim() -> tuple[bytes, int]:
+    """The adversarial probe's 44-byte stream: a record whose sizes agree with its length
+    field, ~4.12 GB of float descriptors, and nothing after the fixed fields."""
+    width = 4096
+    n = (4_120_000_000 - 32) // (16 + 8 + 4 * width)
+    length = 32 + n * (16 + 8 + 4 * width)
+    data = b"GLFRAMES" + struct.pack("<II", 1, 0) + struct.pack("<I", length)
+    data += struct.pack("<dIB3xII", 1.0, n, 1, width, 0)
+    assert len(data) == 44
+    return data, length
+
+
+def _two_gb_address_space() -> None:
+    resource.setrlimit(resource.RLIMIT_AS, (2_000_000_000, 2_000_000_000))
+
+
+def test_a_huge_record_claim_is_a_clean_error_under_a_memory_limit(
+    geoloc_rs: Path, room_map: Path, tmp_path: Path
+) -> None:
+    data, length = _huge_claim()
+    frames = tmp_path / "claim.bin"
+    frames.write_bytes(data)
+    for input_arg, stdin, want in (
+        (str(frames), None, f"frame 0: payload length field claims {length} bytes, but only 24 are left"),
+        ("-", data, f"frame 0: truncated record (24 of {length} payload bytes)"),
+    ):
+        result = subprocess.run(
+            [str(geoloc_rs), "localize", "--map", str(room_map), "--input", input_arg], input=stdin,
+            capture_output=True, timeout=120, env={"GEOLOC_NUM_THREADS": "1"}, preexec_fn=_two_gb_address_space,
+        )
+        stderr = result.stderr.decode("latin-1")
+        assert result.returncode == 1, (result.returncode, stderr)  # not 134 (abort) or 139
+        assert want in stderr, stderr

@@ -8,15 +8,25 @@
 //! or width than the map's, a missing global descriptor, a timestamp not after the previous
 //! frame's — stops the run with an error naming the frame index; what was written before
 //! stays in the output, flushed.
+//!
+//! Files: `--output FILE` is written atomically ([`geoloc_core::files::AtomicFile`]: a temp
+//! file of its own beside FILE, renamed onto it when the run ends, also when it ends with a
+//! bad frame, so FILE is always a complete previous or new output); follow the poses live on
+//! stdout (`--output -`). A character device (`/dev/null`) is written as it is; a FIFO is
+//! refused (pipe stdout instead). An output that is one of the inputs (`--map`, `--input`, or stdin
+//! redirected from it; the same path, another spelling, a symlink or a hard link) is refused
+//! before anything is read or written. Inputs must be regular files (a FIFO would block the
+//! run: pipe into stdin with `--input -` instead); a record length beyond the input file's
+//! size is refused before anything is allocated.
 
-use std::fs::File;
-use std::io::{BufRead, BufReader, BufWriter, Write};
+use std::io::{BufRead, BufReader, Write};
 use std::num::NonZero;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Instant;
 
 use geoloc_core::GeolocError;
+use geoloc_core::files::{self, AtomicFile};
 use geoloc_core::frames::{FrameReader, FrameRecord, read_json_records};
 use geoloc_core::localizer::{Frame, Localizer, LocalizerOptions, Locator};
 use geoloc_core::map::{Map, MapHeader, RetrievalHeader};
@@ -39,7 +49,8 @@ pub struct Args {
     /// Encoding of the frame stream.
     #[arg(long, value_enum, default_value_t = InputFormat::Auto)]
     format: InputFormat,
-    /// Where the pose lines go (`-`: stdout); an existing file is replaced.
+    /// Where the pose lines go (`-`: stdout); an existing file is replaced atomically when the
+    /// run ends. Must not be one of the inputs.
     #[arg(long, default_value = "-")]
     output: String,
     /// Threads of the core's parallel loops (1: sequential). Default: the environment's
@@ -85,11 +96,27 @@ pub fn run(args: &Args) -> Result<(), String> {
 
 fn localize(args: &Args) -> Result<(), String> {
     let start = Instant::now();
+    refuse_aliased_output(args)?;
     let (map, header) = Map::load(&args.map).map_err(|e| format!("--map: {e}"))?;
     let map = Arc::new(map);
     let mut localizer = Localizer::new(Arc::clone(&map), options(args)).map_err(|e| e.to_string())?;
     let records = open_input(&args.input, args.format)?;
-    let mut out = open_output(&args.output)?;
+    let mut out = Output::open(&args.output)?;
+    // what was written stays, also when a frame stops the run
+    let result = localize_frames(args, &map, &header, &mut localizer, records, &mut out, start);
+    let finished = out.finish().map_err(|e| format!("--output {e}"));
+    result.and(finished)
+}
+
+fn localize_frames(
+    args: &Args,
+    map: &Map,
+    header: &MapHeader,
+    localizer: &mut Localizer,
+    records: Records,
+    out: &mut Output,
+    start: Instant,
+) -> Result<(), String> {
     let write_err = |e: std::io::Error| format!("--output {}: {e}", args.output);
     writeln!(out, "{}", output::HEADER).and_then(|()| out.flush()).map_err(write_err)?;
     let loaded = start.elapsed();
@@ -98,7 +125,7 @@ fn localize(args: &Args) -> Result<(), String> {
     let mut previous: Option<f64> = None;
     for (index, record) in records.enumerate() {
         let record = record.map_err(|e| input_error(&args.input, e))?;
-        check_record(&record, &header, previous, index).map_err(|e| format!("{}: {e}", args.input))?;
+        check_record(&record, header, previous, index).map_err(|e| format!("{}: {e}", args.input))?;
         previous = Some(record.timestamp);
         let frame = Frame {
             timestamp: record.timestamp,
@@ -115,6 +142,29 @@ fn localize(args: &Args) -> Result<(), String> {
     }
     if args.stats {
         eprintln!("{}", stats.report(loaded, loop_start.elapsed()));
+    }
+    Ok(())
+}
+
+/// Refuses an `--output` that is one of the inputs (see the module doc); stdin counts as the
+/// file it is redirected from, where the system names it (`/dev/stdin`).
+fn refuse_aliased_output(args: &Args) -> Result<(), String> {
+    let out = Path::new(&args.output);
+    if args.output == "-" || !out.is_file() {
+        return Ok(()); // stdout, a device or a new file cannot destroy an input
+    }
+    let stdin = Path::new("/dev/stdin");
+    let inputs: [(&str, &Path); 2] =
+        [("--map", args.map.as_path()), ("--input", if args.input == "-" { stdin } else { Path::new(&args.input) })];
+    for (flag, input) in inputs {
+        if files::same_file(out, input) {
+            let shown =
+                if args.input == "-" && flag == "--input" { "- (stdin)".into() } else { input.display().to_string() };
+            return Err(format!(
+                "--output {}: is the same file as {flag} {shown}; refusing to overwrite an input",
+                args.output
+            ));
+        }
     }
     Ok(())
 }
@@ -172,11 +222,11 @@ fn check_record(record: &FrameRecord, header: &MapHeader, previous: Option<f64>,
 }
 
 fn open_input(input: &str, format: InputFormat) -> Result<Records, String> {
-    let mut reader: Box<dyn BufRead> = if input == "-" {
-        Box::new(BufReader::new(std::io::stdin()))
+    let (mut reader, size): (Box<dyn BufRead>, Option<u64>) = if input == "-" {
+        (Box::new(BufReader::new(std::io::stdin())), None)
     } else {
-        let file = File::open(input).map_err(|e| format!("--input {input}: {e}"))?;
-        Box::new(BufReader::new(file))
+        let (file, len) = files::open_regular(Path::new(input)).map_err(|e| format!("--input {e}"))?;
+        (Box::new(BufReader::new(file)), Some(len))
     };
     let format = match format {
         InputFormat::Auto => {
@@ -185,16 +235,72 @@ fn open_input(input: &str, format: InputFormat) -> Result<Records, String> {
         }
         other => other,
     };
-    Ok(match format {
-        InputFormat::Jsonl => Box::new(read_json_records(reader)),
-        _ => Box::new(FrameReader::new(reader).map_err(|e| format!("{input}: {e}"))?),
+    Ok(match (format, size) {
+        (InputFormat::Jsonl, _) => Box::new(read_json_records(reader)),
+        (_, Some(len)) => Box::new(FrameReader::with_size(reader, len).map_err(|e| format!("{input}: {e}"))?),
+        (_, None) => Box::new(FrameReader::new(reader).map_err(|e| format!("{input}: {e}"))?),
     })
 }
 
-fn open_output(output: &str) -> Result<Box<dyn Write>, String> {
-    if output == "-" {
-        return Ok(Box::new(std::io::stdout()));
+/// Where the pose lines go: stdout, a character device written as it is (`/dev/null`, a
+/// terminal), or a file replaced atomically by [`Output::finish`] (anything else that is not
+/// a regular file, such as a FIFO, is refused by [`AtomicFile::create`]).
+enum Output {
+    Stdout(std::io::Stdout),
+    Device(std::fs::File),
+    File(AtomicFile),
+}
+
+/// Whether `path` is a character device (`/dev/null`, a terminal).
+fn is_char_device(path: &Path) -> bool {
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::FileTypeExt;
+        std::fs::metadata(path).is_ok_and(|m| m.file_type().is_char_device())
     }
-    let file = File::create(Path::new(output)).map_err(|e| format!("--output {output}: {e}"))?;
-    Ok(Box::new(BufWriter::new(file)))
+    #[cfg(not(unix))]
+    {
+        let _ = path;
+        false
+    }
+}
+
+impl Output {
+    fn open(output: &str) -> Result<Self, String> {
+        let path = Path::new(output);
+        if output == "-" {
+            Ok(Self::Stdout(std::io::stdout()))
+        } else if is_char_device(path) {
+            let device = std::fs::OpenOptions::new().write(true).open(path);
+            device.map(Self::Device).map_err(|e| format!("--output {output}: {e}"))
+        } else {
+            AtomicFile::create(path).map(Self::File).map_err(|e| format!("--output {e}"))
+        }
+    }
+
+    /// Renames the file onto its path (nothing to do for stdout or a device).
+    fn finish(self) -> geoloc_core::Result<()> {
+        match self {
+            Self::Stdout(_) | Self::Device(_) => Ok(()),
+            Self::File(f) => f.commit(),
+        }
+    }
+}
+
+impl Write for Output {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        match self {
+            Self::Stdout(s) => s.write(buf),
+            Self::Device(d) => d.write(buf),
+            Self::File(f) => f.write(buf),
+        }
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        match self {
+            Self::Stdout(s) => s.flush(),
+            Self::Device(d) => d.flush(),
+            Self::File(f) => f.flush(),
+        }
+    }
 }

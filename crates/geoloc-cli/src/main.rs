@@ -2,8 +2,10 @@
 //!
 //! `geoloc-rs info MAP` says what a `.geoloc` map holds; `geoloc-rs localize --map MAP --input
 //! FRAMES` reads per-frame features (the stream of [`geoloc_core::frames`], written by
-//! `geoloc.export_frames`) and writes one pose line per frame, flushed as it goes; `geoloc-rs
-//! selfcheck` verifies the Lie-group core on the target machine.
+//! `geoloc.export_frames`) and writes one pose line per frame, flushed as it goes (an
+//! `--output` file is replaced atomically when the run ends; see [`localize`]); `geoloc-rs
+//! selfcheck` verifies the Lie-group core on the target machine. Inputs must be regular files
+//! (or stdin), and an output that is one of the inputs is refused.
 //!
 //! Errors go to stderr as one line `geoloc-rs: error: …` (naming the frame index for bad
 //! frames) with exit status 1; usage errors exit with 2 (clap).

@@ -374,3 +374,177 @@ fn resealed_mutations_reach_the_localizer_and_never_panic_or_hang() {
     }
     eprintln!("{RESEALED_CASES} re-sealed mutations: {read_ok} records read, {localized} localized; no panic, no hang");
 }
+
+// ------------------------------------------------------------------ files a robot meets
+
+/// `--output` naming an input — the same path, a `./` spelling, a symlink, a hard link, the
+/// map, or the file stdin is redirected from — is refused with `--output` and the input
+/// named, exit 1, and every input byte-identical afterwards.
+#[test]
+fn an_output_that_is_an_input_is_refused_and_the_inputs_kept() {
+    let d = dir("alias");
+    let (map, records) = scene(&d, 3);
+    let input = d.join("frames.bin");
+    std::fs::write(&input, stream(&records)).expect("writes");
+    let symlink = d.join("frames-link.bin");
+    let hard = d.join("frames-hard.bin");
+    let _ = std::fs::remove_file(&symlink);
+    let _ = std::fs::remove_file(&hard);
+    std::os::unix::fs::symlink(&input, &symlink).expect("symlink");
+    std::fs::hard_link(&input, &hard).expect("hard link");
+    let dotted = d.join(".").join("frames.bin");
+    let (map_bytes, input_bytes) = (std::fs::read(&map).expect("reads"), std::fs::read(&input).expect("reads"));
+    let s = |p: &Path| p.to_str().expect("utf-8").to_owned();
+    for (output, aliased) in [
+        (s(&input), "--input"),
+        (s(&dotted), "--input"),
+        (s(&symlink), "--input"),
+        (s(&hard), "--input"),
+        (s(&map), "--map"),
+    ] {
+        let (out, hung) = run(&["localize", "--map", &s(&map), "--input", &s(&input), "--output", &output], b"");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!hung && out.status.code() == Some(1), "{output}: {err}");
+        assert!(err.contains(&format!("--output {output}: is the same file as {aliased}")), "{err}");
+        assert_eq!(std::fs::read(&map).expect("reads"), map_bytes, "{output}: the map is untouched");
+        assert_eq!(std::fs::read(&input).expect("reads"), input_bytes, "{output}: the input is untouched");
+    }
+    // stdin redirected from the output file
+    let child = Command::new(env!("CARGO_BIN_EXE_geoloc-rs"))
+        .args(["localize", "--map", &s(&map), "--input", "-", "--output", &s(&input)])
+        .stdin(std::fs::File::open(&input).expect("opens"))
+        .output()
+        .expect("runs");
+    let err = String::from_utf8_lossy(&child.stderr);
+    assert_eq!(child.status.code(), Some(1), "{err}");
+    assert!(err.contains("is the same file as --input - (stdin)"), "{err}");
+    assert_eq!(std::fs::read(&input).expect("reads"), input_bytes);
+    // a distinct output is written, atomically: no temp file is left beside it
+    let poses = d.join("poses.txt");
+    let (out, _) = run(&["localize", "--map", &s(&map), "--input", &s(&symlink), "--output", &s(&poses)], b"");
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert_eq!(std::fs::read_to_string(&poses).expect("written").lines().count(), 1 + records.len());
+    let temps: Vec<_> = std::fs::read_dir(&d)
+        .expect("lists")
+        .filter_map(Result::ok)
+        .filter(|e| e.file_name().to_string_lossy().ends_with(".tmp"))
+        .collect();
+    assert!(temps.is_empty(), "{temps:?}");
+    // a device is written as it is, never replaced
+    let (out, _) = run(&["localize", "--map", &s(&map), "--input", &s(&input), "--output", "/dev/null"], b"");
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(std::fs::metadata("/dev/null").is_ok_and(|m| !m.is_file()), "/dev/null is still a device");
+}
+
+/// A FIFO in place of the map or the frame stream (or as the output) is refused at once,
+/// named, instead of blocking forever on open.
+#[test]
+fn a_fifo_in_place_of_a_file_is_refused_without_hanging() {
+    let d = dir("fifo");
+    let (map, records) = scene(&d, 2);
+    let input = d.join("frames.bin");
+    std::fs::write(&input, stream(&records)).expect("writes");
+    let fifo = d.join("pipe");
+    let _ = std::fs::remove_file(&fifo);
+    if !Command::new("mkfifo").arg(&fifo).status().is_ok_and(|s| s.success()) {
+        return; // no mkfifo on this system
+    }
+    let (f, m, i) = (fifo.to_str().expect("utf-8"), map.to_str().expect("utf-8"), input.to_str().expect("utf-8"));
+    for args in [
+        vec!["info", f],
+        vec!["localize", "--map", f, "--input", i],
+        vec!["localize", "--map", m, "--input", f],
+        vec!["localize", "--map", m, "--input", i, "--output", f],
+    ] {
+        let start = Instant::now();
+        let (out, hung) = run(&args, b"");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!hung && start.elapsed() < Duration::from_secs(5), "{args:?} blocked");
+        assert_eq!(out.status.code(), Some(1), "{args:?}: {err}");
+        assert!(err.contains(&format!("{f}: not a regular file (a FIFO)")), "{args:?}: {err}");
+    }
+}
+
+/// The adversarial probe's 44-byte stream: a record whose self-consistent sizes claim
+/// ~4.12 GB. Under `ulimit -v 2000000` (2 GB of address space) it used to abort (SIGABRT,
+/// allocation failure); now it is a clean error naming the record, from a file and from stdin.
+#[test]
+fn a_huge_record_claim_is_a_clean_error_under_a_memory_limit() {
+    use geoloc_core::frames::{MAX_DESCRIPTOR_WIDTH, MAX_KEYPOINTS};
+    let d = dir("claim");
+    let (map, _) = scene(&d, 0);
+    let width = MAX_DESCRIPTOR_WIDTH;
+    let n = (4_120_000_000 - 32) / (16 + 8 + 4 * width);
+    let len = 32 + n * (16 + 8 + 4 * width);
+    assert!(n <= MAX_KEYPOINTS);
+    let mut bytes = Vec::new();
+    write_stream_header(&mut bytes).expect("in memory");
+    bytes.extend((len as u32).to_le_bytes());
+    bytes.extend(1.0f64.to_le_bytes());
+    bytes.extend((n as u32).to_le_bytes());
+    bytes.extend([1, 0, 0, 0]);
+    bytes.extend((width as u32).to_le_bytes());
+    bytes.extend(0u32.to_le_bytes());
+    assert_eq!(bytes.len(), 44);
+    let input = d.join("claim.bin");
+    std::fs::write(&input, &bytes).expect("writes");
+    let bin = env!("CARGO_BIN_EXE_geoloc-rs");
+    let (m, i) = (map.to_str().expect("utf-8"), input.to_str().expect("utf-8"));
+    for (script, want) in [
+        (
+            format!("ulimit -v 2000000 && exec '{bin}' localize --map '{m}' --input '{i}'"),
+            format!("frame 0: payload length field claims {len} bytes, but only 24 are left in the stream"),
+        ),
+        (
+            format!("ulimit -v 2000000 && exec '{bin}' localize --map '{m}' --input - < '{i}'"),
+            format!("frame 0: truncated record (24 of {len} payload bytes)"),
+        ),
+    ] {
+        let out = Command::new("sh").args(["-c", &script]).env("GEOLOC_NUM_THREADS", "1").output().expect("runs");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "{script}: {err}");
+        assert!(err.contains(&want), "{script}: {err}");
+    }
+}
+
+/// A chain vocabulary of 200 000 levels with a valid checksum (written by the core's own map
+/// writer): `geoloc-rs info` refuses it at once, naming the depth limit, instead of a load of
+/// tens of seconds.
+#[test]
+fn a_crafted_chain_vocabulary_is_refused_at_once() {
+    use geoloc_core::map::file::{self, Tensor, TensorData};
+    use geoloc_core::map::{MapHeader, RetrievalHeader};
+    const NODES: usize = 200_000;
+    let d = dir("chain");
+    let (map, _) = scene(&d, 0);
+    let mut f = file::read(&map).expect("reads");
+    let mut offsets = vec![0i64];
+    let mut children = Vec::with_capacity(2 * NODES);
+    for i in 0..NODES {
+        // the next node first, with the same centre as the word: every descent takes it
+        children.push(if i + 1 < NODES { i as i64 + 1 } else { -(i as i64) - 2 });
+        children.push(-(i as i64) - 1);
+        offsets.push(children.len() as i64);
+    }
+    let rows = children.len();
+    let tensors = [
+        ("vocabulary.node_offsets", vec![offsets.len()], TensorData::I64(offsets)),
+        ("vocabulary.children", vec![rows], TensorData::I64(children)),
+        ("vocabulary.centres", vec![rows, WIDTH], TensorData::U8(vec![0; rows * WIDTH])),
+    ];
+    for (name, shape, data) in tensors {
+        f.tensors.insert(name.to_owned(), Tensor::new(name, shape, data).expect("consistent"));
+    }
+    let mut header: MapHeader = serde_json::from_str(&f.header).expect("header");
+    header.retrieval = RetrievalHeader::Bow { words: NODES + 1 };
+    f.header = serde_json::to_string(&header).expect("header");
+    let crafted = d.join("chain.geoloc");
+    file::write(&crafted, &f).expect("writes with a valid checksum");
+    let start = Instant::now();
+    let (out, hung) = run(&["info", crafted.to_str().expect("utf-8")], b"");
+    let took = start.elapsed();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!hung && out.status.code() == Some(1), "{err}");
+    assert!(err.contains("deeper than the limit of 24 levels (MAX_DEPTH)"), "{err}");
+    assert!(took < Duration::from_secs(2), "refused after {took:?}");
+}

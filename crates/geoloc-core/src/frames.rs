@@ -22,8 +22,12 @@
 //!
 //! L must equal the size implied by n, kind, width and g; sizes are bounded
 //! ([`MAX_KEYPOINTS`], [`MAX_DESCRIPTOR_WIDTH`], [`MAX_GLOBAL_DIM`]) and checked before anything is
-//! allocated, so a corrupt length can neither exhaust memory nor hang the reader. Every error
-//! names the frame index and the field.
+//! allocated. A length that is self-consistent but larger than the data is refused before
+//! allocating too: against the bytes left in a file when the size is known
+//! ([`FrameReader::with_size`]), and otherwise (a pipe) by reading the payload in chunks, the
+//! buffer growing only with the bytes that actually arrive ([`READ_CHUNK_BYTES`]). So a corrupt
+//! length can neither exhaust memory nor hang the reader. Every error names the frame index
+//! and the field.
 //!
 //! ## JSON lines (for debugging)
 //!
@@ -51,6 +55,12 @@ pub const MAX_KEYPOINTS: usize = 1 << 20;
 pub const MAX_DESCRIPTOR_WIDTH: usize = 4096;
 /// Longest global descriptor.
 pub const MAX_GLOBAL_DIM: usize = 1 << 16;
+/// The most payload bytes read into memory ahead of the bytes already received, when the
+/// stream's size is not known (so a record's length field cannot make the reader allocate
+/// more than twice what the stream really holds, plus this).
+pub const READ_CHUNK_BYTES: usize = 1 << 20;
+/// Bytes of the stream header (magic, version, reserved).
+const HEADER_BYTES: usize = 16;
 /// Bytes of the fixed part of a payload (timestamp … g).
 const FIXED_BYTES: usize = 8 + 4 + 4 + 4 + 4;
 /// Bytes of the trailing checksum.
@@ -194,15 +204,32 @@ pub struct FrameReader<R: Read> {
     input: R,
     next_index: usize,
     done: bool,
+    /// Bytes left in the input, when its size is known.
+    remaining: Option<u64>,
 }
 
 impl<R: Read> FrameReader<R> {
-    /// Reads and checks the stream header.
+    /// Reads and checks the stream header; the input's size is not known (a pipe), so record
+    /// payloads are read in chunks ([`READ_CHUNK_BYTES`]).
     ///
     /// # Errors
     /// `Format` when the input is not a frame stream of this version.
-    pub fn new(mut input: R) -> Result<Self> {
-        let mut header = [0u8; 16];
+    pub fn new(input: R) -> Result<Self> {
+        Self::open(input, None)
+    }
+
+    /// As [`FrameReader::new`] for an input of exactly `size_bytes` bytes (a file's length):
+    /// a record whose length field claims more than the bytes left is refused before anything
+    /// is allocated or read.
+    ///
+    /// # Errors
+    /// As [`FrameReader::new`].
+    pub fn with_size(input: R, size_bytes: u64) -> Result<Self> {
+        Self::open(input, Some(size_bytes))
+    }
+
+    fn open(mut input: R, size_bytes: Option<u64>) -> Result<Self> {
+        let mut header = [0u8; HEADER_BYTES];
         read_exact_or(&mut input, &mut header).map_err(|got| GeolocError::Format {
             reason: format!("frame stream header truncated ({got} of 16 bytes)"),
         })?;
@@ -218,7 +245,8 @@ impl<R: Read> FrameReader<R> {
         if header[12..16] != [0; 4] {
             return Err(GeolocError::Format { reason: "frame stream header: reserved bytes are not zero".into() });
         }
-        Ok(Self { input, next_index: 0, done: false })
+        let remaining = size_bytes.map(|n| n.saturating_sub(HEADER_BYTES as u64));
+        Ok(Self { input, next_index: 0, done: false, remaining })
     }
 
     /// The next record, `None` at a clean end of stream (between records).
@@ -250,6 +278,14 @@ impl<R: Read> FrameReader<R> {
         if len < FIXED_BYTES + CHECKSUM_BYTES {
             return Err(frame_error(index, format!("payload length {len} is too small")));
         }
+        if let Some(left) = self.remaining.map(|r| r.saturating_sub(4))
+            && len as u64 > left
+        {
+            return Err(frame_error(
+                index,
+                format!("payload length field claims {len} bytes, but only {left} are left in the stream"),
+            ));
+        }
         let mut fixed = [0u8; FIXED_BYTES];
         read_exact_or(&mut self.input, &mut fixed).map_err(|got| truncated(index, got, len))?;
         let u32_at = |o: usize| u32::from_le_bytes(fixed[o..o + 4].try_into().expect("invariant: 4 bytes")) as usize;
@@ -259,8 +295,9 @@ impl<R: Read> FrameReader<R> {
         if expected != len {
             return Err(frame_error(index, format!("payload length {len} does not match its sizes ({expected})")));
         }
-        let mut rest = vec![0u8; len - FIXED_BYTES];
-        read_exact_or(&mut self.input, &mut rest).map_err(|got| truncated(index, FIXED_BYTES + got, len))?;
+        let rest =
+            read_growing(&mut self.input, len - FIXED_BYTES).map_err(|got| truncated(index, FIXED_BYTES + got, len))?;
+        self.remaining = self.remaining.map(|r| r.saturating_sub(4 + len as u64));
         let (body, sum) = rest.split_at(rest.len() - CHECKSUM_BYTES);
         let mut h = Fnv1a::new();
         h.update(&fixed);
@@ -329,6 +366,20 @@ fn decode_body(fixed: &[u8], body: &[u8], n: usize, kind: u8, width: usize, g: u
         },
         global: (g > 0).then(|| f32s(glob)),
     }
+}
+
+/// Reads exactly `want` bytes, growing the buffer only as bytes arrive (by at most
+/// max([`READ_CHUNK_BYTES`], what was read so far) at a time), or reports how many bytes were
+/// read before the end of input.
+fn read_growing(input: &mut impl Read, want: usize) -> std::result::Result<Vec<u8>, usize> {
+    let mut out = Vec::new();
+    while out.len() < want {
+        let start = out.len();
+        let step = (want - start).min(start.max(READ_CHUNK_BYTES));
+        out.resize(start + step, 0);
+        read_exact_or(input, &mut out[start..]).map_err(|got| start + got)?;
+    }
+    Ok(out)
 }
 
 /// Fills `buf` completely, or reports how many bytes were read before the end of input.
@@ -603,6 +654,75 @@ mod tests {
         bytes.extend(0u32.to_le_bytes());
         let err = read_all(&bytes).expect_err("n too large");
         assert!(err.to_string().contains("frame 0") && err.to_string().contains("exceed the limit"), "{err}");
+    }
+
+    /// The 44-byte stream of a self-consistent record that claims ~4.12 GB: the header, the
+    /// length field and the fixed fields (float descriptors of the widest width), nothing else.
+    fn huge_self_consistent_claim() -> (Vec<u8>, usize) {
+        let width = MAX_DESCRIPTOR_WIDTH;
+        let n = (4_120_000_000 - FIXED_BYTES - CHECKSUM_BYTES) / (16 + 8 + 4 * width);
+        let len = payload_len(n, 1, width, 0).expect("no overflow");
+        assert!(n <= MAX_KEYPOINTS && u32::try_from(len).is_ok(), "the claim passes every size check");
+        let mut bytes = Vec::new();
+        write_stream_header(&mut bytes).expect("in memory");
+        bytes.extend((len as u32).to_le_bytes());
+        bytes.extend(1.0f64.to_le_bytes());
+        bytes.extend((n as u32).to_le_bytes());
+        bytes.extend([1, 0, 0, 0]);
+        bytes.extend((width as u32).to_le_bytes());
+        bytes.extend(0u32.to_le_bytes());
+        assert_eq!(bytes.len(), 44);
+        (bytes, len)
+    }
+
+    #[test]
+    fn a_self_consistent_length_beyond_the_data_is_refused_before_allocating() {
+        let (bytes, len) = huge_self_consistent_claim();
+        // the size known (a file): refused from the length field, before reading the payload
+        let err = FrameReader::with_size(bytes.as_slice(), bytes.len() as u64)
+            .expect("header intact")
+            .next_record()
+            .expect_err("claims more than the file holds");
+        assert_eq!(
+            err.to_string(),
+            format!("frame 0: payload length field claims {len} bytes, but only 24 are left in the stream")
+        );
+        // the size unknown (a pipe): the buffer grows with what arrives, so the end of input
+        // is reached after at most READ_CHUNK_BYTES of buffer, not a 4 GB allocation
+        let mut counted = CountingReader { input: bytes.as_slice(), largest_buffer: 0 };
+        let err = FrameReader::new(&mut counted).expect("header intact").next_record().expect_err("truncated");
+        assert_eq!(err.to_string(), format!("frame 0: truncated record (24 of {len} payload bytes)"));
+        assert!(counted.largest_buffer <= READ_CHUNK_BYTES, "asked to fill {} bytes", counted.largest_buffer);
+    }
+
+    /// A reader that records the largest buffer it was asked to fill.
+    struct CountingReader<'a> {
+        input: &'a [u8],
+        largest_buffer: usize,
+    }
+
+    impl Read for CountingReader<'_> {
+        fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+            self.largest_buffer = self.largest_buffer.max(buf.len());
+            self.input.read(buf)
+        }
+    }
+
+    #[test]
+    fn a_known_size_reads_every_record_and_stops_cleanly() {
+        let records = sample();
+        let bytes = stream(&records);
+        let back: Vec<FrameRecord> = FrameReader::with_size(bytes.as_slice(), bytes.len() as u64)
+            .expect("header")
+            .collect::<Result<_>>()
+            .expect("reads back");
+        assert_eq!(back, records);
+        // a size one byte short: the last record's claim exceeds what is left
+        let err = FrameReader::with_size(bytes.as_slice(), bytes.len() as u64 - 1)
+            .expect("header")
+            .collect::<Result<Vec<_>>>()
+            .expect_err("short by one");
+        assert!(err.to_string().starts_with("frame 2: payload length field claims"), "{err}");
     }
 
     #[test]

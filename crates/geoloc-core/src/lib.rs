@@ -13,6 +13,7 @@ pub mod camera;
 pub mod checksum;
 pub mod error;
 pub mod essential;
+pub mod files;
 pub mod frames;
 pub mod fusion;
 pub mod keyframes;

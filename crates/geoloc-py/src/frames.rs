@@ -1,18 +1,16 @@
 //! Bindings of `geoloc_core::frames`: the frame-stream writer behind `geoloc.export_frames`,
 //! so Python and `geoloc-rs` share one implementation of the format.
 //!
-//! The stream goes to a temp file beside `path` (`.NAME.PID.N.tmp`) and is renamed onto
-//! `path` by `close()` after an fsync: an interrupted export never leaves a half-written
-//! stream at `path`, nor destroys a previous one. `abort()` (or dropping the writer
-//! unclosed) removes the temp file.
+//! The stream goes to a temp file of its own beside `path` (core's
+//! [`geoloc_core::files::AtomicFile`]: `.NAME.PID.N.tmp`, created exclusively) and is renamed
+//! onto `path` by `close()` after an fsync: an interrupted export never leaves a half-written
+//! stream at `path`, nor destroys a previous one, and concurrent writers to one path never
+//! share a temp file. `abort()` (or dropping the writer unclosed) removes the temp file.
 
-use std::fs::File;
-use std::io::{BufWriter, Write};
 use std::path::PathBuf;
 use std::sync::Mutex;
-use std::sync::atomic::{AtomicUsize, Ordering};
 
-use geoloc_core::GeolocError;
+use geoloc_core::files::AtomicFile;
 use geoloc_core::frames::{FrameRecord, write_json_header, write_json_record, write_record, write_stream_header};
 use numpy::{PyReadonlyArray1, PyReadonlyArray2};
 use pyo3::prelude::*;
@@ -20,23 +18,12 @@ use pyo3::prelude::*;
 use crate::convert::{BorrowedDescriptors, rows};
 use crate::errors::{invalid, to_py_err};
 
-/// An open stream: the temp file, where it goes, its encoding and how many records it holds.
+/// An open stream: the temp file (removed when dropped uncommitted), its encoding and how
+/// many records it holds.
 struct Open {
-    out: BufWriter<File>,
-    tmp: PathBuf,
-    path: PathBuf,
+    out: AtomicFile,
     json: bool,
     frames: usize,
-}
-
-impl Drop for Open {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_file(&self.tmp); // gone already after a successful rename
-    }
-}
-
-fn io_error(path: &std::path::Path, e: &std::io::Error) -> PyErr {
-    to_py_err(GeolocError::Io { path: path.display().to_string(), reason: e.to_string() })
 }
 
 /// Writes a frame stream atomically; see the module doc.
@@ -62,13 +49,12 @@ impl FrameWriter {
             "jsonl" => true,
             other => return Err(invalid("format", format!("expected \"binary\" or \"jsonl\", got {other:?}"))),
         };
-        static COUNTER: AtomicUsize = AtomicUsize::new(0);
-        let name = path.file_name().ok_or_else(|| invalid("path", "expected a file path"))?.to_string_lossy();
-        let n = COUNTER.fetch_add(1, Ordering::Relaxed);
-        let tmp = path.with_file_name(format!(".{name}.{}.{n}.tmp", std::process::id()));
-        let mut out = BufWriter::new(File::create(&tmp).map_err(|e| io_error(&path, &e))?);
+        if path.file_name().is_none() {
+            return Err(invalid("path", "expected a file path"));
+        }
+        let mut out = AtomicFile::create(&path).map_err(to_py_err)?;
         let header = if json { write_json_header(&mut out) } else { write_stream_header(&mut out) };
-        let open = Open { out, tmp, path, json, frames: 0 };
+        let open = Open { out, json, frames: 0 };
         header.map_err(to_py_err)?;
         Ok(Self { state: Mutex::new(Some(open)) })
     }
@@ -117,9 +103,8 @@ impl FrameWriter {
     /// Flushes, syncs and renames the stream onto its path; returns the number of frames.
     fn close(&self) -> PyResult<usize> {
         let mut guard = self.state.lock().map_err(|_| invalid("writer", "a previous call panicked"))?;
-        let mut o = guard.take().ok_or_else(|| invalid("writer", "is closed"))?;
-        o.out.flush().and_then(|()| o.out.get_ref().sync_all()).map_err(|e| io_error(&o.path, &e))?;
-        std::fs::rename(&o.tmp, &o.path).map_err(|e| io_error(&o.path, &e))?;
+        let o = guard.take().ok_or_else(|| invalid("writer", "is closed"))?;
+        o.out.commit().map_err(to_py_err)?;
         Ok(o.frames)
     }
 

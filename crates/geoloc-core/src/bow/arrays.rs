@@ -4,8 +4,15 @@
 //! has a larger index than its parent. Node `i`'s children are rows
 //! `node_offsets[i]..node_offsets[i + 1]` of `centres` and `children`; `children[r] ≥ 0` is the
 //! index of a child node, `children[r] < 0` the word `−children[r] − 1`.
+//!
+//! A stored tree is held to the shape training can give it: every node but the root has one
+//! parent, a node has at most [`MAX_BRANCHING`] children, words lie at most [`MAX_DEPTH`]
+//! levels down, and bᵈ ≤ [`MAX_WORDS`] for the widest node's b children and the depth d. So
+//! finding a descriptor's word costs at most b·d ≤ 2048 distances (b = 1024, d = 2), whatever
+//! the file says; a crafted chain of 200 000 nodes (one descent of 200 000 distances per
+//! descriptor) is refused in one pass over the offsets, before any node is built.
 
-use super::{Child, Node, Vocabulary};
+use super::{Child, MAX_BRANCHING, MAX_DEPTH, MAX_WORDS, Node, Vocabulary};
 use crate::error::{GeolocError, Result};
 use crate::matching::DescriptorSet;
 
@@ -42,10 +49,12 @@ impl Vocabulary {
 
     /// The vocabulary from flat arrays, checked so that every descent ends at a word: offsets
     /// partition the rows, every node has a child, child nodes have larger indices than their
-    /// parent, and the words are exactly 0..W, each once.
+    /// parent, and the words are exactly 0..W, each once; and held to the shape training gives
+    /// (see the module doc): one parent per node, at most [`MAX_BRANCHING`] children, at most
+    /// [`MAX_DEPTH`] levels, bᵈ ≤ [`MAX_WORDS`].
     ///
     /// # Errors
-    /// `InvalidInput` named `vocabulary` saying which check failed.
+    /// `InvalidInput` named `vocabulary` saying which check failed, naming the limit exceeded.
     pub fn from_arrays(arrays: VocabularyArrays) -> Result<Self> {
         let VocabularyArrays { node_offsets, centres, children } = arrays;
         let n_nodes = node_offsets.len().checked_sub(1).filter(|&n| n > 0).ok_or_else(|| malformed("no nodes"))?;
@@ -56,6 +65,7 @@ impl Vocabulary {
         {
             return Err(malformed("node offsets do not partition the children"));
         }
+        check_shape(&node_offsets, &children)?;
         let mut word_seen = vec![false; children.iter().filter(|&&c| c < 0).count()];
         let (binary, width) = match &centres {
             DescriptorSet::Binary { width, .. } => (true, *width),
@@ -91,6 +101,55 @@ impl Vocabulary {
         }
         Ok(Self { nodes, words: word_seen.len(), binary, width })
     }
+}
+
+/// The checks of the tree's shape (module doc), in one pass in node order (a child node has a
+/// larger index than its parent, so its parent's level is known when it is reached). Runs
+/// after the offsets are known to partition the children.
+fn check_shape(node_offsets: &[i64], children: &[i64]) -> Result<()> {
+    let n_nodes = node_offsets.len() - 1;
+    // the level of each node's children (the root's are at level 1); 0 = no parent seen yet
+    let mut level = vec![0usize; n_nodes];
+    level[0] = 1;
+    let (mut widest, mut deepest) = (0usize, 0usize);
+    for i in 0..n_nodes {
+        let (a, b) = (node_offsets[i] as usize, node_offsets[i + 1] as usize);
+        if b - a > MAX_BRANCHING {
+            return Err(malformed(format!(
+                "node {i} has {} children, more than the limit of {MAX_BRANCHING} (MAX_BRANCHING)",
+                b - a
+            )));
+        }
+        if i > 0 && level[i] == 0 {
+            return Err(malformed(format!("node {i} has no parent")));
+        }
+        if level[i] > MAX_DEPTH {
+            return Err(malformed(format!(
+                "node {i}'s children are at level {}, deeper than the limit of {MAX_DEPTH} levels (MAX_DEPTH)",
+                level[i]
+            )));
+        }
+        widest = widest.max(b - a);
+        deepest = deepest.max(level[i]);
+        for &c in &children[a..b] {
+            let Ok(child) = usize::try_from(c) else { continue }; // a word
+            if child <= i || child >= n_nodes {
+                return Err(malformed(format!("node {i} has child node {c}, not in {}..{n_nodes}", i + 1)));
+            }
+            if level[child] != 0 {
+                return Err(malformed(format!("node {child} has two parents")));
+            }
+            level[child] = level[i] + 1;
+        }
+    }
+    let words = u32::try_from(deepest).ok().and_then(|d| widest.checked_pow(d));
+    if words.is_none_or(|w| w > MAX_WORDS) {
+        return Err(malformed(format!(
+            "{widest} children per node over {deepest} levels (up to {widest}^{deepest} words) exceed the \
+             limit of {MAX_WORDS} words (MAX_WORDS)"
+        )));
+    }
+    Ok(())
 }
 
 #[cfg(test)]

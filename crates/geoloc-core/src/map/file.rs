@@ -14,21 +14,24 @@
 //! for every tensor in name order, its name, dtype, shape and bytes: a file cut at any byte, or
 //! with any byte flipped, is refused with an error that says which check failed.
 //!
-//! Writing is atomic: a temp file in the target's folder, `fsync`, rename over the target, then
-//! `fsync` of the folder, so an interrupted save leaves the previous file intact. Reading parses
+//! Writing is atomic ([`crate::files::AtomicFile`]): a temp file of its own in the target's
+//! folder, `fsync`, rename over the target, then `fsync` of the folder, so an interrupted save
+//! leaves the previous file intact and concurrent saves to one path leave one complete map.
+//! Reading refuses anything but a regular file before opening it (a FIFO would block), and
+//! checks the header length field against the bytes that follow it before parsing. Reading parses
 //! and checks everything before anything is returned (nothing is half-loaded) and never executes
 //! code. The same content always gives the same bytes (tensors are sorted by name; the one
 //! metadata entry has a fixed layout).
 
 use std::collections::BTreeMap;
-use std::fs;
-use std::io::Write;
-use std::path::{Path, PathBuf};
+use std::io::Read;
+use std::path::Path;
 
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 
 use crate::checksum::Fnv1a;
 use crate::error::{GeolocError, Result};
+use crate::files;
 
 /// The value of the `format` field.
 pub const FORMAT_NAME: &str = "geoloc-map";
@@ -203,6 +206,15 @@ impl MapFile {
     /// `Format` saying which check failed: not a safetensors file (truncated, corrupt header),
     /// not a geoloc map, another format version, a checksum mismatch.
     pub fn from_bytes(bytes: &[u8]) -> Result<Self> {
+        if let Some(field) = bytes.first_chunk::<8>() {
+            let claimed = u64::from_le_bytes(*field);
+            let left = bytes.len() as u64 - 8;
+            if claimed > left {
+                return Err(format_error(format!(
+                    "header length field claims {claimed} bytes, but only {left} follow it (truncated or corrupt)"
+                )));
+            }
+        }
         let st = SafeTensors::deserialize(bytes)
             .map_err(|e| format_error(format!("not a valid safetensors file (truncated or corrupt): {e}")))?;
         let (_, metadata) = SafeTensors::read_metadata(bytes).map_err(|e| format_error(e.to_string()))?;
@@ -249,53 +261,34 @@ impl MapFile {
     }
 }
 
-/// Writes `file` to `path` atomically (temp file + fsync + rename + folder fsync).
+/// Writes `file` to `path` atomically (see [`crate::files::AtomicFile`]: a unique temp file,
+/// fsync, rename, folder fsync), so concurrent saves to one path never share a temp file and
+/// the target always holds one complete map.
 ///
 /// # Errors
 /// `Io` naming the path when the folder does not exist or is not writable, or the disk fails;
 /// the previous file at `path`, if any, is then left untouched.
 pub fn write(path: &Path, file: &MapFile) -> Result<()> {
     let bytes = file.to_bytes()?;
-    let folder = match path.parent() {
-        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
-        _ => PathBuf::from("."),
-    };
-    if !folder.is_dir() {
-        return Err(io_error(path, "folder does not exist", &std::io::Error::from(std::io::ErrorKind::NotFound)));
-    }
-    let name = path.file_name().ok_or_else(|| GeolocError::invalid("path", "expected a file path, not a folder"))?;
-    let tmp = folder.join(format!(".{}.{}.tmp", name.to_string_lossy(), std::process::id()));
-    let result = (|| -> std::io::Result<()> {
-        let mut f = fs::File::create(&tmp)?;
-        f.write_all(&bytes)?;
-        f.sync_all()?;
-        drop(f);
-        fs::rename(&tmp, path)?;
-        fs::File::open(&folder)?.sync_all()
-    })();
-    result.map_err(|e| {
-        let _ = fs::remove_file(&tmp);
-        io_error(path, "cannot write the map", &e)
-    })
+    files::write_atomic(path, &bytes)
 }
 
 /// Reads and checks the file at `path`; see [`MapFile::from_bytes`].
 ///
 /// # Errors
-/// `Io` when the file cannot be read (missing, a folder, too large); `Format` when it is not a
-/// valid geoloc map of this version.
+/// `Io` naming the path when the file cannot be read (missing, too large) or is not a regular
+/// file (a folder, a FIFO, a device: checked before opening, so a FIFO cannot block the
+/// reader); `Format` when it is not a valid geoloc map of this version.
 pub fn read(path: &Path) -> Result<MapFile> {
-    let meta = fs::metadata(path).map_err(|e| io_error(path, "cannot read the map", &e))?;
-    if meta.is_dir() {
-        return Err(GeolocError::Io { path: path.display().to_string(), reason: "is a folder, not a map file".into() });
-    }
-    if meta.len() > MAX_FILE_BYTES {
+    let (file, len) = files::open_regular(path)?;
+    if len > MAX_FILE_BYTES {
         return Err(GeolocError::Io {
             path: path.display().to_string(),
-            reason: format!("{} bytes is larger than a map may be ({MAX_FILE_BYTES})", meta.len()),
+            reason: format!("{len} bytes is larger than a map may be ({MAX_FILE_BYTES})"),
         });
     }
-    let bytes = fs::read(path).map_err(|e| io_error(path, "cannot read the map", &e))?;
+    let mut bytes = Vec::with_capacity(usize::try_from(len).unwrap_or(0));
+    file.take(MAX_FILE_BYTES + 1).read_to_end(&mut bytes).map_err(|e| io_error(path, "cannot read the map", &e))?;
     MapFile::from_bytes(&bytes).map_err(|e| match e {
         GeolocError::Format { reason } => GeolocError::Format { reason: format!("{}: {reason}", path.display()) },
         other => other,
@@ -305,6 +298,7 @@ pub fn read(path: &Path) -> Result<MapFile> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::fs;
 
     fn sample() -> MapFile {
         let mut tensors = BTreeMap::new();
@@ -399,6 +393,57 @@ mod tests {
         assert!(err.to_string().contains("scene.geoloc"), "{err}");
         let err = read(&dir.join("nope.geoloc")).expect_err("missing file");
         assert!(matches!(err, GeolocError::Io { .. }), "{err:?}");
+        fs::remove_dir_all(&dir).expect("cleanup");
+    }
+
+    #[test]
+    fn a_header_length_beyond_the_file_is_named_before_parsing() {
+        let mut bytes = sample().to_bytes().expect("serializes");
+        bytes[..8].copy_from_slice(&(1u64 << 40).to_le_bytes());
+        let err = MapFile::from_bytes(&bytes).expect_err("claims a terabyte of header");
+        assert!(err.to_string().contains("header length field claims 1099511627776 bytes"), "{err}");
+    }
+
+    #[test]
+    fn concurrent_saves_to_one_path_leave_one_complete_map() {
+        const THREADS: usize = 4;
+        const ROUNDS: usize = 25;
+        let dir = std::env::temp_dir().join(format!("geoloc-mapfile-concurrent-{}", std::process::id()));
+        fs::create_dir_all(&dir).expect("temp dir");
+        let path = dir.join("scene.geoloc");
+        let maps: Vec<MapFile> =
+            (0..THREADS).map(|i| MapFile { header: format!("{{\"writer\":{i}}}"), ..sample() }).collect();
+        std::thread::scope(|scope| {
+            for map in &maps {
+                let path = &path;
+                scope.spawn(move || {
+                    for _ in 0..ROUNDS {
+                        write(path, map).expect("every concurrent save succeeds");
+                    }
+                });
+            }
+        });
+        let back = read(&path).expect("the map loads");
+        assert!(maps.contains(&back), "one writer's map, complete");
+        let names: Vec<_> = fs::read_dir(&dir).expect("list").filter_map(|e| e.ok()).collect();
+        assert_eq!(names.len(), 1, "no temp files remain");
+        fs::remove_dir_all(&dir).expect("cleanup");
+    }
+
+    #[test]
+    fn a_fifo_is_refused_without_blocking() {
+        let dir = std::env::temp_dir().join(format!("geoloc-mapfile-fifo-{}", std::process::id()));
+        fs::create_dir_all(&dir).expect("temp dir");
+        let fifo = dir.join("scene.geoloc");
+        let made = std::process::Command::new("mkfifo").arg(&fifo).status().is_ok_and(|s| s.success());
+        if made {
+            // reading would block forever (no writer); the check refuses it before opening
+            let err = read(&fifo).expect_err("a FIFO is not a map");
+            assert!(matches!(err, GeolocError::Io { .. }), "{err:?}");
+            assert!(err.to_string().contains("scene.geoloc: not a regular file (a FIFO)"), "{err}");
+        }
+        let err = read(&dir).expect_err("a folder is not a map");
+        assert!(err.to_string().contains("not a regular file (a folder)"), "{err}");
         fs::remove_dir_all(&dir).expect("cleanup");
     }
 }

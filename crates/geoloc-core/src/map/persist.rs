@@ -44,6 +44,7 @@ use crate::error::{GeolocError, Result};
 use crate::lie::SE3;
 use crate::matching::DescriptorSet;
 use crate::motion::VelocityPrior;
+use crate::optim::covariance::check_covariances;
 use crate::retrieval::DescriptorIndex;
 use crate::selfcal::{IntrinsicsCorrection, SelfCalibration};
 
@@ -684,8 +685,9 @@ fn model_tensors(model: &SceneModel) -> Result<Vec<(String, Tensor)>> {
     ])
 }
 
-/// The stored model, checked: shapes, finite values, descriptors of the keyframes' kind and
-/// width, point ids in −1..P, every point observed.
+/// The stored model, checked: shapes, finite values, point covariances symmetric positive
+/// semi-definite ([`check_covariances`]), descriptors of the keyframes' kind and width, point
+/// ids in −1..P, every point observed.
 fn read_model(file: &MapFile, p: usize, keyframes: &[Keyframe]) -> Result<SceneModel> {
     let points = f64_array(file, "model.points", &[p, 3])?;
     let covs = f64_array(file, "model.point_covariances", &[p, 3, 3])?;
@@ -712,9 +714,12 @@ fn read_model(file: &MapFile, p: usize, keyframes: &[Keyframe]) -> Result<SceneM
         point_ids.push(mine.iter().map(|&i| usize::try_from(i).ok()).collect());
         rest = tail;
     }
+    // checked here as PnP checks them, so a bad file is blamed at load, not at the first frame
+    let covariances: Vec<Matrix3<f64>> = covs.chunks_exact(9).map(Matrix3::from_row_slice).collect();
+    check_covariances("model.point_covariances", &covariances).map_err(as_format)?;
     SceneModel::from_parts(
         points.chunks_exact(3).map(Vector3::from_column_slice).collect(),
-        covs.chunks_exact(9).map(Matrix3::from_row_slice).collect(),
+        covariances,
         descriptors,
         point_ids,
     )
@@ -989,7 +994,7 @@ mod tests {
             .collect();
         let points = vec![Vector3::new(0.5, -1.0, 3.0), Vector3::new(1.0, 2.0, 4.0), Vector3::new(-0.25, 0.0, 5.5)];
         let covs: Vec<Matrix3<f64>> =
-            (1..4).map(|i| Matrix3::from_fn(|r, c| 1e-4 * (i * (r + c + 1)) as f64)).collect();
+            (1..4).map(|i| Matrix3::from_fn(|r, c| 1e-4 * i as f64 * if r == c { 3.0 } else { 1.0 })).collect();
         let descriptors = original.keyframes[0].descriptors.select(&[0, 1, 2]);
         original.model = Some(SceneModel::from_parts(points, covs, descriptors, point_ids).expect("valid model"));
         let file = original.to_map_file("{}").expect("serializes");
@@ -1008,6 +1013,81 @@ mod tests {
         let mut missing = file.clone();
         missing.tensors.remove("model.points");
         assert!(Map::from_map_file(&missing).expect_err("missing").to_string().contains("model.points"));
+    }
+
+    /// A point covariance that is not positive semi-definite is refused at load, naming the
+    /// array and the point (before, it loaded and the first localization blamed the caller).
+    #[test]
+    fn a_non_psd_point_covariance_is_refused_at_load() {
+        let mut original = map(true, RetrievalKind::Bow { branching: 4, depth: 2 }, false);
+        let point_ids: Vec<Vec<Option<usize>>> = original
+            .keyframes
+            .iter()
+            .map(|kf| (0..kf.keypoints.len()).map(|i| (i < 3).then_some(i)).collect())
+            .collect();
+        let points = vec![Vector3::new(0.5, -1.0, 3.0), Vector3::new(1.0, 2.0, 4.0), Vector3::new(-0.25, 0.0, 5.5)];
+        let descriptors = original.keyframes[0].descriptors.select(&[0, 1, 2]);
+        original.model = Some(
+            SceneModel::from_parts(points, vec![Matrix3::identity() * 1e-4; 3], descriptors, point_ids).expect("valid"),
+        );
+        let file = original.to_map_file("{}").expect("serializes");
+        // point 2: eigenvalues 1e-4, 1e-4, −1e-4 (symmetric, finite, indefinite)
+        let mut bad = file.clone();
+        if let Some(Tensor { data: TensorData::F64(v), .. }) = bad.tensors.get_mut("model.point_covariances") {
+            v[2 * 9 + 8] = -1e-4;
+        }
+        let err = Map::from_map_file(&bad).expect_err("indefinite covariance");
+        assert!(matches!(err, GeolocError::Format { .. }), "{err:?}");
+        assert!(err.to_string().contains("model.point_covariances[2]: is not positive semi-definite"), "{err}");
+        let mut asymmetric = file.clone();
+        if let Some(Tensor { data: TensorData::F64(v), .. }) = asymmetric.tensors.get_mut("model.point_covariances") {
+            v[1] = 5e-5;
+        }
+        let err = Map::from_map_file(&asymmetric).expect_err("asymmetric covariance");
+        assert!(err.to_string().contains("model.point_covariances[0]: is not symmetric"), "{err}");
+    }
+
+    /// Nodes of the crafted chain vocabulary (the adversarial probe's size: ~13 MB).
+    const CHAIN_NODES: usize = 200_000;
+    /// The crafted chain must be refused well within this (it took 27–36 s to load before).
+    const CHAIN_REFUSED_WITHIN: std::time::Duration = std::time::Duration::from_secs(1);
+
+    /// A chain vocabulary (node i: node i + 1 and word i; 200 000 levels), saved with a valid
+    /// checksum by the map's own writer and a header whose word count matches: refused at
+    /// load by the depth limit, at once, instead of a 200 000-distance descent per descriptor.
+    #[test]
+    fn a_crafted_chain_vocabulary_is_refused_at_load_at_once() {
+        let original = map(true, RetrievalKind::Bow { branching: 4, depth: 2 }, false);
+        let mut file = original.to_map_file("{}").expect("serializes");
+        let mut node_offsets = vec![0i64];
+        let mut children = Vec::with_capacity(2 * CHAIN_NODES);
+        for i in 0..CHAIN_NODES {
+            // the next node first, with the same centre as the word: every descent ties and
+            // takes the first child, so it runs the whole chain
+            children.push(if i + 1 < CHAIN_NODES { i as i64 + 1 } else { -(i as i64) - 2 });
+            children.push(-(i as i64) - 1);
+            node_offsets.push(children.len() as i64);
+        }
+        let words = CHAIN_NODES + 1;
+        let centres = DescriptorSet::Binary { data: vec![0; children.len() * 32], width: 32 };
+        let chain = VocabularyArrays { node_offsets, centres, children };
+        for (name, t) in vocabulary_tensors(&chain).expect("tensors") {
+            file.tensors.insert(name, t);
+        }
+        let mut header: MapHeader = serde_json::from_str(&file.header).expect("header");
+        header.retrieval = RetrievalHeader::Bow { words };
+        file.header = serde_json::to_string(&header).expect("header");
+        let dir = std::env::temp_dir().join(format!("geoloc-persist-chain-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("temp dir");
+        let path = dir.join("chain.geoloc");
+        file::write(&path, &file).expect("saves with a valid checksum");
+        let start = std::time::Instant::now();
+        let err = Map::load(&path).expect_err("the chain is refused");
+        let took = start.elapsed();
+        assert!(matches!(err, GeolocError::Format { .. }), "{err:?}");
+        assert!(err.to_string().contains("deeper than the limit of 24 levels (MAX_DEPTH)"), "{err}");
+        assert!(took < CHAIN_REFUSED_WITHIN, "refused after {took:?}");
+        std::fs::remove_dir_all(&dir).expect("cleanup");
     }
 
     #[test]
