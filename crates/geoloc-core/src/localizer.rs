@@ -24,8 +24,9 @@ use crate::fusion::chi2_6_quantile_for_sigma;
 use crate::fusion::{FusionSource, Gate, fuse_gated_with};
 use crate::keyframes::{KeyframeOptions, select_keyframes};
 use crate::lie::SE3;
+use crate::map::group_matches::{fingerprint, pair_matches};
 use crate::map::{DescriptorSet, Map, ModelOptions, SceneModel};
-use crate::matching::{Descriptors, MatchOptions, epipolar_filter, match_descriptors};
+use crate::matching::{Descriptors, MatchOptions, match_descriptors};
 use crate::motion::{motion_predict_with_noise, motion_predict_with_prior};
 use crate::optim::covariance::{isometric_sigmas, spd_inverse};
 
@@ -751,24 +752,24 @@ impl Localizer {
     fn group_tracks(&self, seed: usize, group: &[usize]) -> Result<(Observations, Vec<usize>)> {
         let kf = &self.map.keyframes;
         let seed_local = group.iter().position(|&g| g == seed).expect("invariant: the group holds its seed");
+        let o = &self.options;
+        // the pairs prepared at build time serve when they were made with these options
+        let prepared = self
+            .map
+            .group_matches
+            .as_ref()
+            .filter(|m| m.options == fingerprint(&o.matching, o.epipolar_px, &o.keyframes));
         let mut obs = Observations::default();
         for (local, &g) in group.iter().enumerate() {
             if g == seed {
                 continue;
             }
-            let matches =
-                match_descriptors(&kf[seed].descriptors.view(), &kf[g].descriptors.view(), &self.options.matching)?;
-            let keep = epipolar_filter(
-                &self.map.camera,
-                &kf[seed].world_from_cam,
-                &kf[g].world_from_cam,
-                &kf[seed].keypoints,
-                &kf[g].keypoints,
-                &matches,
-                self.options.epipolar_px,
-            )?;
-            for (m, _) in matches.iter().zip(keep).filter(|(_, k)| *k) {
-                obs.push(local, m.a, kf[g].keypoints[m.b]);
+            let pairs = match prepared.and_then(|m| m.pair(seed, g)) {
+                Some(pairs) => pairs,
+                None => pair_matches(&self.map.camera, &kf[seed], &kf[g], &o.matching, o.epipolar_px)?,
+            };
+            for (a, b) in pairs {
+                obs.push(local, a, kf[g].keypoints[b]);
             }
         }
         let mut tracked: Vec<usize> = obs.track_ids.clone();

@@ -8,10 +8,12 @@
 //! localizer corrects every query's keypoints the same way before using them.
 
 pub mod file;
+pub mod group_matches;
 pub mod labels;
 pub mod model;
 mod persist;
 
+pub use group_matches::GroupMatches;
 pub use labels::{LabelAdjustment, LabelRun};
 pub use model::{ModelOptions, PairMatches, SceneModel};
 pub use persist::{
@@ -79,6 +81,9 @@ pub struct Map {
     /// The labels and their correction by bundle adjustment ([`Map::with_adjusted_labels`]),
     /// if adjusted: the keyframes' `world_from_cam` are then the adjusted camera poses.
     pub labels: Option<LabelAdjustment>,
+    /// The paper locator's keyframe-pair matches prepared at build time
+    /// ([`BuildSteps::group_matches`]), if prepared.
+    pub group_matches: Option<GroupMatches>,
 }
 
 /// Which build steps [`Map::with_build_steps`] runs, in this order: the labels' adjustment,
@@ -91,6 +96,9 @@ pub struct BuildSteps {
     pub adjustment: Option<AdjustmentOptions>,
     /// Build the 3D model of the model locator ([`Map::with_model`]).
     pub model: Option<ModelOptions>,
+    /// Prepare the paper locator's keyframe-pair matches for the default localizer options
+    /// ([`GroupMatches`]), last, from the final poses and keypoints.
+    pub group_matches: bool,
 }
 
 /// The map's noise, estimated at build time from its own keyframes
@@ -258,6 +266,7 @@ impl Map {
             model: None,
             self_calibration: None,
             labels: None,
+            group_matches: None,
         })
     }
 
@@ -289,7 +298,11 @@ impl Map {
         calibration: &SelfCalibrationOptions,
         model: &ModelOptions,
     ) -> Result<Self> {
-        self.with_build_steps(&BuildSteps { calibration: Some(*calibration), adjustment: None, model: Some(*model) })
+        self.with_build_steps(&BuildSteps {
+            calibration: Some(*calibration),
+            model: Some(*model),
+            ..BuildSteps::default()
+        })
     }
 
     /// The map with its pose labels corrected by bundle adjustment ([`crate::adjust`]):
@@ -356,6 +369,12 @@ impl Map {
             }
             (Some(o), _) => Some(SceneModel::build(&self.camera, &self.keyframes, covariances, o)?),
         };
+        // prepared from the final poses and keypoints (anything prepared before is stale)
+        self.group_matches = None;
+        if steps.group_matches {
+            let o = crate::localizer::LocalizerOptions::default();
+            self.group_matches = Some(GroupMatches::compute(&self, &o.matching, o.epipolar_px, &o.keyframes)?);
+        }
         Ok(self)
     }
 
@@ -365,6 +384,7 @@ impl Map {
         tracks: &ModelOptions,
         pair_matches: &PairMatches,
     ) -> Result<()> {
+        self.group_matches = None; // the keypoints may change
         let covariances = self.pose_covariances.as_deref();
         let model = SceneModel::assemble(&self.camera, &self.keyframes, covariances, tracks, pair_matches)?;
         let observations: Vec<TrackObservation> = model
@@ -397,6 +417,7 @@ impl Map {
     /// rounds and time). A keyframe between takes the marginal covariance of its nearer
     /// skeleton keyframe.
     fn adjust_labels(&mut self, options: &AdjustmentOptions) -> Result<()> {
+        self.group_matches = None; // the poses change
         // a map adjusted before starts from its adjusted poses, its labels stay the priors
         let (labels, start, offset, correlation) = match self.labels.take() {
             Some(record) => (

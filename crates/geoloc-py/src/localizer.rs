@@ -113,6 +113,7 @@ impl FeatureMap {
                     calibration: refine_intrinsics.then_some(calibration),
                     adjustment: adjust_labels.then(AdjustmentOptions::default),
                     model: model.then(ModelOptions::default),
+                    group_matches: true,
                 };
                 let map = map.with_build_steps(&steps)?;
                 if estimate_noise { map.with_estimated_noise(ts, &NoiseOptions::default()) } else { Ok(map) }

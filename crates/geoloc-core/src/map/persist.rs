@@ -37,7 +37,7 @@ use nalgebra::{Matrix3, Matrix4, Matrix6, Vector2, Vector3, Vector6};
 use serde::{Deserialize, Serialize};
 
 use super::file::{self, MapFile, Tensor, TensorData};
-use super::{Keyframe, LabelAdjustment, Map, MapNoise, Retrieval, SceneModel};
+use super::{GroupMatches, Keyframe, LabelAdjustment, Map, MapNoise, Retrieval, SceneModel};
 use crate::bow::{BowDatabase, Vocabulary, VocabularyArrays};
 use crate::camera::{Camera, Distortion};
 use crate::error::{GeolocError, Result};
@@ -123,6 +123,18 @@ pub struct MapHeader {
     /// maps written before it existed).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub labels: Option<LabelsHeader>,
+    /// The paper locator's prepared keyframe-pair matches ([`GroupMatches`]), when the map
+    /// holds them (absent otherwise and in maps written before them: the localizer matches).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub group_matches: Option<GroupMatchesHeader>,
+}
+
+/// [`GroupMatches`] in the header: the options they were made with (the groups and rows
+/// are arrays).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct GroupMatchesHeader {
+    /// [`super::group_matches::fingerprint`] of the options.
+    pub options: String,
 }
 
 /// [`LabelAdjustment`] in the header (the per-keyframe parts are arrays).
@@ -433,12 +445,16 @@ impl Map {
             model: self.model.as_ref().map(|m| ModelHeader { points: m.len() }),
             self_calibration: self.self_calibration.as_ref().map(SelfCalibrationHeader::from_self_calibration),
             labels: self.labels.as_ref().map(LabelsHeader::from_labels),
+            group_matches: self.group_matches.as_ref().map(|m| GroupMatchesHeader { options: m.options.clone() }),
         };
         if let Some(model) = &self.model {
             tensors.extend(model_tensors(model)?);
         }
         if let Some(labels) = &self.labels {
             tensors.extend(label_tensors(labels)?);
+        }
+        if let Some(matches) = &self.group_matches {
+            tensors.extend(group_match_tensors(matches)?);
         }
         let header = serde_json::to_string(&header).map_err(|e| format_error(e.to_string()))?;
         Ok(MapFile { header, tensors: tensors.into_iter().collect() })
@@ -506,7 +522,20 @@ impl Map {
         let self_calibration =
             header.self_calibration.as_ref().map(SelfCalibrationHeader::to_self_calibration).transpose()?;
         let labels = header.labels.as_ref().map(|h| h.to_labels(file, k)).transpose()?;
-        Ok((Self { camera, keyframes, pose_covariances, retrieval, noise, model, self_calibration, labels }, header))
+        let group_matches =
+            header.group_matches.as_ref().map(|h| read_group_matches(file, h, &keyframes)).transpose()?;
+        let map = Self {
+            camera,
+            keyframes,
+            pose_covariances,
+            retrieval,
+            noise,
+            model,
+            self_calibration,
+            labels,
+            group_matches,
+        };
+        Ok((map, header))
     }
 
     /// Saves the map to `path` atomically (see [`file::write`]).
@@ -724,6 +753,75 @@ fn read_model(file: &MapFile, p: usize, keyframes: &[Keyframe]) -> Result<SceneM
         point_ids,
     )
     .map_err(as_format)
+}
+
+/// `group_matches.group_offsets` i64 (K + 1) and `group_matches.groups` u32 (G): seed s's
+/// group is `groups[offsets[s]..offsets[s+1]]`; `group_matches.row_offsets` i64 (K + 1) and
+/// `group_matches.rows` u32 (3M): seed s's rows (g, seed keypoint, g keypoint) are rows
+/// `row_offsets[s]..row_offsets[s+1]` of `rows` viewed as (M, 3).
+fn group_match_tensors(m: &GroupMatches) -> Result<Vec<(String, Tensor)>> {
+    let offsets = |lens: Vec<usize>| -> Vec<i64> {
+        std::iter::once(0)
+            .chain(lens.into_iter().scan(0i64, |acc, n| {
+                *acc += n as i64;
+                Some(*acc)
+            }))
+            .collect()
+    };
+    let u32s = |v: &mut dyn Iterator<Item = usize>| -> Result<Vec<u32>> {
+        v.map(|x| u32::try_from(x).map_err(|_| format_error("group_matches: an index does not fit in u32"))).collect()
+    };
+    let k = m.groups.len();
+    let groups = u32s(&mut m.groups.iter().flatten().copied())?;
+    let rows = u32s(&mut m.rows.iter().flatten().flatten().copied())?;
+    Ok(vec![
+        tensor(
+            "group_matches.group_offsets",
+            vec![k + 1],
+            TensorData::I64(offsets(m.groups.iter().map(Vec::len).collect())),
+        )?,
+        tensor("group_matches.groups", vec![groups.len()], TensorData::U32(groups))?,
+        tensor(
+            "group_matches.row_offsets",
+            vec![k + 1],
+            TensorData::I64(offsets(m.rows.iter().map(Vec::len).collect())),
+        )?,
+        tensor("group_matches.rows", vec![rows.len()], TensorData::U32(rows))?,
+    ])
+}
+
+fn read_group_matches(file: &MapFile, header: &GroupMatchesHeader, keyframes: &[Keyframe]) -> Result<GroupMatches> {
+    let k = keyframes.len();
+    let u32_vector = |name: &str| -> Result<Vec<usize>> {
+        let t = file.tensor(name)?;
+        match (&t.data, t.shape.as_slice()) {
+            (TensorData::U32(v), [_]) => Ok(v.iter().map(|&x| x as usize).collect()),
+            _ => Err(format_error(format!("array {name:?} must be a 1-D uint32 array"))),
+        }
+    };
+    // offsets that partition `len` values into k parts
+    let parts = |name: &str, len: usize| -> Result<Vec<std::ops::Range<usize>>> {
+        let o = i64_vector(file, name)?;
+        let ok = o.len() == k + 1 && o[0] == 0 && o[k] == len as i64 && o.windows(2).all(|w| w[0] <= w[1]);
+        if !ok {
+            return Err(format_error(format!("array {name:?} must hold {} increasing offsets from 0 to {len}", k + 1)));
+        }
+        Ok(o.windows(2).map(|w| w[0] as usize..w[1] as usize).collect())
+    };
+    let groups_flat = u32_vector("group_matches.groups")?;
+    let rows_flat = u32_vector("group_matches.rows")?;
+    if rows_flat.len() % 3 != 0 {
+        return Err(format_error("array \"group_matches.rows\" must hold whole rows of 3"));
+    }
+    let groups =
+        parts("group_matches.group_offsets", groups_flat.len())?.into_iter().map(|r| groups_flat[r].to_vec()).collect();
+    let rows = parts("group_matches.row_offsets", rows_flat.len() / 3)?
+        .into_iter()
+        .map(|r| rows_flat[3 * r.start..3 * r.end].chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect())
+        .collect();
+    let matches = GroupMatches { options: header.options.clone(), groups, rows };
+    matches.check(keyframes).map_err(as_format)?;
+    Ok(matches)
 }
 
 fn i64_vector(file: &MapFile, name: &str) -> Result<Vec<i64>> {
