@@ -56,6 +56,33 @@ def test_uncovered_queries_are_not_reported_as_confident_poses(small_map, locato
     assert reported >= len(COVERED) - 1
 
 
+@pytest.fixture(scope="module")
+def map_100():
+    if not KITCHEN.is_dir():
+        pytest.skip(f"shared sample data not found at {KITCHEN} (see ../shared/data/README.md)")
+    from geoloc.datasets import load_7scenes
+
+    seq = load_7scenes(KITCHEN)
+    return seq, geoloc.Map.build(seq[list(range(0, 300, 3))], model=True)
+
+
+def test_the_model_locator_reports_only_poses_the_map_confirms(map_100):
+    """Frames 370 and 690 against a map of 0–297: the retrieval matches fit a pose 0.9 m / 143°
+    and 0.75 m / 24° off with no σ or viewpoint objection; guided matching near that pose finds
+    fewer inliers than the retrieval matches, so it is not reported. Covered frames are."""
+    seq, the_map = map_100
+    loc = geoloc.Localizer(the_map, locator="model")
+    for i in (370, 690, 1, 100, 200):
+        loc.reset()
+        r = loc.localize(seq.gray(i), i / 30.0)
+        if i in (370, 690):
+            assert r.source == "lost" and "not confirmed by the map" in r.reason, (i, r.source, r.reason)
+            continue
+        assert r.source == "geometric", (i, r.reason)
+        position, rotation = evaluation.pose_errors(r.pose[None], seq.poses[i][None])
+        assert position[0] <= 0.1 and rotation[0] <= 3.0, (i, position, rotation)
+
+
 def test_a_map_too_small_to_estimate_its_noise_uses_the_default_and_says_so(small_map):
     _, the_map = small_map
     noise = the_map.map_noise

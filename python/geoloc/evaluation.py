@@ -205,19 +205,20 @@ def axis_coverage(est: ArrayLike, cov: ArrayLike, gt: ArrayLike, z: float = COVE
     return np.asarray((np.abs(delta) <= z * sigma).mean(axis=0), dtype=np.float64)
 
 
-def isometric_sigmas(cov: ArrayLike) -> tuple[Array, Array]:
+def isometric_sigmas(cov: ArrayLike, name: str = "cov") -> tuple[Array, Array]:
     """The paper's isometric σ per covariance: σ_p = mean √diag(C_ρρ) (m) and
-    σ_r = Θ(exp(√diag(C_φφ)^)) (radians). (6, 6) or (N, 6, 6) → (N,), (N,)."""
-    c = as_float64(cov, "cov")
+    σ_r = Θ(exp(√diag(C_φφ)^)) (radians). (6, 6) or (N, 6, 6) → (N,), (N,). Errors name
+    ``name``."""
+    c = as_float64(cov, name)
     if c.shape[-2:] != (6, 6) or c.ndim not in (2, 3):
-        raise InvalidInputError(f"cov: expected shape (6, 6) or (N, 6, 6), got {c.shape}")
+        raise InvalidInputError(f"{name}: expected shape (6, 6) or (N, 6, 6), got {c.shape}")
     c = c.reshape(-1, 6, 6)
     sd = np.sqrt(np.maximum(np.diagonal(c, axis1=1, axis2=2), 0.0))
     sigma_p = sd[:, :3].mean(axis=1)
     try:
         sigma_r = np.asarray(lie.rotation_angle(lie.so3_exp(sd[:, 3:]))).reshape(-1)
     except InvalidInputError as exc:  # √diag(C_φφ) beyond so3_exp's range
-        raise InvalidInputError(f"cov: rotation standard deviations out of range ({exc})") from None
+        raise InvalidInputError(f"{name}: rotation standard deviations out of range ({exc})") from None
     return sigma_p, sigma_r
 
 
@@ -296,7 +297,7 @@ def summarize(
                 nees_values[has_cov] = nees(est[has_cov], cov_stack[has_cov], gt[has_cov])
             except InvalidInputError as exc:
                 raise InvalidInputError(f"covariances: {exc}") from None
-            sigma_p[has_cov], sr = isometric_sigmas(cov_stack[has_cov])
+            sigma_p[has_cov], sr = isometric_sigmas(cov_stack[has_cov], "covariances")
             sigma_r[has_cov] = np.degrees(sr)
             for j in np.flatnonzero(has_cov).tolist():
                 R = est[j, :3, :3]

@@ -106,7 +106,10 @@ def _odd_path(case: dict[str, Any], tmp: Path, cache: Callable[[str], Any]) -> d
         return {"check_file": (str(target), read(target) is not None)}
     reader = _readers()[case["reader"]]
     if case["exists"]:
-        shutil.copyfile(cache(case["source"]), target)
+        try:
+            shutil.copyfile(cache(case["source"]), target)
+        except OSError:
+            pass  # a name the file system cannot hold (too long): the reader sees no file
     return {"result": reader(target)}
 
 

@@ -83,3 +83,11 @@ def test_map_localizer_timestamp_none() -> None:
 
 def test_fuse_denormal_covariance_names_cov_m() -> None:
     _rejects(lambda: geoloc.fuse(np.eye(4), COV[0] * 1e-310, P_G, COV[0] * 2), "cov_m")
+
+
+def test_summarize_names_covariances_when_their_sigma_overflows():
+    """Found by the long profile: covariances of 1e296 were blamed on an argument "cov"."""
+    poses = np.repeat(np.eye(4)[None], 5, axis=0)
+    covs = np.repeat((np.eye(6) * 1e296)[None], 5, axis=0)
+    with pytest.raises(geoloc.InvalidInputError, match=r"^covariances"):
+        geoloc.evaluation.summarize(poses, poses, covariances=covs, timestamps=[0.0, 1.0, 2.0, 3.0, 4.0])
