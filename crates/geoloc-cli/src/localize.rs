@@ -225,7 +225,8 @@ fn open_input(input: &str, format: InputFormat) -> Result<Records, String> {
     let (mut reader, size): (Box<dyn BufRead>, Option<u64>) = if input == "-" {
         (Box::new(BufReader::new(std::io::stdin())), None)
     } else {
-        let (file, len) = files::open_regular(Path::new(input)).map_err(|e| format!("--input {e}"))?;
+        let (file, len) =
+            files::open_regular(Path::new(input), "the frame stream").map_err(|e| format!("--input {e}"))?;
         (Box::new(BufReader::new(file)), Some(len))
     };
     let format = match format {

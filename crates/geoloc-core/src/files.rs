@@ -182,13 +182,13 @@ fn kind_of(file_type: fs::FileType) -> &'static str {
 }
 
 /// The metadata of `path` (symlinks followed, the file is not opened), checked to be a
-/// regular file.
+/// regular file; `what` names the file in the errors ("cannot read the map: …").
 ///
 /// # Errors
 /// `Io` naming `path` when it is missing or unreadable, or is not a regular file ("not a
 /// regular file (a FIFO)", a socket, a device or a folder).
-pub fn check_regular_file(path: &Path) -> Result<fs::Metadata> {
-    let meta = fs::metadata(path).map_err(|e| io_error(path, "cannot read", &e))?;
+pub fn check_regular_file(path: &Path, what: &str) -> Result<fs::Metadata> {
+    let meta = fs::metadata(path).map_err(|e| io_error(path, &format!("cannot read {what}"), &e))?;
     if !meta.is_file() {
         return Err(GeolocError::Io {
             path: path.display().to_string(),
@@ -204,10 +204,10 @@ pub fn check_regular_file(path: &Path) -> Result<fs::Metadata> {
 ///
 /// # Errors
 /// As [`check_regular_file`]; `Io` naming `path` when opening fails.
-pub fn open_regular(path: &Path) -> Result<(File, u64)> {
-    check_regular_file(path)?;
-    let file = File::open(path).map_err(|e| io_error(path, "cannot open", &e))?;
-    let meta = file.metadata().map_err(|e| io_error(path, "cannot read", &e))?;
+pub fn open_regular(path: &Path, what: &str) -> Result<(File, u64)> {
+    check_regular_file(path, what)?;
+    let file = File::open(path).map_err(|e| io_error(path, &format!("cannot open {what}"), &e))?;
+    let meta = file.metadata().map_err(|e| io_error(path, &format!("cannot read {what}"), &e))?;
     if !meta.is_file() {
         return Err(GeolocError::Io {
             path: path.display().to_string(),
@@ -385,20 +385,20 @@ mod tests {
         let made = Command::new("mkfifo").arg(&fifo).status().is_ok_and(|s| s.success());
         if made {
             // opening a FIFO would block forever without a writer: the check must not open it
-            let err = open_regular(&fifo).expect_err("a FIFO is refused");
+            let err = open_regular(&fifo, "the file").expect_err("a FIFO is refused");
             assert!(err.to_string().contains("not a regular file (a FIFO)"), "{err}");
             assert!(err.to_string().contains("pipe"), "{err}");
         }
-        let err = check_regular_file(&dir).expect_err("a folder is refused");
+        let err = check_regular_file(&dir, "the file").expect_err("a folder is refused");
         assert!(err.to_string().contains("not a regular file (a folder)"), "{err}");
         #[cfg(unix)]
         {
-            let err = check_regular_file(Path::new("/dev/null")).expect_err("a device is refused");
+            let err = check_regular_file(Path::new("/dev/null"), "the file").expect_err("a device is refused");
             assert!(err.to_string().contains("not a regular file (a device)"), "{err}");
         }
         let file = dir.join("plain");
         fs::write(&file, b"12345").expect("writes");
-        assert_eq!(open_regular(&file).expect("a regular file opens").1, 5);
+        assert_eq!(open_regular(&file, "the file").expect("a regular file opens").1, 5);
         fs::remove_dir_all(&dir).expect("cleanup");
     }
 }

@@ -21,7 +21,9 @@
 //!    it replaces the reported pose when it has at least as many inliers (the reported
 //!    covariance is the one of the final inlier set).
 //! 5. **Confirmation by the map** (with `guided_rounds` > 0): the pose is reported only if a
-//!    guided round found at least as many inliers as the retrieval matches did. At the true
+//!    guided round found at least as many inliers as it could find again of the retrieval's
+//!    (those whose point is among its candidates and whose representative descriptor is
+//!    within τ: a guided round sees the map only through them). At the true
 //!    pose the points of the keyframes near it project onto their keypoints and guided
 //!    matching finds more than retrieval did; a pose fitted to matches of similar structure
 //!    elsewhere finds fewer (7-Scenes 0–599 map, test frames 672–698: 157 retrieval inliers,
@@ -89,6 +91,20 @@ impl Localizer {
         }
         let tau = first.iter().zip(&res.inliers).filter(|(_, i)| **i).map(|(c, _)| c.distance).fold(0.0, f32::max);
         let first_inliers = count(&res.inliers);
+        let retrieved: Vec<Correspondence> =
+            first.iter().zip(&res.inliers).filter(|(_, i)| **i).map(|(c, _)| *c).collect();
+        // the retrieval inliers a guided round over `candidates` (sorted) could find again:
+        // their point is a candidate and its representative descriptor within τ
+        let refindable = |candidates: &[usize]| {
+            retrieved
+                .iter()
+                .filter(|c| {
+                    candidates.binary_search(&c.point).is_ok()
+                        && model.descriptors.view().distance(c.point, &frame.descriptors, c.query) <= tau
+                })
+                .count()
+        };
+        let mut confirmed = false;
         // each round projects from the last guided pose (`current`); `best` is the pose with
         // the most inliers; `guided_support` the most inliers a guided round found: a pose
         // the map's points near it confirm has at least the retrieval matches' support
@@ -119,6 +135,7 @@ impl Localizer {
             match next {
                 Some(r) if r.success => {
                     guided_support = guided_support.max(count(&r.inliers));
+                    confirmed |= count(&r.inliers) >= refindable(&nearby.1);
                     current = r.world_from_cam;
                     if count(&r.inliers) >= count(&best.inliers) {
                         best = r;
@@ -129,9 +146,9 @@ impl Localizer {
             }
         }
         let inliers = count(&best.inliers);
-        if self.options.guided_rounds > 0 && guided_support < first_inliers {
+        if self.options.guided_rounds > 0 && !confirmed {
             let why = format!(
-                "not confirmed by the map near the pose: guided matching found {guided_support} inliers < the {first_inliers} of the retrieved keyframes' matches"
+                "not confirmed by the map near the pose: guided matching found {guided_support} inliers, fewer than the retrieved keyframes' matches it could find again (of {first_inliers})"
             );
             return Ok((top[0], Err(why), inliers));
         }

@@ -280,7 +280,7 @@ pub fn write(path: &Path, file: &MapFile) -> Result<()> {
 /// file (a folder, a FIFO, a device: checked before opening, so a FIFO cannot block the
 /// reader); `Format` when it is not a valid geoloc map of this version.
 pub fn read(path: &Path) -> Result<MapFile> {
-    let (file, len) = files::open_regular(path)?;
+    let (file, len) = files::open_regular(path, "the map")?;
     if len > MAX_FILE_BYTES {
         return Err(GeolocError::Io {
             path: path.display().to_string(),
