@@ -191,8 +191,11 @@ def nees(est: ArrayLike, cov: ArrayLike, gt: ArrayLike) -> Array:
             chol = np.linalg.cholesky(c[k])
         except np.linalg.LinAlgError:
             raise InvalidInputError(f"cov[{k}]: not positive definite") from None
-        w = np.linalg.solve(chol, delta[k])
-        out[k] = float(w @ w)
+        with np.errstate(all="ignore"):
+            w = np.linalg.solve(chol, delta[k])
+            out[k] = float(w @ w)
+        if not np.isfinite(out[k]):  # a covariance at the edge of underflow: δᵀC⁻¹δ overflows
+            raise InvalidInputError(f"cov[{k}]: too close to singular for its NEES to be a number")
     return out
 
 

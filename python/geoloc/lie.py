@@ -256,8 +256,12 @@ def se3_compose(T1: ArrayLike, T2: ArrayLike) -> Array:
 
 
 def se3_distance(T1: ArrayLike, T2: ArrayLike) -> Array:
-    """d(T1, T2) = ‖log(T1⁻¹ T2)^∨‖₂ (metres and radians mixed, as in the paper). → (…)."""
-    return _call(_core.se3_distance, [(T1, "T1", (4, 4)), (T2, "T2", (4, 4))], ())
+    """d(T1, T2) = ‖log(T1⁻¹ T2)^∨‖₂ (metres and radians mixed, as in the paper). → (…).
+    Poses whose distance overflows a float (translations near 1e308) raise InvalidInputError."""
+    out = _call(_core.se3_distance, [(T1, "T1", (4, 4)), (T2, "T2", (4, 4))], ())
+    if not np.isfinite(out).all():
+        raise InvalidInputError("T1, T2: the distance overflows a float (translations too large)")
+    return out
 
 
 def se3_interpolate(T1: ArrayLike, T2: ArrayLike, alpha: ArrayLike) -> Array:

@@ -298,8 +298,8 @@ def geometry_specs() -> list[Spec]:
     }
     return [
         Spec(m, "geoloc.geometry.solve_pnp", pnp_args, ("points3d", "pixels", "cam"), "pnp",
-             aliases={"cam": ["fx", "camera", "cam"], "points3d": ["pixels"], "pixels": ["points3d"],
-                      "point_covariances": ["points3d"]}, huge=3000),
+             aliases={"cam": ["fx", "camera", "cam"], "points3d": ["pixels", "point_covariances"],
+                      "pixels": ["points3d", "point_covariances"], "point_covariances": ["points3d"]}, huge=3000),
         Spec(m, "geoloc.geometry.triangulate",
              {"poses": a(TRI_POSES), "cam": ("camera", CAM), "cam_ids": a(CAM_IDS), "track_ids": a(TRACK_IDS),
               "pixels": a(TRI_PX), "huber": ("float", 1.0), "loss": ("str:huber|cauchy|none", "huber"),

@@ -91,3 +91,18 @@ def test_summarize_names_covariances_when_their_sigma_overflows():
     covs = np.repeat((np.eye(6) * 1e296)[None], 5, axis=0)
     with pytest.raises(geoloc.InvalidInputError, match=r"^covariances"):
         geoloc.evaluation.summarize(poses, poses, covariances=covs, timestamps=[0.0, 1.0, 2.0, 3.0, 4.0])
+
+
+def test_se3_distance_that_overflows_is_refused_not_infinite():
+    """Found by the long profile: finite poses 2e308 apart gave an infinite distance."""
+    a, b = np.eye(4), np.eye(4)
+    a[0, 3], b[0, 3] = 1e308, -1e308
+    _rejects(lambda: geoloc.lie.se3_distance(a, b), "T1, T2")
+    assert geoloc.lie.se3_distance(np.eye(4), np.eye(4)) == 0.0
+
+
+def test_nees_of_a_covariance_at_underflow_is_refused_not_infinite():
+    """Found by the long profile: a positive definite but subnormal covariance gave NEES = inf."""
+    truth = np.eye(4)
+    truth[0, 3] = 1e-3
+    _rejects(lambda: geoloc.evaluation.nees(np.eye(4)[None], (np.eye(6) * 1e-320)[None], truth[None]), r"cov\[0\]")
