@@ -26,14 +26,19 @@ COVERED = [1, 13, 29, 45]
 CHI2_6_999 = 22.457744484825326
 
 
-@pytest.fixture(scope="module")
-def small_map():
+def _kitchen_map(first: int, stop: int, step: int):
+    """The shared kitchen sequence and a map (with its 3D model) of its frames first:stop:step."""
     if not KITCHEN.is_dir():
         pytest.skip(f"shared sample data not found at {KITCHEN} (see ../shared/data/README.md)")
     from geoloc.datasets import load_7scenes
 
     seq = load_7scenes(KITCHEN)
-    return seq, geoloc.Map.build(seq[list(range(0, 60, 2))], model=True)
+    return seq, geoloc.Map.build(seq[list(range(first, stop, step))], model=True)
+
+
+@pytest.fixture(scope="module")
+def small_map():
+    return _kitchen_map(0, 60, 2)
 
 
 @pytest.mark.parametrize("locator", ["paper", "model"])
@@ -58,12 +63,7 @@ def test_uncovered_queries_are_not_reported_as_confident_poses(small_map, locato
 
 @pytest.fixture(scope="module")
 def map_100():
-    if not KITCHEN.is_dir():
-        pytest.skip(f"shared sample data not found at {KITCHEN} (see ../shared/data/README.md)")
-    from geoloc.datasets import load_7scenes
-
-    seq = load_7scenes(KITCHEN)
-    return seq, geoloc.Map.build(seq[list(range(0, 300, 3))], model=True)
+    return _kitchen_map(0, 300, 3)
 
 
 def test_the_model_locator_reports_only_poses_the_map_confirms(map_100):

@@ -62,8 +62,6 @@ ReferenceFormat = Literal["auto", "7scenes-reference", "tum"]
 
 #: The formats :func:`load_reference` reads ("auto" tells them apart by the values per line).
 REFERENCE_FORMATS: tuple[str, ...] = ("auto", "7scenes-reference", "tum")
-#: Largest ‖RᵀR − I‖_F of a rotation block a reference file may hold (it is then projected).
-MAX_ORTHONORMALITY_ERROR = lie.MAX_ORTHONORMALITY_ERROR
 _VALUES = {"7scenes-reference": 13, "tum": 8}
 _MIN_FRAMES = 3
 

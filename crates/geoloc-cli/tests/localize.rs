@@ -470,22 +470,9 @@ fn a_fifo_in_place_of_a_file_is_refused_without_hanging() {
 /// allocation failure); now it is a clean error naming the record, from a file and from stdin.
 #[test]
 fn a_huge_record_claim_is_a_clean_error_under_a_memory_limit() {
-    use geoloc_core::frames::{MAX_DESCRIPTOR_WIDTH, MAX_KEYPOINTS};
     let d = dir("claim");
     let (map, _) = scene(&d, 0);
-    let width = MAX_DESCRIPTOR_WIDTH;
-    let n = (4_120_000_000 - 32) / (16 + 8 + 4 * width);
-    let len = 32 + n * (16 + 8 + 4 * width);
-    assert!(n <= MAX_KEYPOINTS);
-    let mut bytes = Vec::new();
-    write_stream_header(&mut bytes).expect("in memory");
-    bytes.extend((len as u32).to_le_bytes());
-    bytes.extend(1.0f64.to_le_bytes());
-    bytes.extend((n as u32).to_le_bytes());
-    bytes.extend([1, 0, 0, 0]);
-    bytes.extend((width as u32).to_le_bytes());
-    bytes.extend(0u32.to_le_bytes());
-    assert_eq!(bytes.len(), 44);
+    let (bytes, len) = testing::huge_frame_record_claim();
     let input = d.join("claim.bin");
     std::fs::write(&input, &bytes).expect("writes");
     let bin = env!("CARGO_BIN_EXE_geoloc-rs");
@@ -518,14 +505,7 @@ fn a_crafted_chain_vocabulary_is_refused_at_once() {
     let d = dir("chain");
     let (map, _) = scene(&d, 0);
     let mut f = file::read(&map).expect("reads");
-    let mut offsets = vec![0i64];
-    let mut children = Vec::with_capacity(2 * NODES);
-    for i in 0..NODES {
-        // the next node first, with the same centre as the word: every descent takes it
-        children.push(if i + 1 < NODES { i as i64 + 1 } else { -(i as i64) - 2 });
-        children.push(-(i as i64) - 1);
-        offsets.push(children.len() as i64);
-    }
+    let (offsets, children) = testing::chain_vocabulary(NODES);
     let rows = children.len();
     let tensors = [
         ("vocabulary.node_offsets", vec![offsets.len()], TensorData::I64(offsets)),

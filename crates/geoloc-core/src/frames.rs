@@ -62,9 +62,9 @@ pub const READ_CHUNK_BYTES: usize = 1 << 20;
 /// Bytes of the stream header (magic, version, reserved).
 const HEADER_BYTES: usize = 16;
 /// Bytes of the fixed part of a payload (timestamp … g).
-const FIXED_BYTES: usize = 8 + 4 + 4 + 4 + 4;
+pub(crate) const FIXED_BYTES: usize = 8 + 4 + 4 + 4 + 4;
 /// Bytes of the trailing checksum.
-const CHECKSUM_BYTES: usize = 8;
+pub(crate) const CHECKSUM_BYTES: usize = 8;
 
 /// One frame's features.
 #[derive(Clone, Debug, PartialEq)]
@@ -147,7 +147,7 @@ fn kind_and_width(d: &DescriptorSet) -> (u8, usize) {
 }
 
 /// Payload size implied by the fixed fields, or None on overflow.
-fn payload_len(n: usize, kind: u8, width: usize, g: usize) -> Option<usize> {
+pub(crate) fn payload_len(n: usize, kind: u8, width: usize, g: usize) -> Option<usize> {
     let descriptor_bytes = if kind == 0 { 1 } else { 4 };
     let per_keypoint = 16 + 8 + width.checked_mul(descriptor_bytes)?;
     FIXED_BYTES.checked_add(n.checked_mul(per_keypoint)?)?.checked_add(g.checked_mul(4)?)?.checked_add(CHECKSUM_BYTES)
@@ -656,28 +656,9 @@ mod tests {
         assert!(err.to_string().contains("frame 0") && err.to_string().contains("exceed the limit"), "{err}");
     }
 
-    /// The 44-byte stream of a self-consistent record that claims ~4.12 GB: the header, the
-    /// length field and the fixed fields (float descriptors of the widest width), nothing else.
-    fn huge_self_consistent_claim() -> (Vec<u8>, usize) {
-        let width = MAX_DESCRIPTOR_WIDTH;
-        let n = (4_120_000_000 - FIXED_BYTES - CHECKSUM_BYTES) / (16 + 8 + 4 * width);
-        let len = payload_len(n, 1, width, 0).expect("no overflow");
-        assert!(n <= MAX_KEYPOINTS && u32::try_from(len).is_ok(), "the claim passes every size check");
-        let mut bytes = Vec::new();
-        write_stream_header(&mut bytes).expect("in memory");
-        bytes.extend((len as u32).to_le_bytes());
-        bytes.extend(1.0f64.to_le_bytes());
-        bytes.extend((n as u32).to_le_bytes());
-        bytes.extend([1, 0, 0, 0]);
-        bytes.extend((width as u32).to_le_bytes());
-        bytes.extend(0u32.to_le_bytes());
-        assert_eq!(bytes.len(), 44);
-        (bytes, len)
-    }
-
     #[test]
     fn a_self_consistent_length_beyond_the_data_is_refused_before_allocating() {
-        let (bytes, len) = huge_self_consistent_claim();
+        let (bytes, len) = crate::testing::huge_frame_record_claim();
         // the size known (a file): refused from the length field, before reading the payload
         let err = FrameReader::with_size(bytes.as_slice(), bytes.len() as u64)
             .expect("header intact")

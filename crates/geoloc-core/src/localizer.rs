@@ -336,6 +336,9 @@ pub struct Localizer {
     cache: HashMap<(usize, Vec<usize>), Arc<MapPoints>>,
     /// The model locator's 3D model when the map has none (built by [`Localizer::new`]).
     built_model: Option<SceneModel>,
+    /// Whether the map's prepared pair matches were made with these options (they serve
+    /// the paper locator's groups then).
+    prepared_matches: bool,
 }
 
 fn ms(start: Instant) -> f64 {
@@ -358,8 +361,14 @@ impl Localizer {
             }
             _ => None,
         };
+        let o = &options;
+        let prepared_matches = map
+            .group_matches
+            .as_ref()
+            .is_some_and(|m| m.options == fingerprint(&o.matching, o.epipolar_px, &o.keyframes));
         Ok(Self {
             built_model,
+            prepared_matches,
             map,
             options,
             history: VecDeque::new(),
@@ -753,12 +762,7 @@ impl Localizer {
         let kf = &self.map.keyframes;
         let seed_local = group.iter().position(|&g| g == seed).expect("invariant: the group holds its seed");
         let o = &self.options;
-        // the pairs prepared at build time serve when they were made with these options
-        let prepared = self
-            .map
-            .group_matches
-            .as_ref()
-            .filter(|m| m.options == fingerprint(&o.matching, o.epipolar_px, &o.keyframes));
+        let prepared = self.map.group_matches.as_ref().filter(|_| self.prepared_matches);
         let mut obs = Observations::default();
         for (local, &g) in group.iter().enumerate() {
             if g == seed {

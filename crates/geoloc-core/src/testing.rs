@@ -164,3 +164,41 @@ pub fn walk(t: f64, offset: f64, start_x: f64) -> SE3 {
     let c = Vector3::new(start_x + 0.6 * t, offset + 0.05 * (2.0 * t).sin(), 0.0);
     look_at(&c, &(c + Vector3::new(0.1 * (1.3 * t).sin(), 0.0, 5.0)))
 }
+
+/// The 44-byte frame stream of one self-consistent record that claims ~4.12 GB: the stream
+/// header, the length field and the fixed fields (float descriptors of the widest width),
+/// nothing else. Returns the bytes and the claimed payload length. Readers must refuse it
+/// before allocating.
+pub fn huge_frame_record_claim() -> (Vec<u8>, usize) {
+    use crate::frames::{
+        CHECKSUM_BYTES, FIXED_BYTES, MAX_DESCRIPTOR_WIDTH, MAX_KEYPOINTS, payload_len, write_stream_header,
+    };
+    let width = MAX_DESCRIPTOR_WIDTH;
+    let n = (4_120_000_000 - FIXED_BYTES - CHECKSUM_BYTES) / (16 + 8 + 4 * width);
+    let len = payload_len(n, 1, width, 0).expect("invariant: no overflow");
+    assert!(n <= MAX_KEYPOINTS && u32::try_from(len).is_ok(), "the claim passes every size check");
+    let mut bytes = Vec::new();
+    write_stream_header(&mut bytes).expect("invariant: in memory");
+    bytes.extend((len as u32).to_le_bytes());
+    bytes.extend(1.0f64.to_le_bytes());
+    bytes.extend((n as u32).to_le_bytes());
+    bytes.extend([1, 0, 0, 0]);
+    bytes.extend((width as u32).to_le_bytes());
+    bytes.extend(0u32.to_le_bytes());
+    assert_eq!(bytes.len(), 44);
+    (bytes, len)
+}
+
+/// The `vocabulary.node_offsets` and `vocabulary.children` arrays of a chain of `nodes`
+/// levels: node i has node i + 1 (first, so a descent with equal centres runs the whole
+/// chain) and word i; the last node's children are words. `nodes + 1` words.
+pub fn chain_vocabulary(nodes: usize) -> (Vec<i64>, Vec<i64>) {
+    let mut offsets = vec![0i64];
+    let mut children = Vec::with_capacity(2 * nodes);
+    for i in 0..nodes {
+        children.push(if i + 1 < nodes { i as i64 + 1 } else { -(i as i64) - 2 });
+        children.push(-(i as i64) - 1);
+        offsets.push(children.len() as i64);
+    }
+    (offsets, children)
+}

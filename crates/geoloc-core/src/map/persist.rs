@@ -1157,15 +1157,7 @@ mod tests {
     fn a_crafted_chain_vocabulary_is_refused_at_load_at_once() {
         let original = map(true, RetrievalKind::Bow { branching: 4, depth: 2 }, false);
         let mut file = original.to_map_file("{}").expect("serializes");
-        let mut node_offsets = vec![0i64];
-        let mut children = Vec::with_capacity(2 * CHAIN_NODES);
-        for i in 0..CHAIN_NODES {
-            // the next node first, with the same centre as the word: every descent ties and
-            // takes the first child, so it runs the whole chain
-            children.push(if i + 1 < CHAIN_NODES { i as i64 + 1 } else { -(i as i64) - 2 });
-            children.push(-(i as i64) - 1);
-            node_offsets.push(children.len() as i64);
-        }
+        let (node_offsets, children) = crate::testing::chain_vocabulary(CHAIN_NODES);
         let words = CHAIN_NODES + 1;
         let centres = DescriptorSet::Binary { data: vec![0; children.len() * 32], width: 32 };
         let chain = VocabularyArrays { node_offsets, centres, children };
