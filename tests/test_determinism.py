@@ -1,11 +1,10 @@
-"""Same input, same bytes (issue 8 item 3): the feature-level map (with its camera estimated
-from the keyframes) and localizer on a seeded
-synthetic scene — with a stopped camera, i.e. a run of identical keyframes and of identical
-query frames, where BoW scores tie exactly — give byte-identical poses, covariances and
-sources in separate processes, with GEOLOC_NUM_THREADS=1 and 2, and with parallelism off.
-
-Before the fix, BoW vectors lived in a per-process randomly seeded HashMap and their sums ran
-in f32 in its iteration order, so near-ties flipped between processes.
+"""Same input, same bytes: the feature-level map (its camera estimated from the keyframes,
+its labels adjusted, its 3D model and the paper locator's pair matches built) and localizer
+on a seeded synthetic scene — with a stopped camera, i.e. a run of identical keyframes and
+of identical query frames, where BoW scores tie exactly — give a byte-identical saved map
+and byte-identical poses, covariances and sources in separate processes, with
+GEOLOC_NUM_THREADS=1 and 2, and with parallelism off. (BoW near-ties are the sharp case: a
+sum in a hash map's iteration order flips them between processes.)
 """
 
 from __future__ import annotations
@@ -45,10 +44,16 @@ for i in range(30):
     else:
         k, d = observe(rng, pose)
     poses.append(pose); kps.append(k); descs.append(d)
-m = FeatureMap(cam, np.stack(poses), kps, descs, branching=8, depth=3, seed=1, refine_intrinsics=True)
+m = FeatureMap(cam, np.stack(poses), kps, descs, branching=8, depth=3, seed=1, refine_intrinsics=True,
+               adjust_labels=True, model=True)
 loc = FeatureLocalizer(m)
 h = hashlib.sha256()
 h.update(repr(sorted(m.self_calibration.items())).encode())  # the camera estimate too
+import os, tempfile
+with tempfile.TemporaryDirectory() as tmp:  # the saved map's bytes: adjusted labels, model, pair matches
+    m.save(os.path.join(tmp, "m.geoloc"))
+    with open(os.path.join(tmp, "m.geoloc"), "rb") as f:
+        h.update(f.read())
 frame = None
 for f in range(40):
     t = 0.3 + f / 30
