@@ -1,4 +1,4 @@
-"""Calibration report (issue 8): is the returned 6×6 covariance right on real images?
+"""Calibration report: is the returned 6×6 covariance right on real images?
 
 Cross-validation on the shared 7-Scenes redkitchen frames 0–699: every contiguous test block
 of 100 frames, the map trained on the rest minus 15 frames on either side (the dev

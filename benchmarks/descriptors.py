@@ -1,4 +1,4 @@
-"""ORB vs SIFT vs RootSIFT with the paper's locator on the cross-validation folds (issue 13).
+"""ORB vs SIFT vs RootSIFT with the paper's locator on the cross-validation folds.
 
     PYTHONPATH=python python benchmarks/descriptors.py [--dataset ../shared/data/7scenes-redkitchen]
         [--kinds orb,sift,rootsift] [--folds 600-699,0-99] [--cache DIR] [--limit N]

@@ -1,4 +1,4 @@
-"""Novel viewpoints (issue 13): the paper's locator vs the map-level 3D model locator.
+"""Novel viewpoints: the paper's locator vs the map-level 3D model locator.
 
 Cross-validation on the shared 7-Scenes redkitchen frames 0–699: a test block of 100 frames,
 the map trained on the rest minus 15 frames on either side; single-image mode (``reset()``

@@ -1,4 +1,4 @@
-"""BoW retrieval quality per descriptor kind (issue 13, item 4): where does the map's
+"""BoW retrieval quality per descriptor kind: where does the map's
 bag-of-words ranking put the keyframes that are actually near a query?
 
 Same cross-validation as ``novel_views.py`` (7-Scenes redkitchen frames 0–699, a test block of

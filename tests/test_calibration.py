@@ -1,4 +1,4 @@
-"""Issue 8 at the image level: the map records its estimated noise (and keeps it through
+"""At the image level: the map records its estimated noise (and keeps it through
 save/load), and the sequential mode is never worse than the geometric locator alone on the
 synthetic room. The 7-Scenes cross-validation is ``benchmarks/calibration.py`` (minutes)."""
 

@@ -21,13 +21,13 @@ ROOT = Path(__file__).resolve().parents[1]
 REDKITCHEN = ROOT.parent / "shared" / "data" / "7scenes-redkitchen"
 #: The room's frame count in these tests: two laps of 60 frames, 12° apart.
 ROOM_FRAMES = 60
-#: Held-out lap-2 frames localize against a lap-1 map far better than this (DESIGN §6).
+#: Held-out lap-2 frames localize against a lap-1 map far better than this.
 SYNTHETIC_MEDIAN_M = 0.01
 SYNTHETIC_MEDIAN_DEG = 0.3
 #: The real-data slice (train 0:600:2, test 600:700:10, single mode): the hand-fed core
 #: reached 4.6 cm on the full split; a coarser map may lose a little, not more.
 REAL_SLICE_MEDIAN_M = 0.06
-#: The keys DESIGN.md §7 fixes for the result JSON (plus nees_coverage).
+#: The keys of the result JSON (plus nees_coverage).
 RESULT_KEYS = {"median_translation_m", "median_rotation_deg", "frames", "sources", "recall", "timing_ms", "nees_coverage", "per_frame"}
 PLOTS = ("trajectory.png", "errors.png", "error_cdf.png", "calibration.png")
 

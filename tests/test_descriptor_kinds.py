@@ -1,4 +1,4 @@
-"""Issue 13: the float-descriptor path (SIFT, RootSIFT) against ORB on the synthetic room —
+"""The float-descriptor path (SIFT, RootSIFT) against ORB on the synthetic room —
 same map frames, same queries, the paper's locator in single-image mode. SIFT must localize
 every query ORB does, to the same centimetre. ~15 s (SIFT extraction dominates)."""
 

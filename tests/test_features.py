@@ -110,7 +110,7 @@ def test_orb_on_a_real_frame() -> None:
 
 
 def test_sift_gives_the_requested_count_on_a_blurred_frame() -> None:
-    """Issue 13: with OpenCV's contrast threshold (0.04) SIFT found 437 of 1000 keypoints on
+    """With OpenCV's contrast threshold (0.04) SIFT found 437 of 1000 keypoints on
     this blurred frame (and a median of 832 on the 7-Scenes kitchen) while ORB finds ~1000;
     ``n_features`` must mean the same for both kinds."""
     seq = datasets.synthetic_room(n_frames=10, blur=2.0)

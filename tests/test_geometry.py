@@ -216,7 +216,7 @@ def test_camera_validation_and_undistort_without_distortion() -> None:
     np.testing.assert_array_equal(cam.K, [[500, 0, 320], [0, 500, 240], [0, 0, 1]])
 
 
-# --- issue #11 regressions: each example of the issue, one test --------------------------
+# --- bad inputs, one test each -------------------------------------------------------
 
 
 def _two_view_tracks(ids: list[int]) -> tuple[Array, NDArray[np.int64], NDArray[np.int64], Array]:

@@ -12,8 +12,8 @@ import geoloc
 from geoloc import lie
 from geoloc.testing import ANGLE_REGIMES_RAD, numerical_jacobian, random_twists, reference_expm
 
-EXP_LOG_RTOL = 1e-8  # issue #2: ≤1e-8 relative on exp/log
-JACOBIAN_RTOL = 1e-5  # issue #2: ≤1e-5 on Jacobians
+EXP_LOG_RTOL = 1e-8  # ≤1e-8 relative on exp/log
+JACOBIAN_RTOL = 1e-5  # ≤1e-5 on Jacobians
 TRANSLATIONS_M = (0.0, 1.0, 30.0)
 Array = NDArray[np.float64]
 
@@ -301,7 +301,7 @@ def test_core_refuses_bad_layouts_without_panicking() -> None:
         core.so3_exp(np.zeros((2, 3), dtype=np.float32))
 
 
-# --- issue #11 regressions ---------------------------------------------------------------
+# --- bad inputs ---------------------------------------------------------------------
 
 
 def test_exp_refuses_overflowing_magnitudes() -> None:

@@ -121,7 +121,7 @@ def _tiny_map_inputs() -> tuple[np.ndarray, list[np.ndarray], list[np.ndarray]]:
 
 
 def test_map_refuses_bad_input_by_name() -> None:
-    """Issue 11 regressions: each raises InvalidInputError naming the argument."""
+    """Each raises InvalidInputError naming the argument."""
     poses, kps, descs = _tiny_map_inputs()
     with pytest.raises(geoloc.InvalidInputError, match=r"^depth: "):
         FeatureMap(CAM, poses, kps, descs, branching=2, depth=100000)
@@ -145,7 +145,7 @@ def test_map_refuses_bad_input_by_name() -> None:
 
 
 def test_global_descriptor_shape_and_name() -> None:
-    """Issue 11: a (2, D) global_descriptor was silently flattened, and a wrong length was
+    """A (2, D) global_descriptor was silently flattened, and a wrong length was
     reported as 'queries'."""
     poses, kps, descs = _tiny_map_inputs()
     g = np.random.default_rng(5).normal(size=(3, 4)).astype(np.float32)
@@ -160,7 +160,7 @@ def test_global_descriptor_shape_and_name() -> None:
 
 
 def test_integer_like_options() -> None:
-    """Issue 11: FeatureLocalizer(history=np.int64(5)) was refused."""
+    """FeatureLocalizer(history=np.int64(5)) was refused."""
     poses, kps, descs = _tiny_map_inputs()
     m = FeatureMap(CAM, poses, kps, descs, branching=np.int64(2), depth=np.int32(2), seed=np.uint64(1))
     FeatureLocalizer(m, history=np.int64(5))

@@ -18,7 +18,7 @@ from geoloc.mapping import Localizer, Map
 ROOM_FRAMES = 40
 MAP_FRAMES = slice(0, ROOM_FRAMES // 2)
 QUERIES = (21, 27, 33)
-#: Lap-2 frames localize against a lap-1 map to a few mm (DESIGN §6: ≤ 1 cm / 0.3° median).
+#: Lap-2 frames localize against a lap-1 map to a few mm (≤ 1 cm / 0.3° median).
 MEDIAN_M = 0.01
 MEDIAN_DEG = 0.3
 

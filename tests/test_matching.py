@@ -61,7 +61,7 @@ def test_bad_input() -> None:
     with pytest.raises(geoloc.InvalidInputError, match=r"descriptors_a: expected shape \(N, W\)"):
         matching.match_descriptors(np.zeros(5), a8)
     cam = geoloc.Camera(1, 1, 0, 0)
-    # issue 11: the errors name the Python arguments, pairs and max_px (were matches, max_epipolar_px)
+    # the errors name the Python arguments, pairs and max_px (were matches, max_epipolar_px)
     with pytest.raises(geoloc.InvalidInputError, match=r"^pairs: "):
         matching.epipolar_filter(cam, np.eye(4), np.eye(4), np.zeros((1, 2)), np.zeros((1, 2)), np.array([[3, 0]]))
     with pytest.raises(geoloc.InvalidInputError, match=r"^max_px: "):
@@ -73,7 +73,7 @@ def test_bad_input() -> None:
 
 
 def test_self_matches_at_extreme_magnitudes() -> None:
-    """Issue 11: float32 values near 1e20 are finite but their squares are not; matching used
+    """Float32 values near 1e20 are finite but their squares are not; matching used
     to find 0 of 50 self-matches there."""
     x = (np.random.default_rng(0).normal(size=(50, 16)) * 1e20).astype(np.float32)
     pairs, dist = matching.match_descriptors(x, x)
@@ -82,7 +82,7 @@ def test_self_matches_at_extreme_magnitudes() -> None:
 
 @pytest.mark.parametrize("scale", [512.0, 1.0])  # OpenCV SIFT rows have norm ≈ 512, RootSIFT rows norm 1
 def test_float_matching_equals_brute_force_in_euclidean_units(scale: float) -> None:
-    """Issue 13: every float threshold is in the units of the Euclidean distance (not its
+    """Every float threshold is in the units of the Euclidean distance (not its
     square, not bits): the ratio test d₁ < r·d₂, the mutual check and ``max_distance`` give
     exactly the brute-force selection, for SIFT-sized and RootSIFT-sized rows."""
     rng = np.random.default_rng(5)

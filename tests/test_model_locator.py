@@ -1,4 +1,4 @@
-"""The model locator (issue 13) through the Python API: the synthetic room, the stored model,
+"""The model locator through the Python API: the synthetic room, the stored model,
 the option checks. The core tests cover the model against true points, the no-leak rule and
 thread determinism; 7-Scenes numbers are in benchmarks/novel_views.py."""
 

@@ -40,7 +40,7 @@ def test_short_baseline_scene_is_short_and_calibrated() -> None:
 
 
 def test_counts_and_seeds_are_checked() -> None:
-    """Issue #11: a huge trial count or a negative / oversized seed is refused up front."""
+    """A huge trial count or a negative / oversized seed is refused up front."""
     import geoloc
 
     with pytest.raises(geoloc.InvalidInputError, match="trials: expected an integer in"):

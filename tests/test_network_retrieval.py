@@ -1,4 +1,4 @@
-"""The descriptor network end to end (issue 9): `geoloc train --dataset synthetic --tiny`
+"""The descriptor network end to end: `geoloc train --dataset synthetic --tiny`
 beats the tiny-image baseline on held-out synthetic frames, and a map built with one model
 refuses another."""
 

@@ -138,7 +138,7 @@ def test_bow_bad_input() -> None:
 @pytest.mark.parametrize("scale", [1e20, 1e-25])
 @pytest.mark.parametrize("backend", ["kdtree", "flat"])
 def test_exact_at_extreme_magnitudes(scale: float, backend: str) -> None:
-    """Issue 11: DescriptorIndex(x).query(x[[7, 42]]) with values near 1e20 returned index 0,
+    """DescriptorIndex(x).query(x[[7, 42]]) with values near 1e20 returned index 0,
     distance 0 (inf - inf = NaN); now equal to brute force in float64."""
     rng = np.random.default_rng(1)
     x = (rng.normal(size=(100, 4)) * scale).astype(np.float32)
@@ -152,7 +152,7 @@ def test_exact_at_extreme_magnitudes(scale: float, backend: str) -> None:
 
 
 def test_vocabulary_limits_are_named_errors() -> None:
-    """Issue 11: depth 20000 overflowed the stack (segfault); counts that do not fit raise
+    """Depth 20000 overflowed the stack (segfault); counts that do not fit raise
     InvalidInputError naming the argument (not OverflowError); numpy integers are accepted."""
     from geoloc.retrieval import Vocabulary
 
@@ -169,7 +169,7 @@ def test_vocabulary_limits_are_named_errors() -> None:
 
 
 def test_bow_scores_stay_in_unit_interval() -> None:
-    """Issue 11: BoW scores reached 1.0000011 (f32 sums); now clamped f64 sums in [0, 1]."""
+    """BoW scores reached 1.0000011 (f32 sums); now clamped f64 sums in [0, 1]."""
     from geoloc.retrieval import BowDatabase, Vocabulary
 
     rng = np.random.default_rng(7)

@@ -132,7 +132,7 @@ def test_fusion_gates_a_ten_sigma_outlier_and_fuses_otherwise() -> None:
         geoloc.fuse(np.stack([np.eye(4)] * 2), cov, near, cov)
 
 
-# --- issue #11 regressions ---------------------------------------------------------------
+# --- bad inputs ---------------------------------------------------------------------
 
 
 def test_motion_predict_refuses_an_overflowing_query_time() -> None:

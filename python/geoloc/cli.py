@@ -360,7 +360,7 @@ def _add_evaluate(commands: argparse._SubParsersAction[argparse.ArgumentParser])
         help="--reference's format: 7scenes-reference (frame index then the row-major top 3x4 camera-to-world pose per "
         "line), tum (t tx ty tz qx qy qz qw, matched to frames by time); default auto, by the values per line",
     )
-    ev.add_argument("--json", type=output_file, metavar="FILE", help="write the result dict (DESIGN.md §7 keys) as JSON")
+    ev.add_argument("--json", type=output_file, metavar="FILE", help="write the result dict as JSON")
     ev.add_argument("--timings", action="store_true", help="print the median time of every stage")
     ev.add_argument(
         "--plots", type=new_folder, metavar="DIR",

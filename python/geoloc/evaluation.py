@@ -240,7 +240,7 @@ def summarize(
     timings_ms: Sequence[Mapping[str, float]] | None = None,
     timestamps: ArrayLike | None = None,
 ) -> dict[str, Any]:
-    """The result dictionary of DESIGN.md §7 (JSON-ready) for N frames.
+    """The result dictionary (JSON-ready) for N frames.
 
     ``estimates[k]`` is frame k's (4, 4) world_from_cam pose or None when lost;
     ``covariances[k]`` its (6, 6) right-perturbation covariance (translation first) or None;

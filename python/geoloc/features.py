@@ -20,7 +20,7 @@ Descriptors: ORB (N, 32) uint8 (binary, Hamming); SIFT (N, 128) float32 (L2), or
 (Arandjelović & Zisserman 2012: L1-normalize, square root) with ``root_sift=True``.
 Extraction is deterministic (OpenCV's detectors are, for a given image and options).
 
-Per descriptor kind downstream (issue 13): bag-of-words retrieval uses 10³ words for both
+Per descriptor kind downstream: bag-of-words retrieval uses 10³ words for both
 kinds and counts a word's occurrences for ORB but only its presence for SIFT/RootSIFT
 (:class:`geoloc.retrieval.BowDatabase`: SIFT's bursts on repetitive texture); matching uses
 the same unit-free thresholds for both (Lowe's ratio 0.8 on Hamming bits or on the L2

@@ -9,7 +9,7 @@ core's map plus the settings needed to describe a query the same way; it is save
 ``.geoloc`` file (safetensors, written atomically by geoloc-core) that Python and the robot
 binary ``geoloc-rs`` both read.
 
-:class:`Localizer` runs the per-frame pipeline of DESIGN.md §1 on images: decode → features →
+:class:`Localizer` runs the per-frame pipeline on images: decode → features →
 retrieval → keyframe group → triangulation → PnP with covariance → motion model → gated fusion.
 """
 

@@ -97,7 +97,7 @@ def paper_scene() -> tuple[Array, Array, Array]:
 
 
 def short_baseline_scene() -> tuple[Array, Array, Array]:
-    """The short-baseline scene (issue 8): 4 training cameras spread over 0.35 m, the target
+    """The short-baseline scene: 4 training cameras spread over 0.35 m, the target
     among them and a little behind, 119 points 2.5–6 m away — triangulation angles of a few
     degrees, so the points' depth is poorly known and strongly correlated with the labels.
     Returns (training poses (4, 4, 4), target pose (4, 4), points (119, 3))."""

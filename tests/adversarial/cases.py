@@ -350,7 +350,7 @@ def matching_specs() -> list[Spec]:
 
 @st.composite
 def scaled_index_case(draw: st.DrawFn) -> dict[str, Any]:
-    """Issue 11: exact 1-NN for every finite float32 input (values near 1e20, 1e-25, …)."""
+    """Exact 1-NN for every finite float32 input (values near 1e20, 1e-25, …)."""
     scale = draw(st.sampled_from([1e20, 1e19, 1e-25, 1e-40, 3e38, 1.0]))
     backend = draw(st.sampled_from([None, "flat", "kdtree"]))
     seed = draw(st.integers(0, 2**16))

@@ -19,7 +19,7 @@ COV = np.repeat(np.diag([1e-4] * 3 + [1e-5] * 3)[None], 3, axis=0)
 
 
 def test_undistort_points_empty_and_huge() -> None:
-    """Issue 11: a numpy reshape error from Camera.undistort_points on an empty (0, 2) array;
+    """A numpy reshape error from Camera.undistort_points on an empty (0, 2) array;
     pixels of 1e302 came back NaN from OpenCV."""
     cam = geoloc.Camera(525, 525, 320, 240, dist=(0.1, -0.05, 0.001, 0.0))
     assert cam.undistort_points(np.zeros((0, 2))).shape == (0, 2)
@@ -126,7 +126,7 @@ def test_matching_and_retrieval_option_types() -> None:
 
 
 def test_bow_scene_whose_words_discriminate() -> None:
-    """Issue 11: a scene where every word is in every image has idf 0 and cannot tell images
+    """A scene where every word is in every image has idf 0 and cannot tell images
     apart. Here each image has its own descriptors: each is retrieved by its own, score > 0."""
     rng = np.random.default_rng(3)
     images = [rng.integers(0, 256, size=(40, 32), dtype=np.uint8) for _ in range(4)]

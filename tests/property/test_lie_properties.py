@@ -1,4 +1,4 @@
-"""Hypothesis properties of geoloc.lie: every identity of DESIGN.md §6 over twists drawn
+"""Hypothesis properties of geoloc.lie: every Lie identity over twists drawn
 from all angle regimes (identity, 1e-9 rad, ordinary, π − 1e-6) and |ρ| ≤ 30 m."""
 
 from __future__ import annotations

@@ -372,7 +372,7 @@ mod tests {
             matches!(fuse(&p, &good, &p, &asym, 3.0, Gate::Isometric), Err(GeolocError::InvalidInput { name, .. }) if name == "cov_g")
         );
         assert!(fuse(&p, &good, &p, &good, 0.0, Gate::Isometric).is_err());
-        // issue #11: a negative covariance is refused, not fused
+        // A negative covariance is refused, not fused
         let negative = -Matrix6::identity();
         assert!(
             matches!(fuse(&p, &good, &p, &negative, 3.0, Gate::Isometric), Err(GeolocError::InvalidInput { name, .. }) if name == "cov_g")

@@ -1,4 +1,4 @@
-//! Co-visible keyframe selection (the paper's §"keyframe selection", DESIGN.md §4).
+//! Co-visible keyframe selection (the paper's §"keyframe selection").
 //!
 //! The score of a pair of world_from_cam poses rewards a baseline near d_m and a small
 //! rotation:

@@ -1,7 +1,7 @@
 //! Lie groups SO(3) and SE(3): exponential and logarithm maps, Jacobians, adjoints,
 //! distances and interpolation.
 //!
-//! Conventions (DESIGN.md §3): poses are world_from_cam; twists are ξ = (ρ, φ),
+//! Conventions: poses are world_from_cam; twists are ξ = (ρ, φ),
 //! translation first, T = exp(ξ^); perturbations are on the right, T ⊞ δ = T exp(δ^);
 //! Jacobians and the Q block follow Barfoot, *State Estimation for Robotics* (2017).
 

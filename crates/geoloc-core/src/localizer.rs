@@ -1,4 +1,4 @@
-//! The per-frame localizer: the paper's pipeline (DESIGN.md §1) frame after frame.
+//! The per-frame localizer: the paper's pipeline frame after frame.
 //!
 //! retrieval (global index or BoW) → keyframe group around the retrieved keyframe → matches
 //! from the seed keyframe to the rest of the group, epipolar-checked with their known poses →
@@ -395,7 +395,7 @@ impl Localizer {
         self.map.model.as_ref().or(self.built_model.as_ref())
     }
 
-    /// Localizes one frame: the steps of DESIGN.md §1, (a)–(e), each a method below.
+    /// Localizes one frame: the steps retrieval, group, triangulation, PnP, fusion, each a method below.
     ///
     /// # Errors
     /// Invalid frames: keypoints and descriptors of different counts, non-finite keypoints or

@@ -220,7 +220,7 @@ pub fn hamming(a: &[u8], b: &[u8]) -> u32 {
 ///   for ORB, SIFT (rows of norm ≈ 512 from OpenCV) and RootSIFT (rows of norm 1). Measured
 ///   on 7-Scenes kitchen training pairs with known poses (mutual nearest neighbours; true:
 ///   Sampson < 1 px, false: > 10 px), ORB at 0.8 keeps 78 % of the true and 10 % of the false
-///   matches; issue 13: from the same seed keyframes SIFT with 0.8 gives more PnP inliers
+///   matches; from the same seed keyframes SIFT with 0.8 gives more PnP inliers
 ///   than ORB (median 35 vs 19 on the 0–99 fold).
 /// * `max_distance` is off by default: it is an absolute distance whose scale depends on
 ///   the kind (bits out of 256 for ORB, ≈ 0…512 for SIFT, 0…√2 for RootSIFT); a value set
@@ -516,7 +516,7 @@ mod tests {
         assert!(m.iter().all(|mm| mm.b == perm[mm.a]));
     }
 
-    /// Issue 11: float descriptors near 10²⁰ (finite in f32, but their squares are not) used
+    /// Float descriptors near 10²⁰ (finite in f32, but their squares are not) used
     /// to find 0 of 50 self-matches.
     #[test]
     fn self_matches_at_extreme_magnitudes() {

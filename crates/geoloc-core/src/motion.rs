@@ -688,7 +688,7 @@ mod tests {
         assert!(p.covariance[(0, 0)] > 1e-6 && p.covariance[(3, 3)] < p.covariance[(0, 0)]);
     }
 
-    /// Issue #11: a query time that would overflow the extrapolation, and covariances that
+    /// A query time that would overflow the extrapolation, and covariances that
     /// are not positive semi-definite, are refused by name.
     #[test]
     fn overflowing_query_and_negative_covariances_are_named() {

@@ -546,7 +546,7 @@ mod tests {
         all
     }
 
-    /// Issue 11: finite values near 10²⁰ (and near 10⁻²⁵) used to give NaN/∞/0 distances in
+    /// Finite values near 10²⁰ (and near 10⁻²⁵) used to give NaN/∞/0 distances in
     /// f32 and index 0 for every query; every backend now equals brute force in f64.
     #[test]
     fn exact_at_extreme_magnitudes() {

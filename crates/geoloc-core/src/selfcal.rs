@@ -1,4 +1,4 @@
-//! Self-calibration of the camera from keyframes of known pose (issue 8: "refining the focal
+//! Self-calibration of the camera from keyframes of known pose ("refining the focal
 //! length and principal point at map-build time from the known poses").
 //!
 //! The keypoints the core receives are undistorted pixels under the *nominal* intrinsics K

@@ -82,7 +82,7 @@ pub fn look_at(centre: &Vector3<f64>, target: &Vector3<f64>) -> SE3 {
     SE3::new(SO3::from_matrix_unchecked(nalgebra::Matrix3::from_columns(&[x, y, z])), *centre)
 }
 
-/// The angle regimes every Lie identity is checked in (DESIGN.md §6): identity, tiny,
+/// The angle regimes every Lie identity is checked in: identity, tiny,
 /// just around the Taylor threshold, ordinary, and just short of π.
 pub const ANGLE_REGIMES_RAD: [f64; 7] = [0.0, 1e-9, 1e-8, 0.19, 0.21, 1.3, std::f64::consts::PI - 1e-6];
 

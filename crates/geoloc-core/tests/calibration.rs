@@ -1,4 +1,4 @@
-//! Issue 8 on a simulated map: the map-frame covariance C_map estimated from held-out
+//! On a simulated map: the map-frame covariance C_map estimated from held-out
 //! keyframes covers injected pose-label noise (NEES of new queries against their noisy
 //! labels), and the sequential localizer never locks out (a jump re-initializes the motion
 //! history within N frames; a long failure is reported lost, then recovers).
@@ -25,7 +25,7 @@ const LABEL_SIGMA_M: f64 = 0.01;
 const LABEL_SIGMA_RAD: f64 = 0.4 * std::f64::consts::PI / 180.0;
 /// χ²₆ 95 % quantile.
 const CHI2_6_95: f64 = 12.591_587_243_743_977;
-/// NEES coverage band of the queries (issue 8's 88–99 %, widened by the binomial σ of
+/// NEES coverage band of the queries (88–99 %, widened by the binomial σ of
 /// 120 frames, ≈ 2 %).
 const COVERAGE_BAND: (f64, f64) = (0.85, 0.995);
 

@@ -1,4 +1,4 @@
-//! Every Lie identity of DESIGN.md §6, in every angle regime (identity, 1e-9, 1e-8, around the
+//! Every Lie identity, in every angle regime (identity, 1e-9, 1e-8, around the
 //! Taylor threshold, ordinary, π − 1e-6), with translations up to 30 m, on seeded samples and
 //! as proptest properties.
 
@@ -354,7 +354,7 @@ proptest! {
     }
 }
 
-/// Issue #11: magnitudes the exponential map cannot take are refused by name; matrices that
+/// Magnitudes the exponential map cannot take are refused by name; matrices that
 /// are no rotation have no angle; projection is immune to the scale of its input.
 #[test]
 fn overflowing_and_non_rotation_inputs_are_refused() {

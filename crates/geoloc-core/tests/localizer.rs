@@ -3,8 +3,8 @@
 //!
 //! The scene is wider than any one view (landmarks over 24 m across, each keyframe sees about
 //! a third of them) and the vocabulary is fine enough that a word belongs to few landmarks,
-//! so words discriminate: idf > 0 and BoW retrieval must find a nearby keyframe (issue 11:
-//! with every word in every keyframe every score was 0 and retrieval always said 0).
+//! so words discriminate: idf > 0 and BoW retrieval must find a nearby keyframe
+//! (with every word in every keyframe every score was 0 and retrieval always said 0).
 
 use std::sync::Arc;
 
@@ -124,7 +124,7 @@ fn clean_sequence_is_localized_and_fused() {
     assert!(median(&retrieval_m) < NEARBY_MEDIAN_M, "median retrieval distance {}", median(&retrieval_m));
 }
 
-/// Issue #4: 20 % of frames with a gross failure of the geometric locator; the median error
+/// 20 % of frames with a gross failure of the geometric locator; the median error
 /// stays within 1.2× of the clean run's (the motion model and the gate absorb them).
 #[test]
 fn gross_failures_are_absorbed_by_the_motion_model() {
@@ -175,7 +175,7 @@ fn name_of<T>(r: Result<T, GeolocError>) -> String {
     }
 }
 
-/// Issue 11: the core refuses bad maps and frames with the argument's name.
+/// The core refuses bad maps and frames with the argument's name.
 #[test]
 fn bad_maps_and_frames_are_refused_by_name() {
     let mut rng = SplitMix64::new(3);

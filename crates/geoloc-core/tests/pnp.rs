@@ -51,7 +51,7 @@ fn noise_free_correspondences_give_the_exact_pose() {
     }
 }
 
-/// Issue #3: 40 % random outliers, no initial pose → within 5 cm / 1° in ≥ 98 % of trials,
+/// 40 % random outliers, no initial pose → within 5 cm / 1° in ≥ 98 % of trials,
 /// and no outlier marked inlier beyond a couple.
 #[test]
 fn ransac_survives_forty_percent_outliers() {
@@ -277,7 +277,7 @@ fn propagated_covariance_is_calibrated_without_label_noise() {
     }
 }
 
-/// Issue 8's band (93–97 %) with label noise too, the 2 px columns included: the shared
+/// The band (93–97 %) with label noise too, the 2 px columns included: the shared
 /// label errors stay out of the PnP weights (weights that depend on the label-error
 /// realization biased the pose; NEES coverage was 92.6–92.7 % at 2 px on these scenes).
 #[test]
@@ -293,7 +293,7 @@ fn propagated_covariance_is_calibrated_with_label_noise() {
     }
 }
 
-/// Issue #11: 200 points with uniformly random pixels give no pose (the 4–5 "inliers" RANSAC
+/// 200 points with uniformly random pixels give no pose (the 4–5 "inliers" RANSAC
 /// finds are what chance gives), for every seed; real scenes still succeed.
 #[test]
 fn random_pixels_are_not_a_pose() {
@@ -334,7 +334,7 @@ fn invalid_name(result: geoloc_core::Result<geoloc_core::pnp::PnpResult>) -> Str
     }
 }
 
-/// Issue #11: iteration counts above the documented caps are refused, naming the argument.
+/// Iteration counts above the documented caps are refused, naming the argument.
 #[test]
 fn iteration_counts_are_capped() {
     use geoloc_core::pnp::{MAX_RANSAC_ITERATIONS, RansacOptions};
@@ -353,7 +353,7 @@ fn iteration_counts_are_capped() {
     assert!(res.is_ok());
 }
 
-/// Issue #11: negative (not positive semi-definite) point or pose covariances are refused.
+/// Negative (not positive semi-definite) point or pose covariances are refused.
 #[test]
 fn non_psd_covariances_are_refused() {
     let cam = camera();

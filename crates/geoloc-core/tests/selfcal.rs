@@ -1,4 +1,4 @@
-//! The map estimates its own camera (issue 8: intrinsics refined at map-build time from the
+//! The map estimates its own camera (intrinsics refined at map-build time from the
 //! known poses): a simulated recording whose real camera differs from the nominal one the
 //! caller gives (focal lengths and principal point 1–2 % off, a Kinect-sized lens
 //! distortion) — the map's correction recovers the real camera where the keypoints are,

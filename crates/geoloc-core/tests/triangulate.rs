@@ -226,7 +226,7 @@ fn bad_input_is_an_error_naming_the_argument() {
     assert!(empty.points.is_empty());
 }
 
-/// Issue #11: track ids are labels — huge ids cost no memory (one row per distinct id, in
+/// Track ids are labels — huge ids cost no memory (one row per distinct id, in
 /// increasing order), and the points equal those of the same tracks numbered 0..P.
 #[test]
 fn huge_track_ids_are_renumbered_not_allocated() {
@@ -258,7 +258,7 @@ fn huge_track_ids_are_renumbered_not_allocated() {
     }
 }
 
-/// Issue #11: a pose covariance that is not positive semi-definite is refused by name.
+/// A pose covariance that is not positive semi-definite is refused by name.
 #[test]
 fn non_psd_pose_covariances_are_refused() {
     let mut rng = SplitMix64::new(12);

@@ -1,7 +1,7 @@
 //! `geoloc._core`: the compiled half of the `geoloc` Python package.
 //!
 //! This crate holds no math: each function validates and borrows its numpy inputs, calls
-//! geoloc-core without the GIL, and converts the outputs (STYLE.md "Boundaries").
+//! geoloc-core without the GIL, and converts the outputs.
 
 mod bow;
 mod convert;

@@ -2,7 +2,7 @@
 
 Two laps around the built-in room: a map from the first lap, the second lap's frames
 localized against it (single and sequential mode), the paper-style table on stdout,
-``results.json`` (DESIGN.md §7 keys) and the plots in the output folder.
+``results.json`` and the plots in the output folder.
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@
 The report is the paper's kind of table (median translation / rotation error, recall,
 sources, NEES calibration, time per frame), one row per mode; on 7-Scenes it shows the
 paper's own figures for the scene as a reference column. ``--json`` writes the result dict
-of DESIGN.md §7 (:func:`geoloc.evaluation.summarize`), ``--plots`` the four PNGs per mode.
+(:func:`geoloc.evaluation.summarize`), ``--plots`` the four PNGs per mode.
 
 ``--reference FILE`` also scores the test frames against an independent reference trajectory
 (:mod:`geoloc.reference`): a similarity S and a fixed camera-frame offset X are fitted on the

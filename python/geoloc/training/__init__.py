@@ -2,7 +2,7 @@
 
 A Siamese Inception v1 (GoogLeNet, written in plain torch) on grayscale 224×224 images,
 contrastive loss with margin 1 on pairs labelled by their poses, exported to ONNX for
-:class:`geoloc.descriptor.OnnxDescriptor`; see DESIGN.md §4 "Descriptor network".
+:class:`geoloc.descriptor.OnnxDescriptor`.
 
 Modules: :mod:`.frames` (the input protocol, torch-free), :mod:`.pairs` (pose-threshold pair
 sampling, numpy only), :mod:`.network`, :mod:`.loss`, :mod:`.train`, :mod:`.export` (torch)

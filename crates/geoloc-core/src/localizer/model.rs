@@ -1,4 +1,4 @@
-//! The model locator (`Locator::Model`, issue 13): the query against the map-level 3D model.
+//! The model locator (`Locator::Model`): the query against the map-level 3D model.
 //!
 //! 1. **Top-k retrieval**: the `top_k` keyframes most similar to the query ([`Map::retrieve_top`],
 //!    the ranking the paper's locator takes the first of).

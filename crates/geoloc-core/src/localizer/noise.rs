@@ -1,4 +1,4 @@
-//! The map's own noise, estimated when it is built (issue 8): the map-frame covariance
+//! The map's own noise, estimated when it is built: the map-frame covariance
 //! C_map from held-out keyframes re-localized against the rest of the map, and the
 //! acceleration process noise from the keyframes' timestamps and poses.
 //!

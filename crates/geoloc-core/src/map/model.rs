@@ -1,4 +1,4 @@
-//! The map-level 3D model (issue 13): points triangulated once, at map time, from all
+//! The map-level 3D model: points triangulated once, at map time, from all
 //! keyframes with their known poses, for the model locator (`Locator::Model`).
 //!
 //! Build, every step deterministic and bit-identical with any thread count:
