@@ -421,8 +421,13 @@ def align_reference(
             break
         decrease = current - trial_cost
         state, current = trial, trial_cost
+        if decrease <= 1e-15 * current:
+            # the step, however damped, lowers the cost by rounding only: a minimum to
+            # working precision (else equal-cost damped steps would be accepted forever)
+            converged = True
+            break
         damping = max(damping / 10.0, 1e-12)
-        if damping < 1e-3 and (float(np.abs(delta).max()) < 1e-10 or decrease <= 1e-15 * current):
+        if damping < 1e-3 and float(np.abs(delta).max()) < 1e-10:
             converged = True
             break
 
