@@ -6,9 +6,9 @@
 Folds of the shared frames 0–699: a test block is localized against a map of the other
 frames minus 15 on either side (600–699 against 0–599; 0–99 against 115–699). Features:
 1000 per image (``geoloc.features.FeatureExtractor`` defaults of each kind); the map is a
-``FeatureMap`` with bag-of-words retrieval and the vocabulary shape of the descriptor kind
+``Map`` with bag-of-words retrieval and the vocabulary shape of the descriptor kind
 (``branching``/``depth`` left to the core's per-kind default), the localizer the
-``FeatureLocalizer`` defaults, single-image mode (history reset before every frame).
+``Localizer`` defaults, single-image mode (history reset before every frame).
 
 Printed per fold × kind: median translation (cm) / rotation (°) error (a lost frame counts
 as infinitely wrong), recall within 5 cm / 5°, retrieval recall (the retrieved keyframe
@@ -49,7 +49,7 @@ sys.path.insert(0, str(ROOT / "python"))
 
 from geoloc import datasets  # noqa: E402
 from geoloc.features import FeatureExtractor  # noqa: E402
-from geoloc.localizer import FeatureLocalizer, FeatureMap  # noqa: E402
+from geoloc import Localizer, Map  # noqa: E402
 
 DEFAULT_DATASET = ROOT.parent / "shared" / "data" / "7scenes-redkitchen"
 FOLDS = {"600-699": (range(0, 600), range(600, 700)), "0-99": (range(115, 700), range(0, 100))}
@@ -89,13 +89,13 @@ def run_fold(seq: datasets.Sequence, kps: list, descs: list, fold: str, limit: i
     poses = seq.poses
     assert poses is not None
     start = time.perf_counter()
-    fmap = FeatureMap(seq.camera, poses[train], [kps[i] for i in train], [descs[i] for i in train], retrieval="bow")
+    fmap = Map.from_features(seq.camera, poses[train], [kps[i] for i in train], [descs[i] for i in train], retrieval="bow", estimate_noise=False, refine_intrinsics=False, adjust_labels=False)
     build_s = time.perf_counter() - start
-    loc = FeatureLocalizer(fmap)
+    loc = Localizer(fmap)
     errors, retrieved, possible, inliers = [], [], [], []
     for q in test:
         loc.reset()
-        r = loc.localize(float(seq.timestamps[q]), kps[q], descs[q])
+        r = loc.localize_features(float(seq.timestamps[q]), kps[q], descs[q])
         errors.append(pose_error(r.pose, poses[q]) if r.pose is not None else (np.inf, np.inf))
         near = np.array([pose_error(poses[q], poses[k]) for k in train])
         close = (near[:, 0] < RETRIEVAL_M) & (near[:, 1] < RETRIEVAL_DEG)

@@ -116,20 +116,20 @@ def segments(train: list[int], length: int) -> list[list[int]]:
 def run_fold(seq: Any, feats: Any, b: int, length: int, locator: str) -> list[dict[str, Any]]:
     """Every (test frame, segment) pair of fold ``b`` (see the module doc)."""
     from geoloc.lie import se3_inverse, se3_log
-    from geoloc.localizer import FeatureLocalizer, FeatureMap
+    from geoloc import Localizer, Map
 
     poses = seq.poses[:FRAMES]
     lo, hi = b * BLOCK, min((b + 1) * BLOCK, FRAMES)
     train = [i for i in range(FRAMES) if i < lo - MARGIN or i >= hi + MARGIN]
     rows = []
     for seg in segments(train, length):
-        m = FeatureMap(seq.camera, poses[seg], [feats[i].keypoints for i in seg], [feats[i].descriptors for i in seg],
-                       model=locator == "model")
-        loc = FeatureLocalizer(m, locator=locator)
+        m = Map.from_features(seq.camera, poses[seg], [feats[i].keypoints for i in seg], [feats[i].descriptors for i in seg],
+                       model=locator == "model", estimate_noise=False, refine_intrinsics=False, adjust_labels=False)
+        loc = Localizer(m, locator=locator)
         centres = poses[seg, :3, 3]
         for i in range(lo, hi):
             loc.reset()
-            r = loc.localize(i / 30.0, feats[i].keypoints, feats[i].descriptors)
+            r = loc.localize_features(i / 30.0, feats[i].keypoints, feats[i].descriptors)
             near = float(np.min(np.linalg.norm(centres - poses[i, :3, 3], axis=1)))
             gap = int(min(abs(i - j) for j in seg))
             row: dict[str, Any] = {"frame": i, "segment": [seg[0], seg[-1]], "gap": gap, "near_m": near}
@@ -180,17 +180,17 @@ PROBE_MAPS = (("frames 490-518 (later)", range(490, 520, 2)), ("frames 262-304 (
 
 def probe(seq: Any, feats: Any) -> None:
     """The ``--probe`` table: error vs label, inliers and nearest keyframe per query and map."""
-    from geoloc.localizer import FeatureLocalizer, FeatureMap
+    from geoloc import Localizer, Map
 
     poses = seq.poses[:FRAMES]
     for name, frames in PROBE_MAPS:
         kfs = list(frames)
-        m = FeatureMap(seq.camera, poses[kfs], [feats[i].keypoints for i in kfs], [feats[i].descriptors for i in kfs],
-                       model=True)
-        loc = FeatureLocalizer(m, locator="model")
+        m = Map.from_features(seq.camera, poses[kfs], [feats[i].keypoints for i in kfs], [feats[i].descriptors for i in kfs],
+                       model=True, estimate_noise=False, refine_intrinsics=False, adjust_labels=False)
+        loc = Localizer(m, locator="model")
         for q in PROBE_QUERIES:
             loc.reset()
-            r = loc.localize(q / 30.0, feats[q].keypoints, feats[q].descriptors)
+            r = loc.localize_features(q / 30.0, feats[q].keypoints, feats[q].descriptors)
             near = float(np.min(np.linalg.norm(poses[kfs, :3, 3] - poses[q, :3, 3], axis=1)))
             err = float(np.linalg.norm(np.asarray(r.pose)[:3, 3] - poses[q, :3, 3])) if r.pose is not None else np.nan
             print(f"map {name}: query {q}: {100 * err:.1f} cm from its label, {r.inliers} inliers, "

@@ -2,7 +2,7 @@
 
 The map is built from the shared 7-Scenes frames 0–599 (every frame, with its 3D model); the
 test frames 600–699 are described once (ORB 1000, as the map), then localized by the core
-alone — ``FeatureLocalizer.localize`` with the keypoints and descriptors given, so decoding
+alone — ``Localizer.localize_features`` with the keypoints and descriptors given, so decoding
 and feature extraction are not in the times — with both locators, single (``reset()``
 before every frame) and sequential. Each of ``--passes`` passes uses a fresh localizer (its
 caches empty, as on a robot that just started), so a tail that comes from work done on first
@@ -44,7 +44,7 @@ def main() -> int:
     args = ap.parse_args()
     import geoloc
     from geoloc.datasets import load_7scenes
-    from geoloc.localizer import FeatureLocalizer
+    from geoloc import Localizer
 
     seq = load_7scenes(KITCHEN)
     start = time.perf_counter()
@@ -58,12 +58,12 @@ def main() -> int:
         for mode in ("single", "sequential"):
             ms: list[float] = []
             for _ in range(args.passes):
-                loc = FeatureLocalizer(the_map._feature_map, locator=locator)  # a fresh localizer: empty caches
+                loc = Localizer(the_map, locator=locator)  # a fresh localizer: empty caches
                 for k, f in enumerate(features):
                     if mode == "single":
                         loc.reset()
                     t0 = time.perf_counter()
-                    loc.localize(float(test.timestamps[k]), f.keypoints, f.descriptors, None, pixel_sigmas=f.pixel_sigmas)
+                    loc.localize_features(float(test.timestamps[k]), f.keypoints, f.descriptors, None, pixel_sigmas=f.pixel_sigmas)
                     ms.append(1e3 * (time.perf_counter() - t0))
             p = percentiles(ms)
             report[f"{locator}/{mode}"] = p

@@ -22,7 +22,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "tests"))
 
 import geoloc  # noqa: E402
 from geoloc import matching  # noqa: E402
-from geoloc.localizer import FeatureLocalizer, FeatureMap  # noqa: E402
+from geoloc import Localizer, Map  # noqa: E402
 
 
 def best_of(fn, repeats=5):  # type: ignore[no-untyped-def]
@@ -79,15 +79,15 @@ def bench_localizer() -> None:
     poses = np.stack([_walk(0.1 * i, 0.0) for i in range(60)])
     obs = [_observe(rng, p, pts, desc) for p in poses]
     start = time.perf_counter()
-    m = FeatureMap(CAM, poses, [o[0] for o in obs], [o[1] for o in obs], branching=10, depth=3)
+    m = Map.from_features(CAM, poses, [o[0] for o in obs], [o[1] for o in obs], branching=10, depth=3, estimate_noise=False, refine_intrinsics=False, adjust_labels=False)
     print(f"  map of 60 keyframes ({np.mean([len(o[0]) for o in obs]):.0f} features each): built in {time.perf_counter() - start:.2f} s")
-    loc = FeatureLocalizer(m)
+    loc = Localizer(m)
     stages: dict[str, list[float]] = {}
     for f in range(60):
         t = 0.3 + f / 30
         kp, d = _observe(rng, _walk(t, 0.15), pts, desc)
-        r = loc.localize(t, kp, d)
-        for k, v in r.timings_ms.items():
+        r = loc.localize_features(t, kp, d)
+        for k, v in r.timings.items():
             stages.setdefault(k, []).append(v)
     print("  per-frame median ms: " + ", ".join(f"{k} {np.median(v):.2f}" for k, v in stages.items()))
     print(f"  (map_points is non-zero only when the keyframe group changes: mean {np.mean(stages['map_points']):.1f} ms)")

@@ -4,10 +4,10 @@ Cross-validation on the shared 7-Scenes redkitchen frames 0–699: a test block 
 the map trained on the rest minus 15 frames on either side; single-image mode (``reset()``
 before every frame), fx = fy = 525, BoW retrieval, 1000 features. Per fold × locator
 (paper, model) × features (ORB, SIFT): median translation / rotation error, recall within
-5 cm / 5°, median PnP inliers, median per-frame core time (``timings_ms["total"]``), and the
+5 cm / 5°, median PnP inliers, median per-frame core time (``timings["total"]``), and the
 map build time (features are extracted once, outside the timings): BoW vocabulary and
-database, the camera estimate (``--refine-intrinsics``) and the 3D model, one ``FeatureMap(...,
-model=True)`` (with the estimate, the keyframe pairs are matched once for both).
+database, the camera estimate (``--refine-intrinsics``) and the 3D model, one ``Map.from_features(...,
+model=True, estimate_noise=False, refine_intrinsics=False, adjust_labels=False)`` (with the estimate, the keyframe pairs are matched once for both).
 
     PYTHONPATH=python python benchmarks/novel_views.py [--folds 6,0] [--features orb,sift] [--json out.json]
         [--uniform-sigma] [--refine-intrinsics]
@@ -84,19 +84,19 @@ def bias(poses: list[Any], truth: Any) -> tuple[Any, float]:
 def run_fold(
     seq: Any, feats: tuple[list[Any], list[Any], list[Any]], b: int, uniform: bool = False, refine: bool = False
 ) -> dict[str, Any]:
-    from geoloc.localizer import FeatureLocalizer, FeatureMap
+    from geoloc import Localizer, Map
 
     lo, hi = b * BLOCK, min((b + 1) * BLOCK, FRAMES)
     train = [i for i in range(FRAMES) if i < lo - MARGIN or i >= hi + MARGIN]
     kps, descs, sigmas = feats
     poses = seq.poses[:FRAMES]
     t0 = time.perf_counter()
-    the_map = FeatureMap(
+    the_map = Map.from_features(
         seq.camera, poses[train], [kps[i] for i in train], [descs[i] for i in train],
         refine_intrinsics=refine, model=True,
-    )
+    , estimate_noise=False, adjust_labels=False)
     map_build_s = time.perf_counter() - t0
-    localizers = {locator: FeatureLocalizer(the_map, locator=locator) for locator in ("paper", "model")}
+    localizers = {locator: Localizer(the_map, locator=locator) for locator in ("paper", "model")}
     out: dict[str, Any] = {
         "train": len(train),
         "map_build_s": map_build_s,
@@ -107,12 +107,12 @@ def run_fold(
         et, er, inl, ms, raw = [], [], [], [], []
         for i in range(lo, hi):
             loc.reset()
-            r = loc.localize(float(i) / 30.0, kps[i], descs[i], pixel_sigmas=None if uniform else sigmas[i])
+            r = loc.localize_features(float(i) / 30.0, kps[i], descs[i], pixel_sigmas=None if uniform else sigmas[i])
             t, a = errors(r.pose, poses[i])
             et.append(t)
             er.append(a)
             inl.append(r.inliers)
-            ms.append(r.timings_ms["total"])
+            ms.append(r.timings["total"])
             raw.append(None if r.pose is None else np.asarray(r.pose).tolist())
         et_a, er_a = np.array(et), np.array(er)
         out[locator] = {

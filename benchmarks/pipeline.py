@@ -28,7 +28,7 @@ sys.path.insert(0, str(ROOT / "python"))
 
 from geoloc import datasets  # noqa: E402
 from geoloc.features import FeatureExtractor  # noqa: E402
-from geoloc.mapping import Localizer, Map  # noqa: E402
+from geoloc import Localizer, Map  # noqa: E402
 
 DEFAULT_DATASET = ROOT.parent / "shared" / "data" / "7scenes-redkitchen"
 #: Printed rows: (label, the localizer's stage names summed per frame).

@@ -10,7 +10,7 @@ locator's default ``top_k`` = 5) retrieved keyframes hold one, and the median / 
 percentile rank (1-based) of the first near keyframe in the full BoW ranking, and the "hub":
 the keyframe retrieved first for the most test frames (over all of them) and their share —
 a keyframe that is every query's best match is the failure this measures. The vocabulary
-and database are built exactly as ``FeatureMap`` builds them (keyframe descriptors stacked in
+and database are built exactly as ``Map.from_features`` builds them (keyframe descriptors stacked in
 keyframe order; the map's default ``branching`` = 10, ``depth`` = 3, seed 0; the term
 weighting the vocabulary's descriptor kind gets, as in the map).
 
@@ -67,7 +67,7 @@ FRAMES = 700
 NEAR_M = 0.3
 NEAR_DEG = 20.0
 TOP_K = 5  # LocalizerOptions::default().top_k (the model locator's)
-BRANCHING, DEPTH = 10, 3  # FeatureMap's defaults
+BRANCHING, DEPTH = 10, 3  # the core's defaults (geoloc.Map.default_options())
 
 
 def features(seq: Any, kind: str, cache: Path | None) -> tuple[list[Any], list[Any]]:

@@ -4,6 +4,7 @@ naming the option (exit 2), no traceback, no crash, no hang, every input byte-id
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 from pathlib import Path
@@ -122,7 +123,7 @@ def test_a_map_whose_header_lacks_the_features_record_is_refused(room_map: Path,
     frontend = the_map.settings
     del frontend["features"]
     damaged = tmp_path / "damaged.geoloc"
-    the_map._feature_map.save(damaged, frontend)
+    the_map._core.save(str(damaged), json.dumps(frontend))
     result = run_geoloc("localize", "--map", str(damaged), "--format", "synthetic", "--out", str(tmp_path / "p.txt"))
     one_line_error(result, "--map", "features")
 

@@ -166,7 +166,7 @@ LOCALIZE_WITHOUT_TORCH = textwrap.dedent(
     import geoloc.training, geoloc.training.command, geoloc.training.frames, geoloc.training.pairs
     from geoloc import lie
     from geoloc.descriptor import OnnxDescriptor, tiny_image_descriptors
-    from geoloc.localizer import FeatureLocalizer, FeatureMap
+    from geoloc import Localizer, Map
     from geoloc.montecarlo import look_at
     from posed_images import render, _textures
     assert "torch" not in sys.modules, "importing geoloc imported torch"
@@ -191,14 +191,14 @@ LOCALIZE_WITHOUT_TORCH = textwrap.dedent(
     poses = np.stack([walk(0.1 * i, 0.0) for i in range(40)])
     obs = [observe(p) for p in poses]
     g = net([render(p, textures) for p in poses])
-    m = FeatureMap(cam, poses, [o[0] for o in obs], [o[1] for o in obs], global_descriptors=g, retrieval="global")
-    loc = FeatureLocalizer(m)
+    m = Map.from_features(cam, poses, [o[0] for o in obs], [o[1] for o in obs], global_descriptors=g, retrieval="global", estimate_noise=False, refine_intrinsics=False, adjust_labels=False)
+    loc = Localizer(m)
     located = 0
     for f in range(10):
         t = 0.5 + f / 10
         truth = walk(t, 0.1)
         kp, d = observe(truth)
-        r = loc.localize(t, kp, d, global_descriptor=net([render(truth, textures)])[0])
+        r = loc.localize_features(t, kp, d, global_descriptor=net([render(truth, textures)])[0])
         located += r.pose is not None and np.linalg.norm(r.pose[:3, 3] - truth[:3, 3]) < 0.05
     tiny_image_descriptors([render(poses[0], textures)])
     assert located >= 8, located

@@ -10,7 +10,7 @@ import pytest
 import geoloc
 from geoloc import datasets
 from geoloc.features import FeatureExtractor
-from geoloc.localizer import FeatureLocalizer, FeatureMap
+from geoloc import Localizer, Map
 
 cv2 = pytest.importorskip("cv2")
 
@@ -25,13 +25,13 @@ def _errors(seq: datasets.Sequence, kind: str, root_sift: bool = False) -> tuple
     train = seq[0:150:3]
     feats = [extract(f.image, seq.camera) for f in train]
     assert train.poses is not None
-    fmap = FeatureMap(seq.camera, train.poses, [f.keypoints for f in feats], [f.descriptors for f in feats])
-    localizer = FeatureLocalizer(fmap)
+    fmap = Map.from_features(seq.camera, train.poses, [f.keypoints for f in feats], [f.descriptors for f in feats], estimate_noise=False, refine_intrinsics=False, adjust_labels=False)
+    localizer = Localizer(fmap)
     trans, rot = [], []
     for frame in seq[155:300:15]:
         f = extract(frame.image, seq.camera)
         localizer.reset()
-        r = localizer.localize(frame.timestamp, f.keypoints, f.descriptors)
+        r = localizer.localize_features(frame.timestamp, f.keypoints, f.descriptors)
         if r.pose is None or frame.pose is None:
             trans.append(np.inf)
             rot.append(np.inf)

@@ -22,7 +22,7 @@ ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = r"""
 import hashlib, sys
 import numpy as np
-from geoloc.localizer import FeatureLocalizer, FeatureMap
+from geoloc import Localizer, Map
 
 from test_localizer import CAM as cam, _observe, _walk
 
@@ -44,9 +44,9 @@ for i in range(30):
     else:
         k, d = observe(rng, pose)
     poses.append(pose); kps.append(k); descs.append(d)
-m = FeatureMap(cam, np.stack(poses), kps, descs, branching=8, depth=3, seed=1, refine_intrinsics=True,
-               adjust_labels=True, model=True)
-loc = FeatureLocalizer(m)
+m = Map.from_features(cam, np.stack(poses), kps, descs, branching=8, depth=3, seed=1, refine_intrinsics=True,
+               adjust_labels=True, model=True, estimate_noise=False)
+loc = Localizer(m)
 h = hashlib.sha256()
 h.update(repr(sorted(m.self_calibration.items())).encode())  # the camera estimate too
 import os, tempfile
@@ -59,7 +59,7 @@ for f in range(40):
     t = 0.3 + f / 30
     if t < 1.2 or frame is None:
         frame = observe(rng, walk(t, 0.1))  # after 1.2 s: identical query frames
-    r = loc.localize(t, *frame)
+    r = loc.localize_features(t, *frame)
     h.update(r.source.encode() + r.reason.encode() + np.int64(r.keyframe).tobytes())
     if r.pose is not None:
         h.update(np.ascontiguousarray(r.pose).tobytes() + np.ascontiguousarray(r.covariance).tobytes())

@@ -147,10 +147,10 @@ def test_summarize_keys_lost_frames_and_json() -> None:
 
 
 def test_summarize_results_and_table() -> None:
-    from geoloc.mapping import MapLocalization
+    from geoloc import Localization
 
     est, gt, covs, sources = _summary_inputs()
-    results = [MapLocalization(e, c, s, "", 0, 0, {"total": 1.0}) for e, c, s in zip(est, covs, sources)]
+    results = [Localization(e, c, s, "", 0, 0, {"total": 1.0}) for e, c, s in zip(est, covs, sources)]
     s = evaluation.summarize_results(results, gt)
     assert s["sources"]["lost"] == 1 and s["timing_ms"]["median_total"] == 1.0
     table = evaluation.format_table({"room": s}, reference={"room": (0.02, 1.10)})

@@ -56,7 +56,7 @@ def test_the_labels_record_survives_the_file_and_results_keep_the_labels_convent
     assert result.pose is not None and result.camera_pose is not None
     # pose = camera_pose · X⁻¹ with X = label_from_cam: the two differ by the fixed offset
     offset = np.linalg.inv(result.pose) @ result.camera_pose
-    camera_poses = back._feature_map._map.camera_poses
+    camera_poses = back.camera_poses
     expected = np.linalg.inv(back.keyframe_poses[0]) @ camera_poses[0]
     np.testing.assert_allclose(offset, expected, atol=1e-9)
 

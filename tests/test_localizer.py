@@ -7,7 +7,7 @@ import pytest
 
 import geoloc
 from geoloc import lie
-from geoloc.localizer import FeatureLocalizer, FeatureMap, LocalizationResult
+from geoloc import Localization, Localizer, Map
 from geoloc.montecarlo import look_at
 
 CAM = geoloc.Camera(525, 525, 320, 240)
@@ -30,54 +30,54 @@ def _observe(rng: np.random.Generator, pose: np.ndarray, pts: np.ndarray, desc: 
 
 
 @pytest.fixture(scope="module")
-def feature_map() -> tuple[FeatureMap, np.ndarray, np.ndarray]:
+def feature_map() -> tuple[Map, np.ndarray, np.ndarray]:
     rng = np.random.default_rng(0)
     pts = rng.uniform([-4, -1.5, 3], [4, 1.5, 7], (800, 3))
     desc = rng.integers(0, 256, (800, 32), dtype=np.uint8)
     poses = np.stack([_walk(0.1 * i, 0.0) for i in range(40)])
     obs = [_observe(rng, p, pts, desc) for p in poses]
-    m = FeatureMap(CAM, poses, [o[0] for o in obs], [o[1] for o in obs], branching=8, depth=2)
+    m = Map.from_features(CAM, poses, [o[0] for o in obs], [o[1] for o in obs], branching=8, depth=2, estimate_noise=False, refine_intrinsics=False, adjust_labels=False)
     return m, pts, desc
 
 
-def test_sequence_is_localized_with_fusion(feature_map: tuple[FeatureMap, np.ndarray, np.ndarray]) -> None:
+def test_sequence_is_localized_with_fusion(feature_map: tuple[Map, np.ndarray, np.ndarray]) -> None:
     m, pts, desc = feature_map
     rng = np.random.default_rng(1)
-    loc = FeatureLocalizer(m)
+    loc = Localizer(m)
     errors, sources = [], []
     for f in range(30):
         t = 0.3 + f / 30
         truth = _walk(t, 0.15)
         kp, d = _observe(rng, truth, pts, desc)
-        r = loc.localize(t, kp, d)
+        r = loc.localize_features(t, kp, d)
         assert r.pose is not None and r.covariance is not None
         errors.append(np.linalg.norm(r.pose[:3, 3] - truth[:3, 3]))
         sources.append(r.source)
-        assert set(r.timings_ms) >= {"retrieval", "pnp", "total"}
+        assert set(r.timings) >= {"retrieval", "pnp", "total"}
     assert np.median(errors) < 0.01
     assert sources[0] == "geometric" and sources.count("fused") > 20
 
 
-def test_bad_frames_and_maps(feature_map: tuple[FeatureMap, np.ndarray, np.ndarray]) -> None:
+def test_bad_frames_and_maps(feature_map: tuple[Map, np.ndarray, np.ndarray]) -> None:
     m, _, _ = feature_map
-    loc = FeatureLocalizer(m)
+    loc = Localizer(m)
     with pytest.raises(geoloc.InvalidInputError, match=r"keypoints: expected shape \(3, 2\)"):
-        loc.localize(0.0, np.zeros((2, 2)), np.zeros((3, 32), dtype=np.uint8))
+        loc.localize_features(0.0, np.zeros((2, 2)), np.zeros((3, 32), dtype=np.uint8))
     with pytest.raises(geoloc.InvalidInputError, match="the vocabulary is for binary"):
-        loc.localize(0.0, np.zeros((3, 2)), np.zeros((3, 32), dtype=np.float32))
+        loc.localize_features(0.0, np.zeros((3, 2)), np.zeros((3, 32), dtype=np.float32))
     with pytest.raises(geoloc.InvalidInputError, match="retrieval"):
-        FeatureMap(CAM, np.eye(4)[None], [np.zeros((1, 2))], [np.zeros((1, 32), dtype=np.uint8)], retrieval="ann")  # type: ignore[arg-type]
+        Map.from_features(CAM, np.eye(4)[None], [np.zeros((1, 2))], [np.zeros((1, 32), dtype=np.uint8)], retrieval="ann", estimate_noise=False, refine_intrinsics=False, adjust_labels=False)  # type: ignore[arg-type]
     with pytest.raises(geoloc.InvalidInputError, match="needs a global descriptor"):
-        FeatureMap(CAM, np.eye(4)[None], [np.zeros((1, 2))], [np.zeros((1, 32), dtype=np.uint8)], retrieval="global")
+        Map.from_features(CAM, np.eye(4)[None], [np.zeros((1, 2))], [np.zeros((1, 32), dtype=np.uint8)], retrieval="global", estimate_noise=False, refine_intrinsics=False, adjust_labels=False)
     with pytest.raises(geoloc.InvalidInputError, match="history"):
-        FeatureLocalizer(m, history=1)
+        Localizer(m, history=1)
 
 
-def test_pixel_sigmas_are_checked_by_name_and_used(feature_map: tuple[FeatureMap, np.ndarray, np.ndarray]) -> None:
+def test_pixel_sigmas_are_checked_by_name_and_used(feature_map: tuple[Map, np.ndarray, np.ndarray]) -> None:
     m, pts, desc = feature_map
     rng = np.random.default_rng(5)
     kp, d = _observe(rng, _walk(0.5, 0.1), pts, desc)
-    loc = FeatureLocalizer(m)
+    loc = Localizer(m)
     n = len(kp)
     for bad, match in [
         (np.ones(n - 1), r"pixel_sigmas: expected shape"),
@@ -88,11 +88,11 @@ def test_pixel_sigmas_are_checked_by_name_and_used(feature_map: tuple[FeatureMap
         (np.array(["a"] * n), r"pixel_sigmas: expected real numbers"),
     ]:
         with pytest.raises(geoloc.InvalidInputError, match=match):
-            loc.localize(0.5, kp, d, pixel_sigmas=bad)
+            loc.localize_features(0.5, kp, d, pixel_sigmas=bad)
     # ones are the uniform solve; 4 px on every query keypoint widens the covariance
-    plain = FeatureLocalizer(m).localize(0.5, kp, d)
-    ones = FeatureLocalizer(m).localize(0.5, kp, d, pixel_sigmas=np.ones(n))
-    fours = FeatureLocalizer(m).localize(0.5, kp, d, pixel_sigmas=np.full(n, 4.0))
+    plain = Localizer(m).localize_features(0.5, kp, d)
+    ones = Localizer(m).localize_features(0.5, kp, d, pixel_sigmas=np.ones(n))
+    fours = Localizer(m).localize_features(0.5, kp, d, pixel_sigmas=np.full(n, 4.0))
     assert plain.covariance is not None and ones.covariance is not None and fours.covariance is not None
     assert ones.pose is not None and plain.pose is not None
     np.testing.assert_allclose(ones.pose, plain.pose, atol=1e-9)
@@ -100,16 +100,16 @@ def test_pixel_sigmas_are_checked_by_name_and_used(feature_map: tuple[FeatureMap
     assert np.all(np.diag(fours.covariance) > 1.5 * np.diag(plain.covariance))
 
 
-def test_timestamps_must_increase(feature_map: tuple[FeatureMap, np.ndarray, np.ndarray]) -> None:
+def test_timestamps_must_increase(feature_map: tuple[Map, np.ndarray, np.ndarray]) -> None:
     m, pts, desc = feature_map
     rng = np.random.default_rng(2)
-    loc = FeatureLocalizer(m)
+    loc = Localizer(m)
     kp, d = _observe(rng, _walk(0.5, 0.1), pts, desc)
-    assert loc.localize(0.5, kp, d).source == "geometric"
+    assert loc.localize_features(0.5, kp, d).source == "geometric"
     with pytest.raises(geoloc.InvalidInputError, match="timestamp: must be finite and increase"):
-        loc.localize(0.5, kp, d)
+        loc.localize_features(0.5, kp, d)
     loc.reset()
-    assert loc.localize(0.4, kp, d).source == "geometric"
+    assert loc.localize_features(0.4, kp, d).source == "geometric"
 
 
 def _tiny_map_inputs() -> tuple[np.ndarray, list[np.ndarray], list[np.ndarray]]:
@@ -124,24 +124,24 @@ def test_map_refuses_bad_input_by_name() -> None:
     """Each raises InvalidInputError naming the argument."""
     poses, kps, descs = _tiny_map_inputs()
     with pytest.raises(geoloc.InvalidInputError, match=r"^depth: "):
-        FeatureMap(CAM, poses, kps, descs, branching=2, depth=100000)
+        Map.from_features(CAM, poses, kps, descs, branching=2, depth=100000, estimate_noise=False, refine_intrinsics=False, adjust_labels=False)
     with pytest.raises(geoloc.InvalidInputError, match=r"^branching: "):
-        FeatureMap(CAM, poses, kps, descs, branching=-1)
+        Map.from_features(CAM, poses, kps, descs, branching=-1, estimate_noise=False, refine_intrinsics=False, adjust_labels=False)
     with pytest.raises(geoloc.InvalidInputError, match=r"^seed: "):
-        FeatureMap(CAM, poses, kps, descs, seed=2**70)
+        Map.from_features(CAM, poses, kps, descs, seed=2**70, estimate_noise=False, refine_intrinsics=False, adjust_labels=False)
     covs = np.stack([np.eye(6) * 1e-4] * 3)
     covs[1, 2, 2] = -1e-4  # negative variance: used to turn every later frame into "lost"
     with pytest.raises(geoloc.InvalidInputError, match=r"^pose_covariances\[1\]: .*positive semi-definite"):
-        FeatureMap(CAM, poses, kps, descs, pose_covariances=covs)
+        Map.from_features(CAM, poses, kps, descs, pose_covariances=covs, estimate_noise=False, refine_intrinsics=False, adjust_labels=False)
     covs = np.stack([np.eye(6) * 1e-4] * 3)
     covs[2, 0, 1] = 1e-5
     with pytest.raises(geoloc.InvalidInputError, match=r"^pose_covariances\[2\]: .*symmetric"):
-        FeatureMap(CAM, poses, kps, descs, pose_covariances=covs)
+        Map.from_features(CAM, poses, kps, descs, pose_covariances=covs, estimate_noise=False, refine_intrinsics=False, adjust_labels=False)
     # a float64 descriptor beyond float32's range is refused at construction, not in localize
     fdescs = [np.ones((20, 8)) for _ in range(3)]
     fdescs[1][3, 0] = 1e39
     with pytest.raises(geoloc.InvalidInputError, match=r"^descriptors\[1\]\[3\] overflows float32"):
-        FeatureMap(CAM, poses, kps, fdescs)
+        Map.from_features(CAM, poses, kps, fdescs, estimate_noise=False, refine_intrinsics=False, adjust_labels=False)
 
 
 def test_global_descriptor_shape_and_name() -> None:
@@ -149,32 +149,32 @@ def test_global_descriptor_shape_and_name() -> None:
     reported as 'queries'."""
     poses, kps, descs = _tiny_map_inputs()
     g = np.random.default_rng(5).normal(size=(3, 4)).astype(np.float32)
-    m = FeatureMap(CAM, poses, kps, descs, global_descriptors=g, retrieval="global")
-    loc = FeatureLocalizer(m)
+    m = Map.from_features(CAM, poses, kps, descs, global_descriptors=g, retrieval="global", estimate_noise=False, refine_intrinsics=False, adjust_labels=False)
+    loc = Localizer(m)
     with pytest.raises(geoloc.InvalidInputError, match=r"^global_descriptor: expected shape \(D,\)"):
-        loc.localize(0.0, kps[0], descs[0], np.zeros((2, 2), np.float32))
+        loc.localize_features(0.0, kps[0], descs[0], np.zeros((2, 2), np.float32))
     with pytest.raises(geoloc.InvalidInputError, match=r"^global_descriptor: expected 4 values, got 3"):
-        loc.localize(0.0, kps[0], descs[0], np.zeros(3, np.float32))
-    r = loc.localize(0.0, kps[0], descs[0], g[2])
+        loc.localize_features(0.0, kps[0], descs[0], np.zeros(3, np.float32))
+    r = loc.localize_features(0.0, kps[0], descs[0], g[2])
     assert r.keyframe == 2
 
 
 def test_integer_like_options() -> None:
-    """FeatureLocalizer(history=np.int64(5)) was refused."""
+    """Localizer(history=np.int64(5)) was refused."""
     poses, kps, descs = _tiny_map_inputs()
-    m = FeatureMap(CAM, poses, kps, descs, branching=np.int64(2), depth=np.int32(2), seed=np.uint64(1))
-    FeatureLocalizer(m, history=np.int64(5))
+    m = Map.from_features(CAM, poses, kps, descs, branching=np.int64(2), depth=np.int32(2), seed=np.uint64(1), estimate_noise=False, refine_intrinsics=False, adjust_labels=False)
+    Localizer(m, history=np.int64(5))
     with pytest.raises(geoloc.InvalidInputError, match=r"^history: "):
-        FeatureLocalizer(m, history=-3)
+        Localizer(m, history=-3)
     with pytest.raises(geoloc.InvalidInputError, match=r"^history: "):
-        FeatureLocalizer(m, history=2**70)
+        Localizer(m, history=2**70)
 
 
-def test_result_is_a_typed_class(feature_map: tuple[FeatureMap, np.ndarray, np.ndarray]) -> None:
+def test_result_is_a_typed_class(feature_map: tuple[Map, np.ndarray, np.ndarray]) -> None:
     m, pts, desc = feature_map
     kp, d = _observe(np.random.default_rng(3), _walk(0.5, 0.1), pts, desc)
-    r = FeatureLocalizer(m).localize(0.5, kp, d)
-    assert isinstance(r, LocalizationResult)
+    r = Localizer(m).localize_features(0.5, kp, d)
+    assert isinstance(r, Localization)
     assert r.pose is not None and r.pose.shape == (4, 4) and r.covariance is not None and r.covariance.shape == (6, 6)
     assert r.source == "geometric" and r.inliers > 0 and isinstance(r.keyframe, int)
 
@@ -212,7 +212,7 @@ def test_refine_intrinsics_finds_the_real_camera_and_localizes_better() -> None:
     poses = np.stack([_turning(0.1 * i, 0.0) for i in range(90)])
     obs = [_observe_real(rng, p, pts, desc) for p in poses]
     maps = {
-        refine: FeatureMap(CAM, poses, [o[0] for o in obs], [o[1] for o in obs], branching=8, depth=3, refine_intrinsics=refine)
+        refine: Map.from_features(CAM, poses, [o[0] for o in obs], [o[1] for o in obs], branching=8, depth=3, refine_intrinsics=refine, estimate_noise=False, adjust_labels=False)
         for refine in (False, True)
     }
     assert maps[False].self_calibration is None
@@ -223,20 +223,20 @@ def test_refine_intrinsics_finds_the_real_camera_and_localizes_better() -> None:
     assert sc["rms_after_px"] < 0.5 * sc["rms_before_px"] and sc["correction_sigma_px"] < 0.5
     errors = {}
     for refine, m in maps.items():
-        loc = FeatureLocalizer(m)
+        loc = Localizer(m)
         e = []
         for i in range(30):
             truth = _turning(0.35 + 0.25 * i, 0.15)
             kp, d = _observe_real(rng, truth, pts, desc)
             loc.reset()
-            r = loc.localize(float(i), kp, d)
+            r = loc.localize_features(float(i), kp, d)
             e.append(np.inf if r.pose is None else np.linalg.norm(r.pose[:3, 3] - truth[:3, 3]))
         errors[refine] = float(np.median(e))
     assert errors[True] < 0.5 * errors[False], errors
 
 
 def test_refine_intrinsics_options_are_checked_and_a_weak_map_says_why(
-    feature_map: tuple[FeatureMap, np.ndarray, np.ndarray], tmp_path: pytest.TempPathFactory
+    feature_map: tuple[Map, np.ndarray, np.ndarray], tmp_path: pytest.TempPathFactory
 ) -> None:
     rng = np.random.default_rng(4)
     pts = rng.uniform([-4, -1.5, 3], [4, 1.5, 7], (300, 3))
@@ -244,13 +244,13 @@ def test_refine_intrinsics_options_are_checked_and_a_weak_map_says_why(
     poses = np.stack([_walk(0.1 * i, 0.0) for i in range(5)])
     obs = [_observe(rng, p, pts, desc) for p in poses]
     args = (CAM, poses, [o[0] for o in obs], [o[1] for o in obs])
-    for bad in ("fisheye", None, 3):
+    for bad in ("fisheye", 3):
         with pytest.raises(geoloc.InvalidInputError, match="intrinsics_model: expected one of"):
-            FeatureMap(*args, branching=4, depth=2, refine_intrinsics=True, intrinsics_model=bad)  # type: ignore[arg-type]
-    weak = FeatureMap(*args, branching=4, depth=2, refine_intrinsics=True)
+            Map.from_features(*args, branching=4, depth=2, refine_intrinsics=True, intrinsics_model=bad, estimate_noise=False, adjust_labels=False)  # type: ignore[arg-type]
+    weak = Map.from_features(*args, branching=4, depth=2, refine_intrinsics=True, estimate_noise=False, adjust_labels=False)
     sc = weak.self_calibration
     assert sc is not None and "camera" not in sc and sc["reason"] != "ok", sc
     # what was found is stored in the map file
     path = tmp_path / "weak.geoloc"  # type: ignore[operator]
     weak.save(path)
-    assert FeatureMap.load(path).self_calibration == sc
+    assert Map.load(path).self_calibration == sc

@@ -12,7 +12,7 @@ import pytest
 
 import geoloc
 from geoloc import datasets, evaluation
-from geoloc.mapping import Localizer, Map
+from geoloc import Localizer, Map
 
 #: Two laps of 40 frames (9° apart): lap 1 is the map, lap 2 the queries.
 ROOM_FRAMES = 40
@@ -141,7 +141,7 @@ def test_a_saved_map_gives_bit_identical_results_in_a_new_process(room_map: Map,
     room_map.save(path)
     expected = [r.pose.tobytes().hex() for r in _localize_queries(room_map, room)]  # type: ignore[attr-defined]
     script = (
-        "import sys; from geoloc import datasets; from geoloc.mapping import Map, Localizer\n"
+        "import sys; from geoloc import datasets; from geoloc import Map, Localizer\n"
         f"room = datasets.synthetic_room(n_frames={ROOM_FRAMES}); m = Map.load(sys.argv[1]); loc = Localizer(m)\n"
         f"for i in {QUERIES!r}:\n"
         "    loc.reset(); print(loc.localize(room.gray(i), float(room.timestamps[i])).pose.tobytes().hex())\n"

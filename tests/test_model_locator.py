@@ -13,7 +13,7 @@ import pytest
 import geoloc
 from geoloc.evaluation import summarize_results
 from geoloc.exceptions import InvalidInputError
-from geoloc.localizer import FeatureLocalizer
+from geoloc import Localizer, Map
 
 pytest.importorskip("cv2")
 
@@ -35,7 +35,7 @@ def single(m: geoloc.Map, test: Any, locator: str) -> tuple[dict[str, Any], list
 
 def test_model_locator_matches_or_beats_the_paper_on_the_room(room: tuple[Any, geoloc.Map]) -> None:
     test, m = room
-    assert m._feature_map.model_points is not None and m._feature_map.model_points > 100
+    assert m.model_points is not None and m.model_points > 100
     paper, paper_inliers = single(m, test, "paper")
     model, model_inliers = single(m, test, "model")
     assert model["recall"]["5cm_5deg"] >= paper["recall"]["5cm_5deg"]
@@ -47,21 +47,21 @@ def test_the_model_is_saved_and_old_maps_build_it_on_demand(room: tuple[Any, geo
     test, m = room
     m.save(tmp_path / "room.geoloc")
     back = geoloc.Map.load(tmp_path / "room.geoloc")
-    assert back._feature_map.model_points == m._feature_map.model_points
+    assert back.model_points == m.model_points
     a, _ = single(m, test, "model")
     b, _ = single(back, test, "model")
     assert a["median_translation_m"] == b["median_translation_m"]
     # a map without a model (as written before it existed): the localizer builds the same one
-    fm = m._feature_map
+    fm = m
     seq = geoloc.datasets.synthetic_room(n_frames=120, seed=0)[:80]
     ex = geoloc.features.FeatureExtractor("orb", 1000)
     feats = [ex(seq.gray(i), seq.camera) for i in range(len(seq))]
     args = (seq.camera, seq.poses, [f.keypoints for f in feats], [f.descriptors for f in feats])
-    plain = geoloc.localizer.FeatureMap(*args)
+    plain = Map.from_features(*args, estimate_noise=False, refine_intrinsics=False, adjust_labels=False)
     assert plain.model_points is None
     f = ex(test.gray(0), test.camera)
-    got = FeatureLocalizer(plain, locator="model").localize(0.0, f.keypoints, f.descriptors)
-    want = FeatureLocalizer(geoloc.localizer.FeatureMap(*args, model=True), locator="model").localize(0.0, f.keypoints, f.descriptors)
+    got = Localizer(plain, locator="model").localize_features(0.0, f.keypoints, f.descriptors)
+    want = Localizer(Map.from_features(*args, model=True, estimate_noise=False, refine_intrinsics=False, adjust_labels=False), locator="model").localize_features(0.0, f.keypoints, f.descriptors)
     assert got.pose is not None and want.pose is not None and fm is not None
     np.testing.assert_array_equal(got.pose, want.pose)
 
@@ -89,7 +89,7 @@ def test_cli_build_map_with_model_then_localize_with_the_model_locator(tmp_path:
     room = ("--format", "synthetic", "--synthetic-frames", "60")
     built = run("build-map", *room, "--frames", "0:30", "--model", "--out", str(path))
     assert built.returncode == 0, built.stdout + built.stderr
-    assert geoloc.Map.load(path)._feature_map.model_points
+    assert geoloc.Map.load(path).model_points
     done = run("localize", "--map", str(path), *room, "--frames", "30:60:3", "--mode", "single", "--locator", "model", "--out", str(out))
     assert done.returncode == 0, done.stdout + done.stderr
     rows = [line.split() for line in out.read_text().splitlines() if not line.startswith("#")]

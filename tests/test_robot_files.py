@@ -219,7 +219,7 @@ def test_a_map_whose_frontend_lacks_a_field_is_a_format_error(tmp_path: Path, sm
     else:
         del frontend[record]
     path = tmp_path / "m.geoloc"
-    small_map._feature_map.save(path, frontend)
+    small_map._core.save(str(path), json.dumps(frontend))
     with pytest.raises(geoloc.FileFormatError, match=f"^path: .*m.geoloc'.*frontend.*{field}"):
         geoloc.Map.load(path)
 

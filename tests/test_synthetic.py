@@ -13,7 +13,7 @@ import geoloc
 from geoloc import datasets, lie
 from geoloc.datasets.synthetic import SyntheticRoom, room_trajectory
 from geoloc.features import FeatureExtractor
-from geoloc.localizer import FeatureLocalizer, FeatureMap
+from geoloc import Localizer, Map
 
 cv2 = pytest.importorskip("cv2")
 
@@ -125,13 +125,13 @@ def test_held_out_frames_localize_to_a_centimetre() -> None:
     train = seq[0:150:2]
     feats = [extract(f.image, seq.camera) for f in train]
     assert train.poses is not None
-    feature_map = FeatureMap(seq.camera, train.poses, [f.keypoints for f in feats], [f.descriptors for f in feats])
-    localizer = FeatureLocalizer(feature_map)
+    feature_map = Map.from_features(seq.camera, train.poses, [f.keypoints for f in feats], [f.descriptors for f in feats], estimate_noise=False, refine_intrinsics=False, adjust_labels=False)
+    localizer = Localizer(feature_map)
     trans, rot = [], []
     for frame in seq[155:300:15]:
         f = extract(frame.image, seq.camera)
         localizer.reset()
-        r = localizer.localize(frame.timestamp, f.keypoints, f.descriptors)
+        r = localizer.localize_features(frame.timestamp, f.keypoints, f.descriptors)
         assert r.pose is not None and frame.pose is not None, (frame.index, r.reason)
         t_err, r_err = geoloc.evaluation.pose_errors(r.pose, frame.pose)
         trans.append(t_err[0])

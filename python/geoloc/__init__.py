@@ -14,7 +14,8 @@ from .evaluation import format_tum_line
 from .export import export_frames
 from .exceptions import DatasetError, FileAccessError, FileFormatError, GeolocError, InvalidInputError, NotARotationError
 from .fusion import FusionResult, fuse
-from .mapping import Localizer, Map
+from .localizer import Localization, Localizer
+from .mapping import Map
 from .motion import MotionPrediction, motion_predict
 
 __all__ = [
@@ -25,6 +26,7 @@ __all__ = [
     "FusionResult",
     "GeolocError",
     "InvalidInputError",
+    "Localization",
     "Localizer",
     "Map",
     "MotionPrediction",

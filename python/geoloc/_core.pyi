@@ -257,20 +257,14 @@ class FeatureMap:
         *,
         global_descriptors: NDArray[np.float32] | None = None,
         pose_covariances: NDArray[np.float64] | None = None,
-        retrieval: str = "bow",
-        branching: int | np.integer[Any] | None = None,
-        depth: int | np.integer[Any] | None = None,
-        seed: int | np.integer[Any] | None = None,
         timestamps: NDArray[np.float64] | None = None,
-        estimate_noise: bool = False,
-        model: bool = False,
-        refine_intrinsics: bool = False,
-        intrinsics_model: str = "radial-tangential",
-        adjust_labels: bool = False,
+        options: dict[str, Any] | None = None,
     ) -> FeatureMap: ...
     def __len__(self) -> int: ...
     @property
     def intrinsics(self) -> tuple[float, float, float, float]: ...
+    @property
+    def retrieval(self) -> str: ...
     @property
     def self_calibration_json(self) -> str | None: ...
     @property
@@ -318,13 +312,10 @@ class FeatureLocalizer:
         cls,
         map: FeatureMap,
         *,
-        pixel_sigma: float = 1.0,
-        max_residual: float = 5.0,
-        gate_sigma: float = 3.0,
-        history: int | np.integer[Any] | None = None,
-        locator: str = "paper",
-        top_k: int | np.integer[Any] | None = None,
+        options: dict[str, Any] | None = None,
     ) -> FeatureLocalizer: ...
+    @property
+    def options(self) -> dict[str, Any]: ...
     def localize(
         self,
         timestamp: float,
@@ -334,6 +325,10 @@ class FeatureLocalizer:
         pixel_sigmas: NDArray[np.float64] | None = None,
     ) -> Localization: ...
     def reset(self) -> None: ...
+
+# options (crates/geoloc-py/src/options.rs): the core's defaults of a map build and a localizer
+def build_defaults() -> dict[str, Any]: ...
+def localizer_defaults() -> dict[str, Any]: ...
 
 # frames (crates/geoloc-py/src/frames.rs): the frame-stream writer behind geoloc.export_frames
 @final

@@ -97,3 +97,18 @@ def choice(value: Any, name: str, choices: tuple[str, ...]) -> str:
     if not isinstance(value, str) or value not in choices:
         raise InvalidInputError(f"{name}: expected one of {', '.join(map(repr, choices))}, got {value!r:.40}")
     return value
+
+
+def keypoint_rows(x: Any, name: str, n: int | None = None) -> NDArray[np.float64]:
+    """``x`` as C-contiguous (N, 2) float64 pixel rows (N = ``n`` when given)."""
+    k = as_float64(x, name)
+    if k.ndim != 2 or k.shape[1] != 2 or (n is not None and k.shape[0] != n):
+        want = f"({n}, 2)" if n is not None else "(N, 2)"
+        raise InvalidInputError(f"{name}: expected shape {want}, got {k.shape}")
+    return np.ascontiguousarray(k)
+
+
+def given_options(**values: Any) -> dict[str, Any]:
+    """The options the caller set (not None), for the core, which applies its own default
+    to every other one."""
+    return {k: v for k, v in values.items() if v is not None}

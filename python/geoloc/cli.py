@@ -199,12 +199,12 @@ def _feature_options(parser: argparse.ArgumentParser) -> None:
 
 def _calibration_option(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
-        "--nominal-intrinsics", action="store_true",
+        "--nominal-intrinsics", dest="refine_intrinsics", action="store_const", const=False, default=None,
         help="use --intrinsics as they are; by default the map estimates the real camera (focal lengths, "
         "principal point, lens distortion) from its own keyframes and corrects every keypoint with it",
     )
     parser.add_argument(
-        "--keep-labels", dest="adjust_labels", action="store_false",
+        "--keep-labels", dest="adjust_labels", action="store_const", const=False, default=None,
         help="use the sequence's pose labels as the keyframes' truth; by default the map corrects them by "
         "bundle adjustment (keyframe poses, points and one label-to-camera offset, the labels as robust "
         "priors) so that it agrees with its images",
@@ -261,7 +261,7 @@ def _add_build_map(commands: argparse._SubParsersAction[argparse.ArgumentParser]
     _feature_options(build)
     _calibration_option(build)
     build.add_argument(
-        "--model", action="store_true",
+        "--model", action="store_const", const=True, default=None,
         help="also build and store the map-level 3D model of `localize --locator model` (else built when such a localizer starts)",
     )
     build.add_argument("--out", type=output_file, required=True, metavar="scene.geoloc", help="map file to write (its folder must exist)")
@@ -305,8 +305,9 @@ def _add_localize(commands: argparse._SubParsersAction[argparse.ArgumentParser])
         help="the descriptor network the map was built with (maps that retrieve by a network only)",
     )
     loc.add_argument(
-        "--locator", choices=("paper", "model"), default="paper",
-        help="paper: one retrieved keyframe and its group; model: top-5 retrieval against the map's 3D model (default: paper)",
+        "--locator", choices=("paper", "model"), default=None,
+        help="paper: one retrieved keyframe and its group; model: top-k retrieval against the map's 3D model "
+        "(default: the core's, geoloc.Localizer.default_options())",
     )
     loc.add_argument("--out", type=output_file, required=True, metavar="poses.txt", help="TUM trajectory to write (its folder must exist)")
 
@@ -345,8 +346,9 @@ def _add_evaluate(commands: argparse._SubParsersAction[argparse.ArgumentParser])
     _feature_options(ev)
     _calibration_option(ev)
     ev.add_argument(
-        "--locator", choices=("paper", "model"), default="paper",
-        help="paper: one retrieved keyframe and its group; model: top-5 retrieval against the map's 3D model (default: paper)",
+        "--locator", choices=("paper", "model"), default=None,
+        help="paper: one retrieved keyframe and its group; model: top-k retrieval against the map's 3D model "
+        "(default: the core's, geoloc.Localizer.default_options())",
     )
     ev.add_argument(
         "--reference", type=existing_file, metavar="FILE",

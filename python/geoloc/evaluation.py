@@ -361,8 +361,8 @@ def summarize(
 
 def summarize_results(results: Sequence[Any], ground_truth: ArrayLike, timestamps: ArrayLike | None = None) -> dict[str, Any]:
     """:func:`summarize` of localizer results: objects with ``.pose``, ``.covariance``,
-    ``.source`` and ``.timings_ms`` (or ``.timings``), e.g. ``LocalizationResult``."""
-    timings = [dict(getattr(r, "timings_ms", None) or getattr(r, "timings", None) or {}) for r in results]
+    ``.source`` and ``.timings`` (ms per stage), e.g. :class:`geoloc.Localization`."""
+    timings = [dict(getattr(r, "timings", None) or {}) for r in results]
     return summarize(
         [r.pose for r in results],
         ground_truth,

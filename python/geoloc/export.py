@@ -23,7 +23,8 @@ from numpy.typing import NDArray
 
 from ._core import FrameWriter
 from .exceptions import InvalidInputError
-from .mapping import GlobalDescriptor, Localizer, Map
+from .localizer import Localizer
+from .mapping import GlobalDescriptor, Map
 
 __all__ = ["export_frames"]
 
@@ -63,6 +64,8 @@ def export_frames(
     """
     if not isinstance(map, Map):
         raise InvalidInputError(f"map: expected a geoloc.Map, got {type(map).__name__}")
+    if map.features is None:
+        raise InvalidInputError("map: built from features (Map.from_features); it has no feature extractor to describe images")
     if format not in ("binary", "jsonl"):
         raise InvalidInputError(f"format: expected 'binary' or 'jsonl', got {format!r}")
     from ._io import check_output_path, refuse_alias

@@ -1,305 +1,193 @@
-"""The per-frame localizer at the level of features (keypoints + descriptors).
+"""The per-frame localizer: :class:`Localizer` against a :class:`geoloc.Map`, and its
+result :class:`Localization`.
 
-:class:`FeatureMap` holds keyframes with known world_from_cam poses, their undistorted
-keypoints and local descriptors (uint8 rows: binary/ORB; float rows: SIFT), optional global
-descriptors and pose-label covariances, and builds the retrieval structure (bag of words by
-default — no network needed — or the global descriptors). :class:`FeatureLocalizer` runs the
-paper's pipeline frame after frame (retrieval → keyframe group → triangulation, cached →
-PnP with calibrated covariance → constant-velocity motion → gated fusion) and keeps the
-motion history. Image-level mapping (feature extraction, datasets) builds on these.
+Frame after frame: features (from the image, or given) → retrieval → keyframe group →
+triangulation (cached) → PnP with a calibrated covariance → constant-velocity motion model →
+gated fusion; the motion history is kept between frames. Every option left ``None`` takes
+the core's default (:meth:`Localizer.default_options`), the same in Python, in the CLI and
+in ``geoloc-rs``.
+
+``FeatureMap``, ``FeatureLocalizer`` and ``LocalizationResult`` are the deprecated names of
+the feature-level path (now :meth:`geoloc.Map.from_features`,
+:meth:`Localizer.localize_features` and :class:`Localization`); they keep working for one
+release with a ``DeprecationWarning``.
 """
 
 from __future__ import annotations
 
-import json
 import os
-
-from typing import Any, Literal, Mapping, Sequence
+import time
+import warnings
+from dataclasses import dataclass, field
+from typing import Any, Literal, Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from . import _core
-from ._core import Localization as LocalizationResult
-from ._validation import as_batch, as_float64, choice, real_scalar
+from ._validation import as_float64, given_options, keypoint_rows, real_scalar
 from .camera import Camera
-from .exceptions import FileAccessError, InvalidInputError
+from .exceptions import InvalidInputError
+from .mapping import GlobalDescriptor, Map, ProgressCallback
 from .retrieval import _f32_rows, _local_descriptors
 
-#: The camera models ``FeatureMap(refine_intrinsics=True)`` can estimate (geoloc-core's
-#: ``IntrinsicsModel``): focal lengths and principal point, + radial k1 k2, + tangential p1 p2.
-INTRINSICS_MODELS = ("pinhole", "radial", "radial-tangential")
+__all__ = ["FeatureLocalizer", "FeatureMap", "Localization", "Localizer", "SEQUENCE_MODES"]
 
-__all__ = ["FeatureLocalizer", "FeatureMap", "LocalizationResult"]
-
-Array = NDArray[np.float64]
+#: The modes of :meth:`Localizer.localize_sequence`.
+SEQUENCE_MODES = ("single", "sequential")
 
 
-def _keypoints(x: ArrayLike, name: str, n: int | None = None) -> Array:
-    k = as_float64(x, name)
-    if k.ndim != 2 or k.shape[1] != 2 or (n is not None and k.shape[0] != n):
-        want = f"({n}, 2)" if n is not None else "(N, 2)"
-        raise InvalidInputError(f"{name}: expected shape {want}, got {k.shape}")
-    return np.ascontiguousarray(k)
+@dataclass(frozen=True)
+class Localization:
+    """One localized frame: ``pose`` (4, 4) world_from_cam and ``covariance`` (6, 6, right
+    perturbation, translation first) or None when lost; ``source`` "geometric" / "fused" /
+    "motion" / "lost"; ``reason`` says why; ``keyframe`` the keyframe whose group gave the
+    geometric pose (the retrieved one, or the last frame's when the paper's locator
+    tracked); PnP ``inliers``; ``timings`` in ms per stage (the core's ``retrieval``,
+    ``keyframes``, ``map_points``, ``matching``, ``pnp``, ``motion_fusion``; from an image
+    also ``decode`` and ``features``; ``total``). When the map adjusted its labels, ``pose`` is
+    in the labels' convention (world_from_label, what the sequence's poses were) and
+    ``camera_pose`` is the camera's own world_from_cam; otherwise the two are equal."""
+
+    pose: NDArray[np.float64] | None
+    covariance: NDArray[np.float64] | None
+    source: str
+    reason: str
+    keyframe: int
+    inliers: int
+    timings: dict[str, float] = field(default_factory=dict)
+    camera_pose: NDArray[np.float64] | None = None
+
+    @property
+    def timings_ms(self) -> dict[str, float]:
+        """Deprecated alias of :attr:`timings` (milliseconds)."""
+        warnings.warn("Localization.timings_ms is deprecated; use .timings (milliseconds)", DeprecationWarning, stacklevel=2)
+        return self.timings
 
 
-def _noise_source(cov: NDArray[np.float64], samples: int) -> str:
-    """Where C_map came from, in words (the core picks; this only describes)."""
-    if not np.any(cov):
-        return "none (the map's noise was not estimated)"
-    if samples < _core.MIN_NOISE_SAMPLES:
-        sigma = np.sqrt(np.diag(cov))
-        return (
-            f"default: {samples} held-out keyframes < {_core.MIN_NOISE_SAMPLES} cannot estimate it "
-            f"(σ {100 * sigma[0]:.0f} cm / {np.degrees(sigma[3]):.0f}° per axis)"
-        )
-    return f"estimated from {samples} held-out keyframes"
+def _from_core(r: Any, timings: dict[str, float] | None = None) -> Localization:
+    stages = dict(timings or {})
+    stages.update(r.timings_ms)
+    return Localization(r.pose, r.covariance, r.source, r.reason, r.keyframe, r.inliers, stages, r.camera_pose)
 
 
-class FeatureMap:
-    """Keyframes (poses + features) and their retrieval structure; see the module doc.
+class Localizer:
+    """Localizes frames against a :class:`geoloc.Map`, frame after frame, keeping the motion
+    history.
 
-    Everything is checked here, at construction (counts, finiteness, float32 range, pose
-    covariances symmetric positive semi-definite, ``retrieval`` in {"bow", "global"}, the
-    vocabulary's limits ``branching`` ≤ 1024, ``depth`` ≤ 24, ``branching**depth`` ≤ 2**24),
-    so a map that builds localizes.
+    ``locator``: "paper" (the paper's: one retrieved keyframe and its co-visible group,
+    triangulated on the fly) or "model" (top-``top_k`` retrieval against the map-level 3D
+    model, PnP, guided matching; built here when the map has none). In sequence the paper's
+    locator also tracks: when the retrieved keyframe's group gives fewer than half the
+    inliers of the last frame, the last frame's group is tried too and the pose with more
+    inliers kept (the result's ``reason`` says so). Each keypoint's pixel noise in PnP and
+    triangulation is ``pixel_sigma`` × its own σ from the detector scale
+    (:attr:`geoloc.features.Features.pixel_sigmas`: 1.2^level for ORB); residuals beyond
+    ``max_residual`` px are outliers; a geometric pose farther than ``gate_sigma`` σ from the
+    motion prediction (fitted to the last ``history`` poses) is not fused. ``None`` = the
+    core's default (:meth:`default_options`); the core checks every value.
 
-    ``estimate_noise=True`` estimates the map's own noise once built (see :attr:`map_noise`):
-    the map-frame covariance C_map by re-localizing every 10th keyframe against the others
-    (its ±15 neighbours excluded), and with ``timestamps`` (one per keyframe, seconds) the
-    motion model's acceleration process noise.
-
-    ``model=True`` builds the map-level 3D model of the model locator (``locator="model"``)
-    once, here, and stores it with the map (:attr:`model_points`); without it a model
-    localizer builds it when it is created.
-
-    ``refine_intrinsics=True`` first estimates the camera from the keyframes themselves —
-    their tracks, with the poses known, fix the focal lengths, the principal point and (per
-    ``intrinsics_model``) a radial and tangential distortion the nominal ``camera`` lacks —
-    and corrects the keyframes' keypoints and, in the localizer, every query's keypoints with
-    it; :attr:`self_calibration` reports what was found, and why not when the tracks do not
-    determine the camera (too short or too straight a recording: the keypoints are then left
-    as they are). With both, the keyframe pairs are matched once for the two: building the
-    map with ``model=True`` is cheaper than building the model later."""
+    ``camera`` (optional) must have the map's intrinsics; ``global_descriptor`` is the
+    network a map that retrieves by global descriptors was built with (for :meth:`localize`)."""
 
     def __init__(
         self,
-        camera: Camera,
-        poses: ArrayLike,
-        keypoints: Sequence[ArrayLike],
-        descriptors: Sequence[ArrayLike],
-        global_descriptors: ArrayLike | None = None,
-        pose_covariances: ArrayLike | None = None,
-        retrieval: Literal["bow", "global"] = "bow",
-        branching: int = 10,
-        depth: int = 3,
-        seed: int = 0,
-        timestamps: ArrayLike | None = None,
-        estimate_noise: bool = False,
-        model: bool = False,
-        refine_intrinsics: bool = False,
-        intrinsics_model: Literal["pinhole", "radial", "radial-tangential"] = "radial-tangential",
-        adjust_labels: bool = False,
+        map: Map,
+        camera: Camera | None = None,
+        *,
+        pixel_sigma: float | None = None,
+        max_residual: float | None = None,
+        gate_sigma: float | None = None,
+        history: int | None = None,
+        global_descriptor: GlobalDescriptor | None = None,
+        locator: Literal["paper", "model"] | None = None,
+        top_k: int | None = None,
     ) -> None:
-        if not isinstance(camera, Camera):
+        if not isinstance(map, Map):
+            raise InvalidInputError(f"map: expected a geoloc.Map, got {type(map).__name__}")
+        if camera is not None and not isinstance(camera, Camera):
             raise InvalidInputError(f"camera: expected a geoloc.Camera, got {type(camera).__name__}")
-        flat, lead = as_batch(poses, "poses", (4, 4))
-        if len(lead) != 1:
-            raise InvalidInputError(f"poses: expected shape (K, 4, 4), got {np.shape(poses)}")
-        n = flat.shape[0]
-        for name, value in (("keypoints", keypoints), ("descriptors", descriptors)):
-            if not isinstance(value, (list, tuple)) and not (isinstance(value, np.ndarray) and value.ndim >= 1):
-                raise InvalidInputError(f"{name}: expected a list of one array per pose, got {type(value).__name__}")
-        if len(keypoints) != n or len(descriptors) != n:
-            raise InvalidInputError(f"keypoints, descriptors: expected one array per pose ({n})")
-        descs = [_local_descriptors(d, f"descriptors[{i}]") for i, d in enumerate(descriptors)]
-        kps = [_keypoints(k, f"keypoints[{i}]", len(descs[i])) for i, k in enumerate(keypoints)]
-        g = None if global_descriptors is None else _f32_rows(global_descriptors, "global_descriptors")
-        covs = None
-        if pose_covariances is not None:
-            c = as_float64(pose_covariances, "pose_covariances")
-            if c.shape != (n, 6, 6):
-                raise InvalidInputError(f"pose_covariances: expected shape ({n}, 6, 6), got {c.shape}")
-            covs = np.ascontiguousarray(c.reshape(n, 36))
-        ts = None
-        if timestamps is not None:
-            ts = np.ascontiguousarray(as_float64(timestamps, "timestamps"))
-            if ts.shape != (n,):
-                raise InvalidInputError(f"timestamps: expected shape ({n},), got {ts.shape}")
-        self.camera = camera
-        self.frontend: dict[str, Any] = {}
-        self._map = _core.FeatureMap(
-            camera.intrinsics, flat, kps, descs, global_descriptors=g, pose_covariances=covs,
-            retrieval=retrieval, branching=branching, depth=depth, seed=seed,
-            timestamps=ts, estimate_noise=bool(estimate_noise), model=bool(model),
-            refine_intrinsics=bool(refine_intrinsics),
-            intrinsics_model=choice(intrinsics_model, "intrinsics_model", INTRINSICS_MODELS),
-            adjust_labels=bool(adjust_labels),
+        if camera is not None and camera.intrinsics != map.camera.intrinsics:
+            raise InvalidInputError(
+                f"camera: intrinsics {camera.intrinsics} differ from the map's {map.camera.intrinsics}; "
+                "queries must be described with the map's camera"
+            )
+        recorded = map.settings["retrieval"]
+        if isinstance(recorded, dict) and global_descriptor is None:
+            raise InvalidInputError("global_descriptor: this map retrieves by a network; pass the same network here")
+        if isinstance(recorded, dict) and "sha256" in recorded:
+            if getattr(global_descriptor, "sha256", None) != recorded["sha256"]:
+                raise InvalidInputError(
+                    f"global_descriptor: the map was built with network {recorded.get('name', '?')!r} "
+                    f"(sha256 {str(recorded['sha256'])[:12]}…); this is another model"
+                )
+        if locator is not None and not isinstance(locator, str):
+            raise InvalidInputError(f"locator: expected 'paper' or 'model', got {locator!r:.40}")
+        options = given_options(
+            pixel_sigma=None if pixel_sigma is None else real_scalar(pixel_sigma, "pixel_sigma"),
+            max_residual=None if max_residual is None else real_scalar(max_residual, "max_residual"),
+            gate_sigma=None if gate_sigma is None else real_scalar(gate_sigma, "gate_sigma"),
+            history=history,
+            locator=locator,
+            top_k=top_k,
         )
+        self.map = map
+        self.camera = camera or map.camera
+        self._global = global_descriptor
+        self._core = _core.FeatureLocalizer(map._core, options=options)
+
+    @staticmethod
+    def default_options() -> dict[str, Any]:
+        """The core's default localizer options (what every ``None`` argument means)."""
+        return dict(_core.localizer_defaults())
 
     @property
-    def self_calibration(self) -> dict[str, Any] | None:
-        """The camera the map estimated from its keyframes (``refine_intrinsics=True``), or
-        None when it was not tried: ``camera`` {fx, fy, cx, cy} and ``distortion`` (OpenCV's
-        k1, k2, p1, p2, k3) when there is a correction — the keyframes' keypoints are then
-        stored corrected and every query's keypoints are corrected the same way by the
-        localizer — else absent; ``reason`` ("ok" or why not); the tracks' pixel residuals
-        ``rms_before_px`` / ``rms_after_px`` and ``median_before_px`` / ``median_after_px``;
-        ``observations`` and ``points`` used; ``correction_sigma_px``, the RMS 1σ of the
-        correction over the tracks' pixels (applied only below 0.5 px)."""
-        text = self._map.self_calibration_json
-        return None if text is None else dict(json.loads(text))
+    def options(self) -> dict[str, Any]:
+        """The options this localizer runs with (the keys of :meth:`default_options`)."""
+        return dict(self._core.options)
 
-    @property
-    def labels(self) -> dict[str, Any] | None:
-        """The labels' correction by bundle adjustment (``adjust_labels=True``), or None when
-        the labels were not adjusted: ``label_sigma_m`` / ``label_sigma_deg`` (the labels' σ the
-        adjustment estimated), the label-to-camera offset (``label_from_cam_translation_m``,
-        ``label_from_cam_rotation_deg`` and their σ), the median correction, ``rms_px`` (the
-        tracks' reprojection error with the labels and after), ``observations`` (used,
-        rejected) and ``runs``: consecutive keyframes (≥ 3) whose corrections are significant
-        (beyond the χ²₆ 99.9 % quantile of their covariance), with the largest correction."""
-        text = self._map.labels_json
-        return None if text is None else dict(json.loads(text))
-
-    @property
-    def label_poses(self) -> NDArray[np.float64] | None:
-        """The pose labels as given (K, 4, 4), or None when they were not adjusted."""
-        return self._map.label_poses
-
-    @property
-    def keyframe_poses(self) -> NDArray[np.float64]:
-        """The keyframe poses (K, 4, 4) in the labels' convention: the adjusted ones when the
-        labels were adjusted, else the labels."""
-        return self._map.keyframe_poses
-
-    @property
-    def camera_poses(self) -> NDArray[np.float64]:
-        """The keyframes' camera poses world_from_cam (K, 4, 4): the labels moved by the
-        adjustment and the label-to-camera offset (the labels when not adjusted)."""
-        return self._map.camera_poses
-
-    @property
-    def model_points(self) -> int | None:
-        """Points of the stored map-level 3D model, or None when the map has none."""
-        return self._map.model_points
-
-    @property
-    def map_noise(self) -> dict[str, Any]:
-        """What was estimated about the map's noise at build time (all zero when not):
-        ``pose_covariance`` C_map (6, 6, right perturbation, translation first; added to every
-        returned covariance), ``acceleration_psd`` (6,) of the motion model's process noise,
-        ``velocity_mean`` and ``velocity_variance`` (6,) of its velocity prior (per twist axis,
-        from the keyframes' timestamps and poses; zero in maps saved before it: no prior),
-        ``holdout_samples`` (held-out keyframes C_map comes from; with fewer than
-        ``geoloc._core.MIN_NOISE_SAMPLES`` C_map is a conservative default, never zero),
-        ``pose_covariance_source`` (which of the two, in words) and, for a map built in this
-        process (not stored in the file), ``holdout``: the held-out re-localizations
-        (``keyframe`` (n,), ``delta`` (n, 6) = log(T_label⁻¹T_est), ``covariance`` (n, 6, 6) C_G,
-        ``used`` (n,) bool)."""
-        cov, psd, velocity_mean, velocity_variance, samples = self._map.map_noise
-        keyframes, deltas, covs, used = self._map.map_noise_holdout
-        holdout = {
-            "keyframe": np.asarray(keyframes, dtype=np.int64),
-            "delta": deltas,
-            "covariance": covs,
-            "used": np.asarray(used, dtype=bool),
-        }
-        return {
-            "pose_covariance": cov,
-            "acceleration_psd": np.asarray(psd),
-            "velocity_mean": np.asarray(velocity_mean),
-            "velocity_variance": np.asarray(velocity_variance),
-            "holdout_samples": samples,
-            "pose_covariance_source": _noise_source(cov, samples),
-            "holdout": holdout,
-        }
-
-    def __len__(self) -> int:
-        return len(self._map)
-
-    def save(self, path: str | os.PathLike[str], frontend: Mapping[str, Any] | None = None) -> None:
-        """Write the map to one ``.geoloc`` file (safetensors), atomically: an interrupted save
-        keeps the previous file. ``frontend`` (a JSON-able dict) records the caller's settings."""
-        from ._io import check_output_path
-
-        target = check_output_path(path, "path")
-        text = json.dumps(dict(frontend or {}), sort_keys=True, allow_nan=False)
-        self._map.save(os.fspath(target), text)
-
-    @classmethod
-    def load(cls, path: str | os.PathLike[str], camera: Camera | None = None) -> FeatureMap:
-        """Read a map written by :meth:`save`, checking it whole first: a truncated, corrupt or
-        other-version file raises :class:`geoloc.exceptions.FileFormatError`. ``camera`` gives
-        the image size and distortion (the file stores the intrinsics); its intrinsics must
-        match. The caller's settings are in ``.frontend``."""
-        from ._io import as_path, shown, special_kind
-
-        source = as_path(path, "path")
-        kind = special_kind(source)
-        if kind is not None:  # never opened: a FIFO would block the reader
-            raise FileAccessError(f"{shown(source)}: cannot read the map: it is {kind}, not a regular file")
-        core, text = _core.FeatureMap.load(os.fspath(source))
-        intrinsics = core.intrinsics
-        if camera is None:
-            camera = Camera(*intrinsics)
-        elif not isinstance(camera, Camera) or camera.intrinsics != intrinsics:
-            raise InvalidInputError(f"camera: must be a geoloc.Camera with the map's intrinsics {intrinsics}")
-        self = cls.__new__(cls)
-        self.camera = camera
-        self._map = core
-        self.frontend = json.loads(text)
-        return self
-
-
-LocalizationResult.__doc__ = """One frame: ``pose`` (4, 4) world_from_cam and ``covariance`` (6, 6, right
-perturbation, translation first), or None when lost; ``source`` is "geometric", "fused",
-"motion" or "lost"; ``reason`` says why; ``keyframe`` the keyframe whose group gave the
-geometric pose (the retrieved one, or the last frame's when the paper's locator tracked),
-``inliers`` the PnP inliers; per-stage ``timings_ms``."""
-
-
-class FeatureLocalizer:
-    """Localizes frames (given as features) against a :class:`FeatureMap`, frame after frame.
-
-    Options (checked in the core): ``pixel_sigma``, ``max_residual``, ``gate_sigma`` finite
-    and > 0, ``history`` an integer ≥ 2 (numpy integers accepted). ``locator``: "paper" (one
-    retrieved keyframe, its co-visible group triangulated on the fly) or "model" (top-``top_k``
-    retrieval against the map-level 3D model, PnP, guided matching; builds the model here if
-    the map has none)."""
-
-    def __init__(
-        self,
-        map: FeatureMap,
-        pixel_sigma: float = 1.0,
-        max_residual: float = 5.0,
-        gate_sigma: float = 3.0,
-        history: int = 4,
-        locator: Literal["paper", "model"] = "paper",
-        top_k: int = 5,
-    ) -> None:
-        if not isinstance(map, FeatureMap):
-            raise InvalidInputError(f"map: expected a geoloc.localizer.FeatureMap, got {type(map).__name__}")
-        self._loc = _core.FeatureLocalizer(
-            map._map, pixel_sigma=real_scalar(pixel_sigma, "pixel_sigma"), max_residual=real_scalar(max_residual, "max_residual"),
-            gate_sigma=real_scalar(gate_sigma, "gate_sigma"), history=history, locator=str(locator), top_k=top_k,
+    def localize(self, image: Any, timestamp: float) -> Localization:
+        """Localize one image (a path, (H, W) gray or (H, W, 3) BGR uint8 of the map's size)
+        taken at ``timestamp`` (seconds, increasing), described with the map's features."""
+        extractor = self.map.features
+        if extractor is None:
+            raise InvalidInputError(
+                "image: this map was built from features (Map.from_features); localize it with localize_features"
+            )
+        if self.map._core.retrieval == "global" and self._global is None:
+            raise InvalidInputError("global_descriptor: this map retrieves by a network; pass the same network to Localizer")
+        start = time.perf_counter()
+        pixels = self._decode(image)
+        decoded = time.perf_counter()
+        f = extractor(pixels, self.camera)
+        described = time.perf_counter()
+        g = None
+        if self._global is not None:
+            g = np.asarray(self._global([pixels]), dtype=np.float32)[0]
+        r = self._core.localize(
+            real_scalar(timestamp, "timestamp"), f.keypoints, f.descriptors, g, pixel_sigmas=f.pixel_sigmas
         )
+        end = time.perf_counter()
+        result = _from_core(r, {"decode": 1e3 * (decoded - start), "features": 1e3 * (described - decoded)})
+        result.timings["total"] = 1e3 * (end - start)
+        return result
 
-    def localize(
+    def localize_features(
         self,
         timestamp: float,
         keypoints: ArrayLike,
         descriptors: ArrayLike,
         global_descriptor: ArrayLike | None = None,
         pixel_sigmas: ArrayLike | None = None,
-    ) -> LocalizationResult:
-        """Localize one frame taken at ``timestamp`` (seconds, increasing); ``global_descriptor``
-        is one (D,) vector when the map retrieves by global descriptor. ``pixel_sigmas`` (N,):
-        each keypoint's positional σ from its detector scale (:attr:`geoloc.features.Features.pixel_sigmas`,
-        finite and > 0); keypoint i's pixel noise in PnP is then ``pixel_sigma`` × ``pixel_sigmas[i]``
-        (None: ``pixel_sigma`` for all)."""
+    ) -> Localization:
+        """Localize one frame given as features, taken at ``timestamp`` (seconds,
+        increasing): ``keypoints`` (N, 2) undistorted pixels, ``descriptors`` (N, W) of the
+        map's kind, ``global_descriptor`` one (D,) vector when the map retrieves by global
+        descriptors, ``pixel_sigmas`` (N,) each keypoint's positional σ from its detector
+        scale (:attr:`geoloc.features.Features.pixel_sigmas`, finite and > 0; keypoint i's
+        pixel noise is then ``pixel_sigma`` × ``pixel_sigmas[i]``; None: ``pixel_sigma``)."""
         d = _local_descriptors(descriptors, "descriptors")
-        k = _keypoints(keypoints, "keypoints", len(d))
+        k = keypoint_rows(keypoints, "keypoints", len(d))
         g = None
         if global_descriptor is not None:
             g = np.asarray(global_descriptor)
@@ -312,9 +200,145 @@ class FeatureLocalizer:
             if s.shape != (len(k),):
                 raise InvalidInputError(f"pixel_sigmas: expected shape ({len(k)},), got {s.shape}")
             s = np.ascontiguousarray(s)
-        return self._loc.localize(real_scalar(timestamp, "timestamp"), k, d, g, s)
+        return _from_core(self._core.localize(real_scalar(timestamp, "timestamp"), k, d, g, s))
+
+    def _decode(self, image: Any) -> NDArray[np.uint8]:
+        if isinstance(image, (str, os.PathLike)):
+            from ._images import read_image
+
+            return read_image(image, "image", gray=True)
+        return np.asarray(image)
 
     def reset(self) -> None:
-        """Forget the motion history (and the last frame's keyframe, which the paper's
-        locator tracks)."""
-        self._loc.reset()
+        """Forget the motion history and the last frame's keyframe (the next frame is
+        localized by geometry alone)."""
+        self._core.reset()
+
+    def localize_sequence(
+        self, sequence: Any, mode: str = "sequential", progress: ProgressCallback | None = None
+    ) -> list[Localization]:
+        """Localize every frame of ``sequence`` (a :class:`geoloc.datasets.Sequence`) in order,
+        from an empty motion history. ``mode`` ``"sequential"`` keeps the history from frame to
+        frame (motion model + gated fusion); ``"single"`` resets it before every frame (the
+        geometric locator alone). Each result's ``timings`` gets ``decode`` (reading the image
+        as grey — rendering it, for the synthetic room) and its ``total`` includes it.
+        ``progress(done, total)`` is called after every frame."""
+        if mode not in SEQUENCE_MODES:
+            raise InvalidInputError(f"mode: expected one of {', '.join(SEQUENCE_MODES)}, got {mode!r}")
+        self.reset()
+        results = []
+        n = len(sequence)
+        for i in range(n):
+            if mode == "single":
+                self.reset()
+            start = time.perf_counter()
+            gray = sequence.gray(i)
+            decode_ms = 1e3 * (time.perf_counter() - start)
+            r = self.localize(gray, float(sequence.timestamps[i]))
+            r.timings["total"] = r.timings.get("total", 0.0) - r.timings.get("decode", 0.0) + decode_ms
+            r.timings["decode"] = decode_ms
+            results.append(r)
+            if progress is not None:
+                progress(i + 1, n)
+        return results
+
+
+def _deprecated(old: str, new: str) -> None:
+    warnings.warn(f"{old} is deprecated and will be removed in the next release; use {new}", DeprecationWarning, stacklevel=3)
+
+
+class FeatureMap(Map):
+    """Deprecated: :meth:`geoloc.Map.from_features`. Kept for one release with its former
+    defaults (the map's noise, camera and labels not estimated), so that old code gives the
+    results it gave."""
+
+    def __init__(
+        self,
+        camera: Camera,
+        poses: ArrayLike,
+        keypoints: Sequence[ArrayLike],
+        descriptors: Sequence[ArrayLike],
+        global_descriptors: ArrayLike | None = None,
+        pose_covariances: ArrayLike | None = None,
+        retrieval: Literal["bow", "global"] = "bow",
+        branching: int | None = None,
+        depth: int | None = None,
+        seed: int | None = None,
+        timestamps: ArrayLike | None = None,
+        estimate_noise: bool = False,
+        model: bool = False,
+        refine_intrinsics: bool = False,
+        intrinsics_model: Literal["pinhole", "radial", "radial-tangential"] | None = None,
+        adjust_labels: bool = False,
+    ) -> None:
+        _deprecated("geoloc.localizer.FeatureMap", "geoloc.Map.from_features")
+        built = Map.from_features(
+            camera, poses, keypoints, descriptors, global_descriptors=global_descriptors,
+            pose_covariances=pose_covariances, timestamps=timestamps, retrieval=retrieval, branching=branching,
+            depth=depth, seed=seed, estimate_noise=estimate_noise, model=model, refine_intrinsics=refine_intrinsics,
+            intrinsics_model=intrinsics_model, adjust_labels=adjust_labels,
+        )
+        super().__init__(built._core, built.camera, None, built._frontend)
+
+    @property
+    def frontend(self) -> dict[str, Any]:
+        """The caller's settings given to :meth:`save` (empty when none)."""
+        caller: dict[str, Any] = self.settings.get("caller", {})
+        return caller
+
+    def save(self, path: str | os.PathLike[str], frontend: dict[str, Any] | None = None) -> None:
+        """:meth:`geoloc.Map.save`; ``frontend`` (a JSON-able dict) is kept as the caller's settings."""
+        if frontend:
+            self._frontend = {**self._frontend, "caller": dict(frontend)}
+        super().save(path)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike[str], camera: Camera | None = None) -> Map:
+        """:meth:`geoloc.Map.load` (``camera``, when given, must have the map's intrinsics)."""
+        _deprecated("geoloc.localizer.FeatureMap.load", "geoloc.Map.load")
+        loaded = Map.load(path)
+        if camera is not None and (not isinstance(camera, Camera) or camera.intrinsics != loaded.camera.intrinsics):
+            raise InvalidInputError(f"camera: must be a geoloc.Camera with the map's intrinsics {loaded.camera.intrinsics}")
+        return loaded
+
+
+class FeatureLocalizer:
+    """Deprecated: :class:`Localizer` and :meth:`Localizer.localize_features`."""
+
+    def __init__(
+        self,
+        map: Map,
+        pixel_sigma: float | None = None,
+        max_residual: float | None = None,
+        gate_sigma: float | None = None,
+        history: int | None = None,
+        locator: Literal["paper", "model"] | None = None,
+        top_k: int | None = None,
+    ) -> None:
+        _deprecated("geoloc.localizer.FeatureLocalizer", "geoloc.Localizer(...).localize_features")
+        self._localizer = Localizer(
+            map, pixel_sigma=pixel_sigma, max_residual=max_residual, gate_sigma=gate_sigma, history=history,
+            locator=locator, top_k=top_k,
+        )
+
+    def localize(
+        self,
+        timestamp: float,
+        keypoints: ArrayLike,
+        descriptors: ArrayLike,
+        global_descriptor: ArrayLike | None = None,
+        pixel_sigmas: ArrayLike | None = None,
+    ) -> Localization:
+        """:meth:`Localizer.localize_features`."""
+        return self._localizer.localize_features(timestamp, keypoints, descriptors, global_descriptor, pixel_sigmas)
+
+    def reset(self) -> None:
+        """:meth:`Localizer.reset`."""
+        self._localizer.reset()
+
+
+def __getattr__(name: str) -> Any:
+    if name == "LocalizationResult":
+        _deprecated("geoloc.localizer.LocalizationResult", "geoloc.Localization")
+        return Localization
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -1,44 +1,41 @@
-"""Image-level mapping and localization: :class:`Map` (build, save, load) and :class:`Localizer`.
+"""The map: keyframes with known poses, their features and the retrieval structure.
 
-A map is built from a :class:`geoloc.datasets.Sequence` with known world_from_cam poses:
-every (selected) frame becomes a keyframe with its OpenCV features (ORB by default, SIFT as
-an option) and, for retrieval, either a bag-of-words vocabulary trained on those features (no
-network needed; the default) or the global descriptors of a network (any callable
-``images -> (N, D) float32``, e.g. :class:`geoloc.descriptor.OnnxDescriptor`). The map is the
-core's map plus the settings needed to describe a query the same way; it is saved to one
+A :class:`Map` is built either from images — :meth:`Map.build` takes a
+:class:`geoloc.datasets.Sequence` with world_from_cam poses, extracts OpenCV features (ORB by
+default, SIFT as an option) and trains a bag-of-words vocabulary (no network needed; the
+default) or runs a global-descriptor network (any callable ``images -> (N, D) float32``, e.g.
+:class:`geoloc.descriptor.OnnxDescriptor`) — or from features a caller computed
+(:meth:`Map.from_features`). Both paths take the same build options with the same defaults,
+the core's (:meth:`Map.default_options`): the labels corrected by bundle adjustment, the
+camera estimated from the keyframes, the map's own noise estimated. The map is saved to one
 ``.geoloc`` file (safetensors, written atomically by geoloc-core) that Python and the robot
-binary ``geoloc-rs`` both read.
-
-:class:`Localizer` runs the per-frame pipeline on images: decode → features →
-retrieval → keyframe group → triangulation → PnP with covariance → motion model → gated fusion.
+binary ``geoloc-rs`` both read. :class:`geoloc.Localizer` localizes against it.
 """
 
 from __future__ import annotations
 
 import json
 import os
-import time
-from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Any, Callable, Literal, Protocol
+import warnings
+from typing import Any, Callable, Literal, Protocol, Sequence
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
-from .camera import Camera
+from . import _core
+from ._frontend import FRONTEND_VERSION, camera_record, descriptor_record, frontend_parts
 from ._io import shown
-from ._validation import real_scalar
-from .exceptions import FileFormatError, InvalidInputError
-from .features import FeatureExtractor, Features
-from .localizer import FeatureLocalizer, FeatureMap, LocalizationResult
+from ._validation import as_batch, as_float64, choice, given_options, keypoint_rows
+from .camera import Camera
+from .exceptions import FileAccessError, InvalidInputError
+from .features import FeatureExtractor
+from .retrieval import _f32_rows, _local_descriptors
 
-__all__ = ["GlobalDescriptor", "Localizer", "Map", "MapLocalization"]
+__all__ = ["GlobalDescriptor", "INTRINSICS_MODELS", "Map"]
 
-#: The modes of :meth:`Localizer.localize_sequence`.
-SEQUENCE_MODES = ("single", "sequential")
-
-#: The frontend settings' schema version inside the map file.
-FRONTEND_VERSION = 1
+#: The camera models the map can estimate (geoloc-core's ``IntrinsicsModel``): focal lengths
+#: and principal point, + radial k1 k2, + tangential p1 p2.
+INTRINSICS_MODELS = ("pinhole", "radial", "radial-tangential")
 
 
 class GlobalDescriptor(Protocol):
@@ -56,14 +53,10 @@ def _as_int(value: Any, name: str, low: int) -> int:
     return int(value)
 
 
-def _descriptor_record(descriptor: Any) -> dict[str, Any]:
-    record: dict[str, Any] = {"kind": type(descriptor).__name__}
-    for key in ("name", "sha256", "input_size", "dim"):
-        value = getattr(descriptor, key, None)
-        if isinstance(value, (str, int, float)) or (isinstance(value, tuple) and all(isinstance(v, int) for v in value)):
-            # names from file names may hold bytes that are not UTF-8: recorded as \xNN text
-            record[key] = list(value) if isinstance(value, tuple) else shown(value) if isinstance(value, str) else value
-    return record
+def _flag(value: bool | None, name: str) -> bool | None:
+    if value is not None and not isinstance(value, (bool, np.bool_)):
+        raise InvalidInputError(f"{name}: expected True or False, got {value!r:.40}")
+    return None if value is None else bool(value)
 
 
 def _increasing(timestamps: NDArray[np.float64]) -> NDArray[np.float64] | None:
@@ -72,13 +65,100 @@ def _increasing(timestamps: NDArray[np.float64]) -> NDArray[np.float64] | None:
     return timestamps if len(timestamps) >= 3 and bool(np.all(np.diff(timestamps) > 0)) else None
 
 
-class Map:
-    """Keyframes with known poses, their features and the retrieval structure; see the module doc."""
+def _noise_source(cov: NDArray[np.float64], samples: int) -> str:
+    """Where C_map came from, in words (the core picks; this only describes)."""
+    if not np.any(cov):
+        return "none (the map's noise was not estimated)"
+    if samples < _core.MIN_NOISE_SAMPLES:
+        sigma = np.sqrt(np.diag(cov))
+        return (
+            f"default: {samples} held-out keyframes < {_core.MIN_NOISE_SAMPLES} cannot estimate it "
+            f"(σ {100 * sigma[0]:.0f} cm / {np.degrees(sigma[3]):.0f}° per axis)"
+        )
+    return f"estimated from {samples} held-out keyframes"
 
-    def __init__(self, feature_map: FeatureMap, extractor: FeatureExtractor, frontend: dict[str, Any]) -> None:
-        self._feature_map = feature_map
+
+def _build_options(
+    branching: int | None,
+    depth: int | None,
+    seed: int | None,
+    estimate_noise: bool | None,
+    model: bool | None,
+    refine_intrinsics: bool | None,
+    intrinsics_model: str | None,
+    adjust_labels: bool | None,
+) -> dict[str, Any]:
+    """The build options the caller set, checked by type here and by value in the core."""
+    return given_options(
+        branching=branching,
+        depth=depth,
+        seed=seed,
+        estimate_noise=_flag(estimate_noise, "estimate_noise"),
+        model=_flag(model, "model"),
+        refine_intrinsics=_flag(refine_intrinsics, "refine_intrinsics"),
+        intrinsics_model=None if intrinsics_model is None else choice(intrinsics_model, "intrinsics_model", INTRINSICS_MODELS),
+        adjust_labels=_flag(adjust_labels, "adjust_labels"),
+    )
+
+
+def _core_map(
+    camera: Camera,
+    poses: ArrayLike,
+    keypoints: Sequence[ArrayLike],
+    descriptors: Sequence[ArrayLike],
+    global_descriptors: ArrayLike | None,
+    pose_covariances: ArrayLike | None,
+    timestamps: ArrayLike | None,
+    options: dict[str, Any],
+) -> Any:
+    """The core map from checked keyframe arrays (counts, shapes, finiteness, float32 range,
+    covariance shape; the core checks symmetry and positive semi-definiteness)."""
+    if not isinstance(camera, Camera):
+        raise InvalidInputError(f"camera: expected a geoloc.Camera, got {type(camera).__name__}")
+    flat, lead = as_batch(poses, "poses", (4, 4))
+    if len(lead) != 1:
+        raise InvalidInputError(f"poses: expected shape (K, 4, 4), got {np.shape(poses)}")
+    n = flat.shape[0]
+    for name, value in (("keypoints", keypoints), ("descriptors", descriptors)):
+        if not isinstance(value, (list, tuple)) and not (isinstance(value, np.ndarray) and value.ndim >= 1):
+            raise InvalidInputError(f"{name}: expected a list of one array per pose, got {type(value).__name__}")
+    if len(keypoints) != n or len(descriptors) != n:
+        raise InvalidInputError(f"keypoints, descriptors: expected one array per pose ({n})")
+    descs = [_local_descriptors(d, f"descriptors[{i}]") for i, d in enumerate(descriptors)]
+    kps = [keypoint_rows(k, f"keypoints[{i}]", len(descs[i])) for i, k in enumerate(keypoints)]
+    g = None if global_descriptors is None else _f32_rows(global_descriptors, "global_descriptors")
+    covs = None
+    if pose_covariances is not None:
+        c = as_float64(pose_covariances, "pose_covariances")
+        if c.shape != (n, 6, 6):
+            raise InvalidInputError(f"pose_covariances: expected shape ({n}, 6, 6), got {c.shape}")
+        covs = np.ascontiguousarray(c.reshape(n, 36))
+    ts = None
+    if timestamps is not None:
+        ts = np.ascontiguousarray(as_float64(timestamps, "timestamps"))
+        if ts.shape != (n,):
+            raise InvalidInputError(f"timestamps: expected shape ({n},), got {ts.shape}")
+    return _core.FeatureMap(
+        camera.intrinsics, flat, kps, descs, global_descriptors=g, pose_covariances=covs, timestamps=ts, options=options
+    )
+
+
+class Map:
+    """Keyframes with known poses, their features and the retrieval structure; see the
+    module doc. Create one with :meth:`build` (images) or :meth:`from_features`, or
+    :meth:`load` a saved one."""
+
+    def __init__(self, core: Any, camera: Camera, extractor: FeatureExtractor | None, frontend: dict[str, Any]) -> None:
+        self._core = core
+        self._camera = camera
         self._extractor = extractor
         self._frontend = frontend
+
+    @staticmethod
+    def default_options() -> dict[str, Any]:
+        """The core's default build options (what every ``None`` argument of :meth:`build`
+        and :meth:`from_features` means)."""
+        return dict(_core.build_defaults())
 
     @classmethod
     def build(
@@ -90,13 +170,14 @@ class Map:
         n_features: int = 1000,
         root_sift: bool = False,
         keyframe_step: int = 1,
-        branching: int = 10,
-        depth: int = 3,
-        seed: int = 0,
-        estimate_noise: bool = True,
-        model: bool = False,
-        refine_intrinsics: bool = True,
-        adjust_labels: bool = True,
+        branching: int | None = None,
+        depth: int | None = None,
+        seed: int | None = None,
+        estimate_noise: bool | None = None,
+        model: bool | None = None,
+        refine_intrinsics: bool | None = None,
+        intrinsics_model: Literal["pinhole", "radial", "radial-tangential"] | None = None,
+        adjust_labels: bool | None = None,
         progress: ProgressCallback | None = None,
     ) -> Map:
         """Build a map from ``sequence`` (every ``keyframe_step``-th frame becomes a keyframe).
@@ -104,22 +185,25 @@ class Map:
         ``retrieval`` is ``"bow"`` (a ``branching``^``depth``-word vocabulary trained on the
         keyframes' descriptors, seeded by ``seed``) or a global-descriptor network;
         ``features`` is ``"orb"`` or ``"sift"`` with ``n_features`` per image.
-        ``progress(done, total)`` is called after each keyframe. ``estimate_noise`` (default
-        True) estimates the map's own noise after building it — the map-frame covariance
-        from held-out keyframes and the motion model's process noise from the frames'
-        timestamps (:attr:`map_noise`); it is stored in the map file. ``model`` (default False)
-        builds the map-level 3D model of ``Localizer(..., locator="model")`` and stores it too
-        (a map without one builds it when such a localizer starts). ``refine_intrinsics``
-        (default True) first estimates the real camera from the keyframes' own tracks — focal
-        lengths, principal point and lens distortion, with the poses known — and corrects the
-        keyframes' and every query's keypoints with it (:attr:`self_calibration`; it says why
-        not when the recording does not determine the camera, and the sequence's camera is
-        then used as it is). ``adjust_labels`` (default True) corrects the sequence's pose
-        labels by bundle adjustment — keyframe poses, points and one label-to-camera offset,
-        the labels as robust priors whose σ is estimated — so that the map agrees with its
-        images (:attr:`labels`, :attr:`keyframe_poses`, :attr:`label_poses`); localization
-        results stay in the labels' convention. The keyframe pairs are matched once for all
-        of these steps.
+        ``progress(done, total)`` is called after each keyframe.
+
+        Every option left ``None`` takes the core's default (:meth:`default_options`):
+
+        - ``estimate_noise`` (default on): the map's own noise — the map-frame covariance
+          C_map from re-localizing held-out keyframes, and the motion model's process noise
+          from the frames' timestamps (:attr:`map_noise`); stored in the map file.
+        - ``adjust_labels`` (default on): the pose labels corrected by bundle adjustment —
+          keyframe poses, points and one label-to-camera offset, the labels as robust priors
+          whose σ is estimated — so that the map agrees with its images (:attr:`labels`,
+          :attr:`keyframe_poses`, :attr:`label_poses`); results stay in the labels' convention.
+        - ``refine_intrinsics`` (default on): the real camera estimated from the keyframes'
+          own tracks — focal lengths, principal point and lens distortion per
+          ``intrinsics_model`` — and the keyframes' and every query's keypoints corrected
+          with it (:attr:`self_calibration` says what was found, or why not).
+        - ``model`` (default off): the map-level 3D model of ``Localizer(..., locator="model")``
+          built and stored too (without one, such a localizer builds it when it starts).
+
+        The keyframe pairs are matched once for all of these steps.
         """
         from .datasets import Sequence
 
@@ -132,6 +216,7 @@ class Map:
             raise InvalidInputError(f"retrieval: expected 'bow' or a global-descriptor network, got {retrieval!r}")
         if not isinstance(retrieval, str) and not callable(retrieval):
             raise InvalidInputError(f"retrieval: expected 'bow' or a callable network, got {type(retrieval).__name__}")
+        options = _build_options(branching, depth, seed, estimate_noise, model, refine_intrinsics, intrinsics_model, adjust_labels)
         extractor = FeatureExtractor(features, _as_int(n_features, "n_features", 1), root_sift=bool(root_sift))  # type: ignore[arg-type]
         indices = np.arange(0, len(sequence), step)
         camera = sequence.camera
@@ -146,70 +231,74 @@ class Map:
             if progress is not None:
                 progress(done, len(indices))
         global_descriptors = None if isinstance(retrieval, str) else np.asarray(retrieval(images), dtype=np.float32)
-        feature_map = FeatureMap(
-            camera,
-            sequence.poses[indices],
-            keypoints,
-            descriptors,
-            global_descriptors=global_descriptors,
-            retrieval="bow" if isinstance(retrieval, str) else "global",
-            branching=branching,
-            depth=depth,
-            seed=seed,
-            timestamps=_increasing(sequence.timestamps[indices]),
-            estimate_noise=bool(estimate_noise),
-            model=bool(model),
-            refine_intrinsics=bool(refine_intrinsics),
-            adjust_labels=bool(adjust_labels),
+        options["retrieval"] = "bow" if isinstance(retrieval, str) else "global"
+        core = _core_map(
+            camera, sequence.poses[indices], keypoints, descriptors, global_descriptors, None,
+            _increasing(sequence.timestamps[indices]), options,
         )
         frontend = {
             "version": FRONTEND_VERSION,
             "features": {"kind": extractor.kind, "n_features": extractor.n_features, "root_sift": extractor.root_sift},
-            "camera": {"width": camera.width, "height": camera.height, "dist": list(camera.dist or ())},
-            "retrieval": "bow" if isinstance(retrieval, str) else _descriptor_record(retrieval),
+            "camera": camera_record(camera),
+            "retrieval": "bow" if isinstance(retrieval, str) else descriptor_record(retrieval),
             "source": {"sequence": shown(sequence.name), "frames": [int(i) for i in indices]},
         }
-        return cls(feature_map, extractor, frontend)
+        return cls(core, camera, extractor, frontend)
+
+    @classmethod
+    def from_features(
+        cls,
+        camera: Camera,
+        poses: ArrayLike,
+        keypoints: Sequence[ArrayLike],
+        descriptors: Sequence[ArrayLike],
+        *,
+        global_descriptors: ArrayLike | None = None,
+        pose_covariances: ArrayLike | None = None,
+        timestamps: ArrayLike | None = None,
+        retrieval: Literal["bow", "global"] | None = None,
+        branching: int | None = None,
+        depth: int | None = None,
+        seed: int | None = None,
+        estimate_noise: bool | None = None,
+        model: bool | None = None,
+        refine_intrinsics: bool | None = None,
+        intrinsics_model: Literal["pinhole", "radial", "radial-tangential"] | None = None,
+        adjust_labels: bool | None = None,
+    ) -> Map:
+        """Build a map from features you computed: ``poses`` (K, 4, 4) world_from_cam, per
+        keyframe ``keypoints`` (N, 2) undistorted pixels and local ``descriptors`` (N, W)
+        (uint8 rows: binary/ORB; float rows: SIFT), optional ``global_descriptors`` (K, D)
+        (``retrieval="global"`` retrieves by them; the default is bag of words),
+        ``pose_covariances`` (K, 6, 6) of the labels and ``timestamps`` (K,) in seconds.
+
+        The build options and their defaults are those of :meth:`build`. Everything is
+        checked here (counts, finiteness, float32 range, covariances symmetric positive
+        semi-definite, the vocabulary's limits ``branching`` ≤ 1024, ``depth`` ≤ 24,
+        ``branching**depth`` ≤ 2**24), so a map that builds localizes. Such a map localizes
+        features (:meth:`geoloc.Localizer.localize_features`), not images."""
+        if retrieval is not None:
+            choice(retrieval, "retrieval", ("bow", "global"))
+        options = _build_options(branching, depth, seed, estimate_noise, model, refine_intrinsics, intrinsics_model, adjust_labels)
+        options.update(given_options(retrieval=retrieval))
+        core = _core_map(camera, poses, keypoints, descriptors, global_descriptors, pose_covariances, timestamps, options)
+        frontend = {
+            "version": FRONTEND_VERSION,
+            "features": None,
+            "camera": camera_record(camera),
+            "retrieval": core.retrieval,
+            "source": {"keyframes": len(core)},
+        }
+        return cls(core, camera, None, frontend)
 
     @property
     def camera(self) -> Camera:
         """The camera the map was built with (queries must use the same intrinsics)."""
-        return self._feature_map.camera
+        return self._camera
 
     @property
-    def labels(self) -> dict[str, Any] | None:
-        """The labels' correction report; see :attr:`geoloc.localizer.FeatureMap.labels`."""
-        return self._feature_map.labels
-
-    @property
-    def keyframe_poses(self) -> NDArray[np.float64]:
-        """The keyframe poses in the labels' convention (adjusted when the labels were)."""
-        return self._feature_map.keyframe_poses
-
-    @property
-    def label_poses(self) -> NDArray[np.float64] | None:
-        """The pose labels as given, or None when they were not adjusted."""
-        return self._feature_map.label_poses
-
-    @property
-    def camera_poses(self) -> NDArray[np.float64]:
-        """The keyframes' camera poses world_from_cam (the frame the localizer, the motion
-        model and the map's noise work in; the labels when they were not adjusted)."""
-        return self._feature_map.camera_poses
-
-    @property
-    def map_noise(self) -> dict[str, Any]:
-        """The noise estimated at build time; see :attr:`geoloc.localizer.FeatureMap.map_noise`."""
-        return self._feature_map.map_noise
-
-    @property
-    def self_calibration(self) -> dict[str, Any] | None:
-        """The camera estimated from the keyframes; see :attr:`geoloc.localizer.FeatureMap.self_calibration`."""
-        return self._feature_map.self_calibration
-
-    @property
-    def features(self) -> FeatureExtractor:
-        """The feature extractor queries are described with."""
+    def features(self) -> FeatureExtractor | None:
+        """The feature extractor queries are described with (None for a map built from features)."""
         return self._extractor
 
     @property
@@ -218,199 +307,147 @@ class Map:
         copy: dict[str, Any] = json.loads(json.dumps(self._frontend))
         return copy
 
+    @property
+    def self_calibration(self) -> dict[str, Any] | None:
+        """The camera the map estimated from its keyframes (``refine_intrinsics``), or None
+        when it was not tried: ``camera`` {fx, fy, cx, cy} and ``distortion`` (OpenCV's k1,
+        k2, p1, p2, k3) when there is a correction — the keyframes' keypoints are then
+        stored corrected and every query's keypoints are corrected the same way by the
+        localizer — else absent; ``reason`` ("ok" or why not); the tracks' pixel residuals
+        ``rms_before_px`` / ``rms_after_px`` and ``median_before_px`` / ``median_after_px``;
+        ``observations`` and ``points`` used; ``correction_sigma_px``, the RMS 1σ of the
+        correction over the tracks' pixels (applied only below 0.5 px)."""
+        text = self._core.self_calibration_json
+        return None if text is None else dict(json.loads(text))
+
+    @property
+    def labels(self) -> dict[str, Any] | None:
+        """The labels' correction by bundle adjustment (``adjust_labels``), or None when the
+        labels were not adjusted: ``label_sigma_m`` / ``label_sigma_deg`` (the labels' σ the
+        adjustment estimated), the label-to-camera offset (``label_from_cam_translation_m``,
+        ``label_from_cam_rotation_deg`` and their σ), the median correction, ``rms_px`` (the
+        tracks' reprojection error with the labels and after), ``observations`` (used,
+        rejected) and ``runs``: consecutive keyframes (≥ 3) whose corrections are significant
+        (beyond the χ²₆ 99.9 % quantile of their covariance), with the largest correction."""
+        text = self._core.labels_json
+        return None if text is None else dict(json.loads(text))
+
+    @property
+    def label_poses(self) -> NDArray[np.float64] | None:
+        """The pose labels as given (K, 4, 4), or None when they were not adjusted."""
+        poses: NDArray[np.float64] | None = self._core.label_poses
+        return poses
+
+    @property
+    def keyframe_poses(self) -> NDArray[np.float64]:
+        """The keyframe poses (K, 4, 4) in the labels' convention: the adjusted ones when the
+        labels were adjusted, else the labels."""
+        poses: NDArray[np.float64] = self._core.keyframe_poses
+        return poses
+
+    @property
+    def camera_poses(self) -> NDArray[np.float64]:
+        """The keyframes' camera poses world_from_cam (K, 4, 4): the labels moved by the
+        adjustment and the label-to-camera offset (the labels when not adjusted). The
+        localizer, the motion model and the map's noise work in this frame."""
+        poses: NDArray[np.float64] = self._core.camera_poses
+        return poses
+
+    @property
+    def model_points(self) -> int | None:
+        """Points of the stored map-level 3D model, or None when the map has none."""
+        points: int | None = self._core.model_points
+        return points
+
+    @property
+    def map_noise(self) -> dict[str, Any]:
+        """What was estimated about the map's noise at build time (all zero when not):
+        ``pose_covariance`` C_map (6, 6, right perturbation, translation first; added to every
+        returned covariance), ``acceleration_psd`` (6,) of the motion model's process noise,
+        ``velocity_mean`` and ``velocity_variance`` (6,) of its velocity prior (per twist axis,
+        from the keyframes' timestamps and poses; zero in maps saved before it: no prior),
+        ``holdout_samples`` (held-out keyframes C_map comes from; with fewer than
+        ``geoloc._core.MIN_NOISE_SAMPLES`` C_map is a conservative default, never zero),
+        ``pose_covariance_source`` (which of the two, in words) and, for a map built in this
+        process (not stored in the file), ``holdout``: the held-out re-localizations
+        (``keyframe`` (n,), ``delta`` (n, 6) = log(T_label⁻¹T_est), ``covariance`` (n, 6, 6) C_G,
+        ``used`` (n,) bool)."""
+        cov, psd, velocity_mean, velocity_variance, samples = self._core.map_noise
+        keyframes, deltas, covs, used = self._core.map_noise_holdout
+        holdout = {
+            "keyframe": np.asarray(keyframes, dtype=np.int64),
+            "delta": deltas,
+            "covariance": covs,
+            "used": np.asarray(used, dtype=bool),
+        }
+        return {
+            "pose_covariance": cov,
+            "acceleration_psd": np.asarray(psd),
+            "velocity_mean": np.asarray(velocity_mean),
+            "velocity_variance": np.asarray(velocity_variance),
+            "holdout_samples": samples,
+            "pose_covariance_source": _noise_source(cov, samples),
+            "holdout": holdout,
+        }
+
     def __len__(self) -> int:
-        return len(self._feature_map)
+        return len(self._core)
 
     def __repr__(self) -> str:
         return f"Map({len(self)} keyframes, features={self._extractor!r}, retrieval={self._frontend['retrieval']!r})"
 
     def save(self, path: str | os.PathLike[str]) -> None:
-        """Write the map to one ``.geoloc`` file, atomically (an interrupted save keeps the old file)."""
+        """Write the map to one ``.geoloc`` file, atomically (an interrupted save keeps the
+        old file; a path that is one of the map's inputs is refused)."""
         from ._io import check_output_path
 
         target = check_output_path(path, "path")
-        self._feature_map.save(target, self._frontend)
+        text = json.dumps(self._frontend, sort_keys=True, allow_nan=False)
+        self._core.save(os.fspath(target), text)
 
     @classmethod
     def load(cls, path: str | os.PathLike[str]) -> Map:
-        """Read a map written by :meth:`save`; a truncated, corrupt or other-version file is refused."""
-        from ._io import as_path
+        """Read a map written by :meth:`save`, checking it whole first: a truncated, corrupt or
+        other-version file raises :class:`geoloc.exceptions.FileFormatError`. A map saved by
+        the deprecated ``geoloc.localizer.FeatureMap`` loads as a map built from features."""
+        from ._io import as_path, special_kind
 
-        feature_map = FeatureMap.load(as_path(path, "path"))
-        frontend = feature_map.frontend
-        if not isinstance(frontend, dict) or frontend.get("version") != FRONTEND_VERSION:
-            raise InvalidInputError(f"path: {str(path)!r} was not written by this version of geoloc's Python package")
-        extractor, camera = _frontend_parts(frontend, feature_map.camera.intrinsics, str(path))
-        feature_map.camera = camera
-        return cls(feature_map, extractor, frontend)
-
-
-def _record(frontend: dict[str, Any], key: str, fields: dict[str, type | tuple[type, ...]], path: str) -> dict[str, Any]:
-    """``frontend[key]``, a dict holding ``fields`` of the given types; else FileFormatError
-    naming the file and the field."""
-    record = frontend.get(key)
-    if not isinstance(record, dict):
-        raise FileFormatError(f"path: {path!r}: the map's frontend header has no {key!r} record (got {type(record).__name__})")
-    for name, kind in fields.items():
-        value = record.get(name)
-        if not isinstance(value, kind) or (isinstance(value, bool) and kind is int):
-            raise FileFormatError(f"path: {path!r}: the map's frontend field {key}.{name} is missing or malformed ({value!r:.40})")
-    return record
-
-
-def _frontend_parts(
-    frontend: dict[str, Any], intrinsics: tuple[float, float, float, float], path: str
-) -> tuple[FeatureExtractor, Camera]:
-    """The feature extractor and camera a map file's frontend header records (checked field
-    by field: a hand-made or damaged header is a FileFormatError naming the field)."""
-    f = _record(frontend, "features", {"kind": str, "n_features": int, "root_sift": bool}, path)
-    cam = _record(frontend, "camera", {"width": int, "height": int, "dist": list}, path)
-    retrieval = frontend.get("retrieval")
-    if retrieval != "bow" and not isinstance(retrieval, dict):
-        raise FileFormatError(f"path: {path!r}: the map's frontend field retrieval is missing or malformed ({retrieval!r:.40})")
-    try:
-        extractor = FeatureExtractor(f["kind"], f["n_features"], root_sift=f["root_sift"])
-    except InvalidInputError as e:
-        raise FileFormatError(f"path: {path!r}: the map's frontend field features is not valid ({e})") from None
-    try:
-        fx, fy, cx, cy = intrinsics
-        camera = Camera(fx, fy, cx, cy, width=cam["width"], height=cam["height"], dist=cam["dist"] or None)
-    except (InvalidInputError, TypeError) as e:
-        raise FileFormatError(f"path: {path!r}: the map's frontend field camera is not valid ({e})") from None
-    return extractor, camera
-
-
-@dataclass(frozen=True)
-class MapLocalization:
-    """One localized image: ``pose`` (4, 4) world_from_cam and ``covariance`` (6, 6, right
-    perturbation, translation first) or None when lost; ``source`` "geometric" / "fused" /
-    "motion" / "lost"; ``reason``; ``keyframe`` retrieved; PnP ``inliers``; ``timings`` in ms
-    per stage (``decode``, ``features``, the core's stages, ``total``). When the map adjusted
-    its labels, ``pose`` is in the labels' convention (world_from_label, what the sequence's
-    poses were) and ``camera_pose`` is the camera's own world_from_cam; otherwise the two are
-    equal."""
-
-    pose: NDArray[np.float64] | None
-    covariance: NDArray[np.float64] | None
-    source: str
-    reason: str
-    keyframe: int
-    inliers: int
-    timings: dict[str, float] = field(default_factory=dict)
-    camera_pose: NDArray[np.float64] | None = None
-
-    @property
-    def timings_ms(self) -> dict[str, float]:
-        """Alias of :attr:`timings` (milliseconds)."""
-        return self.timings
-
-
-class Localizer:
-    """Localizes images frame after frame against a :class:`Map`, keeping the motion history.
-
-    ``locator``: "paper" (the paper's: one retrieved keyframe and its co-visible group) or
-    "model" (top-``top_k`` retrieval against the map-level 3D model, PnP, guided matching).
-    In sequence the paper's locator also tracks: when the retrieved keyframe's group gives
-    fewer than half the inliers of the last frame, the last frame's group is tried too and
-    the pose with more inliers kept (the result's ``reason`` says so).
-    Each query keypoint's pixel noise in PnP is ``pixel_sigma`` × its own σ from the detector
-    scale (:attr:`geoloc.features.Features.pixel_sigmas`: 1.2^level for ORB)."""
-
-    def __init__(
-        self,
-        map: Map,
-        camera: Camera | None = None,
-        *,
-        pixel_sigma: float = 1.0,
-        max_residual: float = 5.0,
-        gate_sigma: float = 3.0,
-        history: int = 4,
-        global_descriptor: GlobalDescriptor | None = None,
-        locator: Literal["paper", "model"] = "paper",
-        top_k: int = 5,
-    ) -> None:
-        if not isinstance(map, Map):
-            raise InvalidInputError(f"map: expected a geoloc.Map, got {type(map).__name__}")
-        if camera is not None and not isinstance(camera, Camera):
-            raise InvalidInputError(f"camera: expected a geoloc.Camera, got {type(camera).__name__}")
-        if camera is not None and camera.intrinsics != map.camera.intrinsics:
-            raise InvalidInputError(
-                f"camera: intrinsics {camera.intrinsics} differ from the map's {map.camera.intrinsics}; "
-                "queries must be described with the map's camera"
+        source = as_path(path, "path")
+        kind = special_kind(source)
+        if kind is not None:  # never opened: a FIFO would block the reader
+            raise FileAccessError(f"{shown(source)}: cannot read the map: it is {kind}, not a regular file")
+        core, text = _core.FeatureMap.load(os.fspath(source))
+        frontend = json.loads(text)
+        if not isinstance(frontend, dict) or (frontend and frontend.get("version") != FRONTEND_VERSION):
+            if not isinstance(frontend, dict) or "version" in frontend:
+                raise InvalidInputError(f"path: {str(path)!r} was not written by this version of geoloc's Python package")
+            frontend = {}  # a FeatureMap file: the caller's own settings, no frontend record
+        if not frontend:
+            warnings.warn(
+                f"{shown(source)}: a map saved by the deprecated geoloc.localizer.FeatureMap; "
+                "it loads as a map built from features (save it again to upgrade it)",
+                DeprecationWarning,
+                stacklevel=2,
             )
-        recorded = map.settings["retrieval"]
-        if recorded != "bow" and global_descriptor is None:
-            raise InvalidInputError("global_descriptor: this map retrieves by a network; pass the same network here")
-        if recorded != "bow" and isinstance(recorded, dict) and "sha256" in recorded:
-            if getattr(global_descriptor, "sha256", None) != recorded["sha256"]:
-                raise InvalidInputError(
-                    f"global_descriptor: the map was built with network {recorded.get('name', '?')!r} "
-                    f"(sha256 {str(recorded['sha256'])[:12]}…); this is another model"
-                )
-        self.map = map
-        self.camera = camera or map.camera
-        self._global = global_descriptor
-        self._core = FeatureLocalizer(
-            map._feature_map, pixel_sigma=pixel_sigma, max_residual=max_residual, gate_sigma=gate_sigma, history=history,
-            locator=locator, top_k=top_k,
-        )
+            frontend = {
+                "version": FRONTEND_VERSION,
+                "features": None,
+                "camera": camera_record(Camera(*core.intrinsics)),
+                "retrieval": core.retrieval,
+                "source": {"keyframes": len(core)},
+            }
+        extractor, camera = frontend_parts(frontend, core.intrinsics, str(path))
+        return cls(core, camera, extractor, frontend)
 
-    def _decode(self, image: Any) -> NDArray[np.uint8]:
-        if isinstance(image, (str, os.PathLike)):
-            from ._images import read_image
 
-            return read_image(image, "image", gray=True)
-        return np.asarray(image)
+def __getattr__(name: str) -> Any:
+    """The deprecated names ``geoloc.mapping.Localizer`` and ``geoloc.mapping.MapLocalization``
+    (now ``geoloc.Localizer`` and ``geoloc.Localization``), for one release. Resolved on use,
+    so this module does not import the localizer."""
+    if name in ("Localizer", "MapLocalization"):
+        import importlib
 
-    def localize(self, image: Any, timestamp: float) -> MapLocalization:
-        """Localize one image (a path, (H, W) gray or (H, W, 3) BGR uint8 of the map's size)
-        taken at ``timestamp`` (seconds, increasing)."""
-        start = time.perf_counter()
-        pixels = self._decode(image)
-        decoded = time.perf_counter()
-        f: Features = self.map.features(pixels, self.camera)
-        described = time.perf_counter()
-        g = None
-        if self._global is not None:
-            g = np.asarray(self._global([pixels]), dtype=np.float32)[0]
-        r: LocalizationResult = self._core.localize(
-            real_scalar(timestamp, "timestamp"), f.keypoints, f.descriptors, g, pixel_sigmas=f.pixel_sigmas
-        )
-        end = time.perf_counter()
-        timings = {"decode": 1e3 * (decoded - start), "features": 1e3 * (described - decoded)}
-        timings.update(r.timings_ms)
-        timings["total"] = 1e3 * (end - start)
-        return MapLocalization(r.pose, r.covariance, r.source, r.reason, r.keyframe, r.inliers, timings, r.camera_pose)
-
-    def reset(self) -> None:
-        """Forget the motion history and the last frame's keyframe (the next frame is
-        localized by geometry alone)."""
-        self._core.reset()
-
-    def localize_sequence(
-        self, sequence: Any, mode: str = "sequential", progress: ProgressCallback | None = None
-    ) -> list[MapLocalization]:
-        """Localize every frame of ``sequence`` (a :class:`geoloc.datasets.Sequence`) in order,
-        from an empty motion history. ``mode`` ``"sequential"`` keeps the history from frame to
-        frame (motion model + gated fusion); ``"single"`` resets it before every frame (the
-        geometric locator alone). Each result's ``timings`` gets ``decode`` (reading the image
-        as grey — rendering it, for the synthetic room) and its ``total`` includes it.
-        ``progress(done, total)`` is called after every frame."""
-        if mode not in SEQUENCE_MODES:
-            raise InvalidInputError(f"mode: expected one of {', '.join(SEQUENCE_MODES)}, got {mode!r}")
-        self.reset()
-        results = []
-        n = len(sequence)
-        for i in range(n):
-            if mode == "single":
-                self.reset()
-            start = time.perf_counter()
-            gray = sequence.gray(i)
-            decode_ms = 1e3 * (time.perf_counter() - start)
-            r = self.localize(gray, float(sequence.timestamps[i]))
-            r.timings["total"] = r.timings.get("total", 0.0) - r.timings.get("decode", 0.0) + decode_ms
-            r.timings["decode"] = decode_ms
-            results.append(r)
-            if progress is not None:
-                progress(i + 1, n)
-        return results
+        new = "Localizer" if name == "Localizer" else "Localization"
+        warnings.warn(f"geoloc.mapping.{name} is deprecated; use geoloc.{new}", DeprecationWarning, stacklevel=2)
+        return getattr(importlib.import_module(f"{__package__}.localizer"), new)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -111,7 +111,7 @@ class BowDatabase:
     descriptors of each image; :meth:`query` ranks the images for a query image. Scores are
     in [0, 1] and reproducible bit for bit; equal scores rank by image index.
 
-    Term frequency per descriptor kind (as in :class:`geoloc.localizer.FeatureMap`): the word's
+    Term frequency per descriptor kind (as in :meth:`geoloc.Map.from_features`): the word's
     count for binary descriptors (ORB, DBoW2's), its presence (0/1) for float ones (SIFT,
     RootSIFT) — SIFT fires dozens of times on one repetitive texture (a striped carpet),
     and with counts those bursts made a few keyframes every query's best match."""

@@ -564,20 +564,21 @@ def feature_localizer_specs() -> list[Spec]:
     rng = np.random.default_rng(0)
     kps = [rng.uniform(0, 480, size=(40, 2)) for _ in range(3)]
     return [
-        Spec("localizer", "geoloc.localizer.FeatureMap",
+        Spec("localizer", "geoloc.Map.from_features",
              {"camera": ("camera", CAM), "poses": a(_track(3)), "keypoints": ("any", kps), "descriptors": a(np.stack([DESC_U8[:40]] * 3)),
               "pose_covariances": a(np.repeat(COV6[None], 3, axis=0)), "branching": ("int", 3), "depth": ("int", 2),
-              "seed": ("int", 0), "refine_intrinsics": ("bool", True),
+              "seed": ("int", 0), "refine_intrinsics": ("bool", True), "estimate_noise": ("bool", False),
+              "adjust_labels": ("bool", False),
               "intrinsics_model": ("str:pinhole|radial|radial-tangential", "radial-tangential")},
              ("camera", "poses", "keypoints", "descriptors"), "any",
              aliases={"camera": ["fx", "camera"], "poses": ["keypoints", "descriptors", "pose_covariances"],
                       "descriptors": ["keypoints"], "keypoints": ["descriptors"], "pose_covariances": ["poses"],
                       "branching": ["descriptors"], "depth": ["descriptors"]}),
-        Spec("localizer", attr(call("geoloc.localizer.FeatureLocalizer", fm), "localize"),
+        Spec("localizer", attr(call("geoloc.Localizer", fm), "localize_features"),
              {"timestamp": ("float", 0.5), "keypoints": a(kps[0]), "descriptors": a(DESC_U8[:40])},
              ("timestamp", "keypoints", "descriptors"), "localization",
              aliases={"keypoints": ["descriptors"], "descriptors": ["keypoints"]}),
-        Spec("localizer", "geoloc.localizer.FeatureLocalizer",
+        Spec("localizer", "geoloc.Localizer",
              {"map": ("any", fm), "pixel_sigma": ("float", 1.0), "max_residual": ("float", 5.0), "gate_sigma": ("float", 3.0),
               "history": ("int", 4), "locator": ("str:paper|model", "paper"), "top_k": ("int", 5)}, ("map",), "any"),
     ]

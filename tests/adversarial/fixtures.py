@@ -37,7 +37,7 @@ def small_dataset_dir(tmp: Path) -> str:
 
 
 def feature_map(tmp: Path) -> Any:
-    from geoloc.localizer import FeatureMap
+    from geoloc import Map
 
     from geoloc import Camera
 
@@ -46,7 +46,7 @@ def feature_map(tmp: Path) -> Any:
     poses[:, 0, 3] = [0.0, 0.1, 0.2]
     kps = [rng.uniform(0, 480, size=(40, 2)) for _ in range(3)]
     descs = [rng.integers(0, 256, size=(40, 32), dtype=np.uint8) for _ in range(3)]
-    return FeatureMap(Camera(525, 525, 320, 240), poses, kps, descs, branching=3, depth=2)
+    return Map.from_features(Camera(525, 525, 320, 240), poses, kps, descs, branching=3, depth=2, estimate_noise=False, refine_intrinsics=False, adjust_labels=False)
 
 
 def onnx_model(tmp: Path) -> str:

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import geoloc
-from geoloc.localizer import FeatureLocalizer, FeatureMap
+from geoloc import Localizer, Map
 
 TRACK = np.repeat(np.eye(4)[None], 4, axis=0)
 TRACK[:, 0, 3] = 0.05 * np.arange(4)
@@ -62,12 +62,12 @@ def test_motion_denormal_covariances(scale: Any) -> None:
 
 
 def test_feature_map_keypoints_not_a_sequence() -> None:
-    _rejects(lambda: FeatureMap(CAM, TRACK[:3], 0, DESCS), "keypoints")
+    _rejects(lambda: Map.from_features(CAM, TRACK[:3], 0, DESCS, estimate_noise=False, refine_intrinsics=False, adjust_labels=False), "keypoints")
 
 
 def test_feature_localizer_max_residual_none() -> None:
-    fm = FeatureMap(CAM, TRACK[:3], KPS, DESCS, branching=3, depth=2)
-    _rejects(lambda: FeatureLocalizer(fm, max_residual=None), "max_residual")  # type: ignore[arg-type]
+    fm = Map.from_features(CAM, TRACK[:3], KPS, DESCS, branching=3, depth=2, estimate_noise=False, refine_intrinsics=False, adjust_labels=False)
+    _rejects(lambda: Localizer(fm, max_residual="5"), "max_residual")  # type: ignore[arg-type]
 
 
 @pytest.mark.parametrize("path", [924, None])

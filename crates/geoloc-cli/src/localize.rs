@@ -37,7 +37,8 @@ use crate::InputFormat;
 use crate::output;
 use crate::stats::Stats;
 
-/// Options of `geoloc-rs localize` (the localizer's defaults are `geoloc.Localizer`'s).
+/// Options of `geoloc-rs localize`; every localizer default is the core's
+/// (`LocalizerOptions::default()`), the same as `geoloc.Localizer`'s.
 #[derive(clap::Args, Debug)]
 pub struct Args {
     /// The `.geoloc` map (written by `geoloc.Map.save` / `geoloc build-map`).
@@ -61,21 +62,24 @@ pub struct Args {
     #[arg(long)]
     stats: bool,
     /// Positional σ of a keypoint (px), for PnP and triangulation.
-    #[arg(long, default_value_t = 1.0)]
+    #[arg(long, default_value_t = LocalizerOptions::default().pixel_sigma())]
     pixel_sigma: f64,
     /// Largest reprojection residual kept (px).
-    #[arg(long, default_value_t = 5.0)]
+    #[arg(long, default_value_t = LocalizerOptions::default().max_residual_px())]
     max_residual: f64,
     /// Gate of the geometric pose against the motion prediction (σ).
-    #[arg(long, default_value_t = 3.0)]
+    #[arg(long, default_value_t = LocalizerOptions::default().gate_sigma)]
     gate_sigma: f64,
     /// Fused poses the constant-velocity model is fitted to.
-    #[arg(long, default_value_t = 4)]
+    #[arg(long, default_value_t = LocalizerOptions::default().history)]
     history: usize,
-    /// Geometric locator: "paper" (one retrieved keyframe and its group) or "model" (top-5
+    /// Geometric locator: "paper" (one retrieved keyframe and its group) or "model" (top-k
     /// retrieval against the map's 3D model; built at start when the map has none).
-    #[arg(long, default_value = "paper", value_parser = parse_locator)]
+    #[arg(long, default_value_t = LocalizerOptions::default().locator, value_parser = parse_locator)]
     locator: Locator,
+    /// Model locator: keyframes retrieved.
+    #[arg(long, default_value_t = LocalizerOptions::default().top_k)]
+    top_k: usize,
 }
 
 fn parse_locator(s: &str) -> Result<Locator, String> {
@@ -169,16 +173,16 @@ fn refuse_aliased_output(args: &Args) -> Result<(), String> {
     Ok(())
 }
 
-/// The options `geoloc.Localizer` passes (crates/geoloc-py/src/localizer.rs).
+/// The core's localizer options with the ones `geoloc.Localizer` also exposes set from `args`.
 fn options(args: &Args) -> LocalizerOptions {
-    let mut options =
-        LocalizerOptions { gate_sigma: args.gate_sigma, history: args.history, ..LocalizerOptions::default() };
-    options.locator = args.locator;
-    options.pnp.pixel_sigma = args.pixel_sigma;
-    options.pnp.max_residual_px = args.max_residual;
-    options.triangulation.pixel_sigma = args.pixel_sigma;
-    options.triangulation.max_residual_px = args.max_residual;
-    options
+    LocalizerOptions {
+        gate_sigma: args.gate_sigma,
+        history: args.history,
+        locator: args.locator,
+        top_k: args.top_k,
+        ..LocalizerOptions::default()
+    }
+    .with_pixel_noise(args.pixel_sigma, args.max_residual)
 }
 
 /// A reader error, prefixed with the input (the reader names the frame: `frame N: …`, or the

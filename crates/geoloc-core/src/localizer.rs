@@ -147,6 +147,30 @@ impl Default for LocalizerOptions {
 }
 
 impl LocalizerOptions {
+    /// A keypoint's positional σ (px) for PnP and triangulation alike (one value: see
+    /// [`LocalizerOptions::with_pixel_noise`]).
+    pub fn pixel_sigma(&self) -> f64 {
+        self.pnp.pixel_sigma
+    }
+
+    /// The largest reprojection residual kept (px), in PnP and triangulation alike.
+    pub fn max_residual_px(&self) -> f64 {
+        self.pnp.max_residual_px
+    }
+
+    /// These options with one pixel-noise model for the query and the map: `pixel_sigma`
+    /// (px, a keypoint's positional 1σ, scaled per keypoint by its detector σ) and
+    /// `max_residual_px` set in both PnP and triangulation, so that the points' covariance
+    /// and the pose's covariance assume the same noise.
+    #[must_use]
+    pub fn with_pixel_noise(mut self, pixel_sigma: f64, max_residual_px: f64) -> Self {
+        self.pnp.pixel_sigma = pixel_sigma;
+        self.pnp.max_residual_px = max_residual_px;
+        self.triangulation.pixel_sigma = pixel_sigma;
+        self.triangulation.max_residual_px = max_residual_px;
+        self
+    }
+
     /// Checks the options the localizer itself uses (the solvers check theirs again).
     ///
     /// # Errors
@@ -270,6 +294,26 @@ pub struct Timings {
     pub motion_fusion_ms: f64,
     /// Everything.
     pub total_ms: f64,
+}
+
+impl Timings {
+    /// The stage names, in pipeline order, as every front end reports them.
+    pub const STAGES: [&'static str; 7] =
+        ["retrieval", "keyframes", "map_points", "matching", "pnp", "motion_fusion", "total"];
+
+    /// (stage name, milliseconds) in the order of [`Timings::STAGES`].
+    pub fn stages(&self) -> [(&'static str, f64); 7] {
+        let ms = [
+            self.retrieval_ms,
+            self.keyframes_ms,
+            self.map_points_ms,
+            self.matching_ms,
+            self.pnp_ms,
+            self.motion_fusion_ms,
+            self.total_ms,
+        ];
+        std::array::from_fn(|i| (Self::STAGES[i], ms[i]))
+    }
 }
 
 /// The localization of one frame.

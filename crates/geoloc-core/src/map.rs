@@ -7,12 +7,14 @@
 //! ([`crate::selfcal`]); the keyframes' keypoints are then stored corrected, and the
 //! localizer corrects every query's keypoints the same way before using them.
 
+mod build;
 pub mod file;
 pub mod group_matches;
 pub mod labels;
 pub mod model;
 mod persist;
 
+pub use build::BuildOptions;
 pub use group_matches::GroupMatches;
 pub use labels::{LabelAdjustment, LabelRun};
 pub use model::{ModelOptions, PairMatches, SceneModel};

@@ -10,7 +10,7 @@ use std::sync::Arc;
 
 use geoloc_core::GeolocError;
 use geoloc_core::lie::SE3;
-use geoloc_core::localizer::{Frame, Localizer, LocalizerOptions, Source};
+use geoloc_core::localizer::{Frame, Localizer, LocalizerOptions, Source, Timings};
 use geoloc_core::map::{DescriptorSet, Keyframe, Map, RetrievalKind};
 use geoloc_core::matching::Descriptors;
 use geoloc_core::testing::{self, LandmarkScene, SplitMix64};
@@ -278,4 +278,39 @@ fn a_wrong_retrieval_is_tracked_through_the_last_frames_group() {
     eprintln!("misled frames: worst {:.2} mm; others: median {:.2} mm", 1e3 * worst, 1e3 * median(&good));
     assert_eq!(wrong.len(), 5);
     assert!(worst < 3.0 * median(&good), "misled frames up to {worst} m, others {} m", median(&good));
+}
+
+/// One pixel-noise model for query and map: the defaults of PnP and triangulation agree, and
+/// `with_pixel_noise` sets both solvers' σ and residual bound and nothing else.
+#[test]
+#[allow(clippy::float_cmp)] // settings are copied, not computed: exact equality is the claim
+fn pixel_noise_is_one_setting_for_pnp_and_triangulation() {
+    let defaults = LocalizerOptions::default();
+    assert_eq!(defaults.pnp.pixel_sigma, defaults.triangulation.pixel_sigma);
+    assert_eq!(defaults.pnp.max_residual_px, defaults.triangulation.max_residual_px);
+    let set = defaults.with_pixel_noise(0.7, 3.5);
+    assert_eq!((set.pixel_sigma(), set.max_residual_px()), (0.7, 3.5));
+    assert_eq!((set.triangulation.pixel_sigma, set.triangulation.max_residual_px), (0.7, 3.5));
+    let mut back = set;
+    back.pnp = defaults.pnp;
+    back.triangulation = defaults.triangulation;
+    assert_eq!(back, defaults);
+}
+
+/// The stage names come in pipeline order with their values.
+#[test]
+#[allow(clippy::float_cmp)] // values are copied, not computed
+fn timings_stages_name_each_field_once() {
+    let t = Timings {
+        retrieval_ms: 1.0,
+        keyframes_ms: 2.0,
+        map_points_ms: 3.0,
+        matching_ms: 4.0,
+        pnp_ms: 5.0,
+        motion_fusion_ms: 6.0,
+        total_ms: 7.0,
+    };
+    let stages = t.stages();
+    assert_eq!(stages.map(|(name, _)| name), Timings::STAGES);
+    assert_eq!(stages.map(|(_, ms)| ms), [1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0]);
 }

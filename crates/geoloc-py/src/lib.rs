@@ -11,6 +11,7 @@ mod geometry;
 mod lie;
 mod localizer;
 mod matching;
+mod options;
 mod retrieval;
 mod temporal;
 
@@ -30,5 +31,6 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     bow::register(m)?;
     localizer::register(m)?;
     frames::register(m)?;
+    options::register(m)?;
     Ok(())
 }

@@ -4,22 +4,17 @@
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 
-use geoloc_core::adjust::AdjustmentOptions;
 use geoloc_core::camera::Camera;
-use geoloc_core::localizer::{
-    Frame, Localization as CoreLocalization, Localizer as CoreLocalizer, LocalizerOptions, Locator, NoiseOptions,
-};
-use geoloc_core::map::{BuildSteps, Keyframe, Map as CoreMap, ModelOptions, RetrievalMethod, SelfCalibrationHeader};
-use geoloc_core::selfcal::SelfCalibrationOptions;
+use geoloc_core::localizer::{Frame, Localization as CoreLocalization, Localizer as CoreLocalizer, LocalizerOptions};
+use geoloc_core::map::{Keyframe, Map as CoreMap, RetrievalMethod, SelfCalibrationHeader};
 use nalgebra::Vector2;
 use numpy::{PyArray2, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
-use crate::convert::{
-    BorrowedDescriptors, count_arg, matrices, matrices_to_array, matrices_to_array3, poses, rows, u64_arg,
-};
+use crate::convert::{BorrowedDescriptors, matrices, matrices_to_array, matrices_to_array3, poses, rows};
 use crate::errors::{invalid, to_py_err};
+use crate::options::{build_options, localizer_dict, localizer_options};
 
 fn keypoints(name: &str, a: &PyReadonlyArray2<'_, f64>) -> PyResult<Vec<Vector2<f64>>> {
     Ok(rows::<2>(name, a)?.chunks_exact(2).map(|c| Vector2::new(c[0], c[1])).collect())
@@ -71,8 +66,11 @@ pub struct FeatureMap {
 
 #[pymethods]
 impl FeatureMap {
+    /// Builds a map from keyframes (poses (K, 4, 4) flattened to (K, 16), keypoints and
+    /// descriptors per keyframe); `options` holds the build options the caller set (see
+    /// `build_defaults()`), everything else is the core's default.
     #[new]
-    #[pyo3(signature = (intrinsics, poses_wc, keypoints_list, descriptors_list, *, global_descriptors=None, pose_covariances=None, retrieval="bow", branching=None, depth=None, seed=None, timestamps=None, estimate_noise=false, model=false, refine_intrinsics=false, intrinsics_model="radial-tangential", adjust_labels=false))]
+    #[pyo3(signature = (intrinsics, poses_wc, keypoints_list, descriptors_list, *, global_descriptors=None, pose_covariances=None, timestamps=None, options=None))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         py: Python<'_>,
@@ -82,22 +80,10 @@ impl FeatureMap {
         descriptors_list: Vec<Bound<'_, PyAny>>,
         global_descriptors: Option<PyReadonlyArray2<'_, f32>>,
         pose_covariances: Option<PyReadonlyArray2<'_, f64>>,
-        retrieval: &str,
-        branching: Option<&Bound<'_, PyAny>>,
-        depth: Option<&Bound<'_, PyAny>>,
-        seed: Option<&Bound<'_, PyAny>>,
         timestamps: Option<PyReadonlyArray1<'_, f64>>,
-        estimate_noise: bool,
-        model: bool,
-        refine_intrinsics: bool,
-        intrinsics_model: &str,
-        adjust_labels: bool,
+        options: Option<&Bound<'_, PyDict>>,
     ) -> PyResult<Self> {
-        let method: RetrievalMethod = retrieval.parse().map_err(to_py_err)?;
-        let calibration =
-            SelfCalibrationOptions { model: intrinsics_model.parse().map_err(to_py_err)?, ..Default::default() };
-        let kind = method.with(count_arg(branching, "branching", 10)?, count_arg(depth, "depth", 3)?);
-        let seed = u64_arg(seed, "seed", 0)?;
+        let options = build_options(options)?;
         let (fx, fy, cx, cy) = intrinsics;
         let camera = Camera::new(fx, fy, cx, cy).map_err(to_py_err)?;
         let kfs = keyframes(&poses_wc, &keypoints_list, &descriptors_list, global_descriptors.as_ref())?;
@@ -106,19 +92,7 @@ impl FeatureMap {
             .as_ref()
             .map(|t| t.as_slice().map_err(|_| invalid("timestamps", "must be contiguous")))
             .transpose()?;
-        let map = py
-            .detach(|| {
-                let map = CoreMap::build(camera, kfs, covs, kind, seed)?;
-                let steps = BuildSteps {
-                    calibration: refine_intrinsics.then_some(calibration),
-                    adjustment: adjust_labels.then(AdjustmentOptions::default),
-                    model: model.then(ModelOptions::default),
-                    group_matches: true,
-                };
-                let map = map.with_build_steps(&steps)?;
-                if estimate_noise { map.with_estimated_noise(ts, &NoiseOptions::default()) } else { Ok(map) }
-            })
-            .map_err(to_py_err)?;
+        let map = py.detach(|| CoreMap::build_with_options(camera, kfs, covs, ts, &options)).map_err(to_py_err)?;
         Ok(Self { inner: Arc::new(map) })
     }
 
@@ -131,6 +105,15 @@ impl FeatureMap {
     fn intrinsics(&self) -> (f64, f64, f64, f64) {
         let c = self.inner.camera;
         (c.fx, c.fy, c.cx, c.cy)
+    }
+
+    /// How the map retrieves keyframes: "bow" or "global".
+    #[getter]
+    fn retrieval(&self) -> &'static str {
+        match self.inner.retrieval {
+            geoloc_core::map::Retrieval::Global(_) => RetrievalMethod::Global.as_str(),
+            geoloc_core::map::Retrieval::Bow { .. } => RetrievalMethod::Bow.as_str(),
+        }
     }
 
     /// The camera the map estimated from its keyframes (JSON text of the map header's
@@ -285,18 +268,9 @@ impl Localization {
     /// Milliseconds per stage: retrieval, keyframes, map_points, matching, pnp, motion_fusion, total.
     #[getter]
     fn timings_ms<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
-        let t = self.inner.timings;
         let out = PyDict::new(py);
-        for (k, v) in [
-            ("retrieval", t.retrieval_ms),
-            ("keyframes", t.keyframes_ms),
-            ("map_points", t.map_points_ms),
-            ("matching", t.matching_ms),
-            ("pnp", t.pnp_ms),
-            ("motion_fusion", t.motion_fusion_ms),
-            ("total", t.total_ms),
-        ] {
-            out.set_item(k, v)?;
+        for (stage, ms) in self.inner.timings.stages() {
+            out.set_item(stage, ms)?;
         }
         Ok(out)
     }
@@ -317,36 +291,26 @@ pub struct FeatureLocalizer {
     inner: Mutex<CoreLocalizer>,
     /// The map (results are returned in its labels' convention).
     map: Arc<CoreMap>,
+    /// The options it was created with.
+    options: LocalizerOptions,
 }
 
 #[pymethods]
 impl FeatureLocalizer {
+    /// A localizer on `map`; `options` holds the localizer options the caller set (see
+    /// `localizer_defaults()`), everything else is the core's default.
     #[new]
-    #[pyo3(signature = (map, *, pixel_sigma=1.0, max_residual=5.0, gate_sigma=3.0, history=None, locator="paper", top_k=None))]
-    #[allow(clippy::too_many_arguments)]
-    fn new(
-        py: Python<'_>,
-        map: &FeatureMap,
-        pixel_sigma: f64,
-        max_residual: f64,
-        gate_sigma: f64,
-        history: Option<&Bound<'_, PyAny>>,
-        locator: &str,
-        top_k: Option<&Bound<'_, PyAny>>,
-    ) -> PyResult<Self> {
-        let mut options = LocalizerOptions {
-            gate_sigma,
-            history: count_arg(history, "history", 4)?,
-            locator: locator.parse::<Locator>().map_err(to_py_err)?,
-            top_k: count_arg(top_k, "top_k", 5)?,
-            ..LocalizerOptions::default()
-        };
-        options.pnp.pixel_sigma = pixel_sigma;
-        options.pnp.max_residual_px = max_residual;
-        options.triangulation.pixel_sigma = pixel_sigma;
-        options.triangulation.max_residual_px = max_residual;
+    #[pyo3(signature = (map, *, options=None))]
+    fn new(py: Python<'_>, map: &FeatureMap, options: Option<&Bound<'_, PyDict>>) -> PyResult<Self> {
+        let options = localizer_options(options)?;
         let inner = py.detach(|| CoreLocalizer::new(Arc::clone(&map.inner), options)).map_err(to_py_err)?;
-        Ok(Self { inner: Mutex::new(inner), map: Arc::clone(&map.inner) })
+        Ok(Self { inner: Mutex::new(inner), map: Arc::clone(&map.inner), options })
+    }
+
+    /// The localizer's user-facing options (the keys of `localizer_defaults()`).
+    #[getter]
+    fn options<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
+        localizer_dict(py, &self.options)
     }
 
     /// Localizes one frame (keypoints (N, 2) undistorted pixels, descriptors (N, W), optional

@@ -17,7 +17,7 @@ import numpy as np
 
 
 from ..exceptions import DatasetError, InvalidInputError
-from ..mapping import SEQUENCE_MODES
+from ..localizer import SEQUENCE_MODES
 
 __all__ = [
     "FORMATS",

@@ -39,9 +39,9 @@ def run(args: argparse.Namespace) -> int:
         features=args.features,
         n_features=args.n_features,
         keyframe_step=args.step,
-        model=bool(getattr(args, "model", False)),
-        refine_intrinsics=not getattr(args, "nominal_intrinsics", False),
-        adjust_labels=bool(getattr(args, "adjust_labels", True)),
+        model=getattr(args, "model", None),
+        refine_intrinsics=getattr(args, "refine_intrinsics", None),
+        adjust_labels=getattr(args, "adjust_labels", None),
         progress=Progress("map", then=MAP_DONE),
     )
     built = time.perf_counter() - start

@@ -135,9 +135,9 @@ def evaluate_split(
     n_features: int = 1000,
     retrieval: str = "bow",
     options: tuple[str, str] = ("--train", "--test"),
-    locator: str = "paper",
-    nominal_intrinsics: bool = False,
-    adjust_labels: bool = True,
+    locator: str | None = None,
+    refine_intrinsics: bool | None = None,
+    adjust_labels: bool | None = None,
     reference: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Build the map from ``sequence[train]``, localize ``sequence[test]`` in each mode.
@@ -145,14 +145,15 @@ def evaluate_split(
     Returns ``{"map": Map, "build_s": float, "test": Sequence, "summaries": {mode: dict}}``,
     each summary :func:`geoloc.evaluation.summarize_results` plus per-frame ``frame`` (the
     dataset's frame index) and ``reason``. ``locator`` is "paper" or "model";
-    ``nominal_intrinsics`` keeps the sequence's camera as it is (no self-calibration);
-    ``adjust_labels`` corrects the training labels by bundle adjustment (:meth:`Map.build`).
+    ``refine_intrinsics`` estimates the camera from the keyframes, ``adjust_labels`` corrects
+    the training labels by bundle adjustment (:meth:`Map.build`; None: the core's default).
     With ``reference`` (:func:`load_reference_option`), also ``"reference"``: the file, the
     :class:`~geoloc.reference.ReferenceAlignment` fitted on the training frames that the
     reference has, and ``summaries`` ({mode: dict}) against the aligned reference.
     """
     from ..evaluation import score_against_reference, summarize_results
-    from ..mapping import Localizer, Map
+    from ..localizer import Localizer
+    from ..mapping import Map
     from ..reference import align_reference
 
     train_slice = train.resolve(len(sequence), options[0], sequence.name)
@@ -177,7 +178,7 @@ def evaluate_split(
         retrieval=network,
         features=features,
         n_features=n_features,
-        refine_intrinsics=not nominal_intrinsics,
+        refine_intrinsics=refine_intrinsics,
         adjust_labels=adjust_labels,
         progress=Progress("map", then=MAP_DONE),
     )
@@ -361,7 +362,7 @@ def run(args: argparse.Namespace) -> int:
     test = args.test or default_test
     result = evaluate_split(
         sequence, train, test, _modes(args.mode), features=args.features, n_features=args.n_features, retrieval=args.retrieval,
-        locator=args.locator, nominal_intrinsics=args.nominal_intrinsics, adjust_labels=args.adjust_labels,
+        locator=args.locator, refine_intrinsics=args.refine_intrinsics, adjust_labels=args.adjust_labels,
         reference=reference,
     )
     data = report(sequence, result, dataset=args.dataset, fmt=args.format, train=train, test=test, timings=args.timings)

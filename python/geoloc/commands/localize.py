@@ -63,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
     """The ``localize`` command."""
     from .._io import refuse_alias, shown
     from ..evaluation import write_tum_trajectory
-    from ..mapping import Localizer
+    from ..localizer import Localizer
 
     refuse_alias(args.out, "--out", [("--map", args.map), *model_input(args.retrieval)])
     the_map = _load_map(args.map)
