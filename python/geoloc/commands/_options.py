@@ -2,8 +2,8 @@
 
 Every type names what is wrong in its message (argparse prefixes the option), so a bad value
 is one line on stderr before anything is loaded. :mod:`geoloc.cli` builds the parsers with
-these, and so does ``geoloc train`` (:mod:`geoloc.training.command`); neither imports the
-other.
+these, and so does ``geoloc train`` (:mod:`geoloc.training.command`, which the cli registers
+and which imports nothing from it).
 """
 
 from __future__ import annotations
