@@ -43,6 +43,7 @@ def test_every_command_has_help_with_an_example(command: str) -> None:
     assert f"example:\n  geoloc {command} " in result.stdout
 
 
+@pytest.mark.slow
 def test_demo_writes_results_and_plots_and_localizes_to_a_centimetre(tmp_path: Path) -> None:
     result = _run("demo", "--frames", str(ROOM_FRAMES), cwd=tmp_path)
     assert result.returncode == 0, result.stdout + result.stderr
@@ -226,6 +227,7 @@ def test_a_corrupt_map_is_refused(room_map: Path, tmp_path: Path, damage: str) -
 # ---------------------------------------------------------------- real data
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not REDKITCHEN.is_dir(), reason=f"7-Scenes sample data not found at {REDKITCHEN} (see ../shared/data/README.md)")
 def test_evaluate_on_real_7scenes_frames(tmp_path: Path) -> None:
     result = _run(

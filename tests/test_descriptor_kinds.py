@@ -42,6 +42,7 @@ def _errors(seq: datasets.Sequence, kind: str, root_sift: bool = False) -> tuple
     return np.array(trans), np.array(rot)
 
 
+@pytest.mark.slow
 def test_sift_and_root_sift_localize_as_well_as_orb() -> None:
     seq = datasets.synthetic_room(n_frames=300)
     orb_t, orb_r = _errors(seq, "orb")

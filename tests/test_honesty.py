@@ -66,6 +66,7 @@ def map_100():
     return _kitchen_map(0, 300, 3)
 
 
+@pytest.mark.slow
 def test_the_model_locator_reports_only_poses_the_map_confirms(map_100):
     """Frames 370 and 690 against a map of 0–297: the retrieval matches fit a pose 0.9 m / 143°
     and 0.75 m / 24° off with no σ or viewpoint objection; guided matching near that pose finds

@@ -71,6 +71,7 @@ def kitchen() -> tuple[Sequence, np.ndarray]:
     return datasets.load_7scenes(REDKITCHEN), reference
 
 
+@pytest.mark.slow
 def test_adjusted_keyframes_agree_with_the_image_reference(kitchen: tuple[Sequence, np.ndarray]) -> None:
     """Frames 0–599, every third: against the SfM reference (aligned as documented) the
     adjusted keyframes lie within 1.5 cm / 0.5° (median) and 4 cm / 1.5° (95th percentile),

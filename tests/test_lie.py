@@ -45,6 +45,7 @@ def test_se3_exp_matches_scipy_expm(regime_twists: list[tuple[float, float, Arra
             assert _rel(lie.so3_exp(xi[3:]), ref[:3, :3]) <= EXP_LOG_RTOL
 
 
+@pytest.mark.slow
 def test_log_matches_scipy_logm_and_the_generating_twist(regime_twists: list[tuple[float, float, Array]]) -> None:
     for angle, t, xis in regime_twists:
         for xi in xis:

@@ -205,6 +205,7 @@ def _observe_real(rng: np.random.Generator, pose: np.ndarray, pts: np.ndarray, d
     return uv[ok] + 0.5 * rng.normal(size=(ok.sum(), 2)), desc[front][ok].copy()
 
 
+@pytest.mark.slow
 def test_refine_intrinsics_finds_the_real_camera_and_localizes_better() -> None:
     rng = np.random.default_rng(3)
     pts = rng.uniform([-10, -1.5, 3], [10, 1.5, 6], (3000, 3))

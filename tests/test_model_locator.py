@@ -16,6 +16,7 @@ from geoloc.exceptions import InvalidInputError
 from geoloc import Localizer, Map
 
 pytest.importorskip("cv2")
+pytestmark = pytest.mark.slow  # builds the room's 3D model
 
 
 @pytest.fixture(scope="module")

@@ -372,6 +372,7 @@ def _room_reference(tmp_path: Path, fmt: str, frames: slice = slice(None)) -> Pa
     return path
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fmt", ["7scenes-reference", "tum"])
 def test_evaluate_against_a_reference_prints_both_rows_and_writes_the_alignment(tmp_path: Path, fmt: str) -> None:
     """A reference that is the labels in another frame (known S, X): the scores against it
@@ -397,6 +398,7 @@ def test_evaluate_against_a_reference_prints_both_rows_and_writes_the_alignment(
     assert [f["frame"] for f in vs_ref["per_frame"]] == list(range(30, 60, 3))
 
 
+@pytest.mark.slow
 def test_evaluate_reference_errors_are_one_line(tmp_path: Path) -> None:
     room = ("evaluate", "--format", "synthetic", "--synthetic-frames", str(ROOM_FRAMES), "--test", "30:60:3", "--mode", "single")
     bad = _write(tmp_path / "bad.txt", "1 2 3 4 5\n")

@@ -26,6 +26,8 @@ import geoloc
 from geoloc import datasets
 from geoloc._core import FrameWriter
 
+pytestmark = pytest.mark.slow  # builds geoloc-rs (cargo build --release) and runs it
+
 ROOT = Path(__file__).resolve().parents[1]
 BINARY = ROOT / "target" / "release" / "geoloc-rs"
 REDKITCHEN = ROOT.parent / "shared" / "data" / "7scenes-redkitchen"

@@ -37,8 +37,6 @@ from geoloc.training.train import TrainConfig, embed, load_network, train  # noq
 RECALL_MARGIN = {"7scenes": 0.10, "standin": 0.05}
 #: Epochs of the tiny run (recall@1 on 7-Scenes peaks around 8–11 epochs of 128 + 128 pairs).
 TINY_EPOCHS = 10
-#: Wall time allowed for the tiny training run (2 shared CPU cores; typically ~30 s).
-TINY_TRAIN_BUDGET_S = 120.0
 
 
 def _random_poses(n: int, seed: int, spread_m: float = 1.0, spread_rad: float = 0.6) -> np.ndarray:
@@ -265,6 +263,7 @@ def _split() -> tuple[str, list[PosedImage], list[PosedImage]]:
     return "standin", *standin()
 
 
+@pytest.mark.slow
 def test_tiny_network_beats_the_tiny_image_baseline(capsys: pytest.CaptureFixture[str]) -> None:
     what, train_frames, test_frames = _split()
     train_gray, test_gray = gray_images(train_frames), gray_images(test_frames)
@@ -277,5 +276,4 @@ def test_tiny_network_beats_the_tiny_image_baseline(capsys: pytest.CaptureFixtur
     base = recall_at_k(correct, rank_by_descriptors(*tiny))
     with capsys.disabled():
         print(f"\n{what} (train / held-out queries): tiny CNN ({TINY_EPOCHS} epochs, {seconds:.1f} s): {cnn}\n  tiny-image baseline: {base}")
-    assert seconds < TINY_TRAIN_BUDGET_S
     assert cnn.recall_at_1 >= base.recall_at_1 + RECALL_MARGIN[what]

@@ -8,9 +8,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .exceptions import InvalidInputError
+from .exceptions import InvalidInputError, NotARotationError
 
-__all__ = ["as_batch", "broadcast_batches", "describe_shape"]
+__all__ = ["as_batch", "broadcast_batches", "check_rigid", "describe_shape", "rigid_poses"]
 
 _REAL_KINDS = "iuf"
 
@@ -112,3 +112,35 @@ def given_options(**values: Any) -> dict[str, Any]:
     """The options the caller set (not None), for the core, which applies its own default
     to every other one."""
     return {k: v for k, v in values.items() if v is not None}
+
+
+def rigid_poses(x: Any, name: str) -> NDArray[np.float64]:
+    """``x`` as (N, 4, 4) float64 rigid transforms (a single (4, 4) becomes N = 1);
+    InvalidInputError for another shape, NotARotationError naming ``name[i]`` (see
+    :func:`check_rigid`)."""
+    arr = as_float64(x, name)
+    if arr.shape == (4, 4):
+        arr = arr[None]
+    if arr.ndim != 3 or arr.shape[1:] != (4, 4):
+        raise InvalidInputError(f"{name}: expected shape (4, 4) or (N, 4, 4), got {arr.shape}")
+    check_rigid(arr, name)
+    return arr
+
+
+def check_rigid(arr: NDArray[np.float64], name: str) -> None:
+    """NotARotationError naming ``name[i]`` for the first pose that is not rigid (last row
+    (0, 0, 0, 1), |RᵀR − I| ≤ 1e-6, det R > 0) — checked here so that the error names this
+    function's argument, not the argument of the geoloc.lie call inside."""
+    if not len(arr):
+        return
+    rot = arr[:, :3, :3]
+    with np.errstate(all="ignore"):
+        ortho = np.abs(np.einsum("nji,njk->nik", rot, rot) - np.eye(3)).max(axis=(1, 2))
+        det = np.linalg.det(rot)
+    bad = (np.abs(arr[:, 3] - [0.0, 0.0, 0.0, 1.0]).max(axis=1) > 0) | ~(ortho <= 1e-6) | ~(det > 0)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise NotARotationError(
+            f"{name}[{i}] is not a rigid transform (last row {arr[i, 3].tolist()}, max |RᵀR − I| = {ortho[i]:.3g}); "
+            "project near-rotations first (geoloc.lie.se3_project)"
+        )

@@ -10,18 +10,23 @@ are written atomically and missing folders are never created.
 from __future__ import annotations
 
 import argparse
-import math
-import os
 import sys
 import traceback
-from pathlib import Path
-from typing import TYPE_CHECKING, Callable, Sequence
+from typing import Callable, Sequence
 
+from .commands._options import (
+    MAX_SEED,
+    MAX_SYNTHETIC_FRAMES,
+    bounded_int,
+    dataset_options,
+    existing_file,
+    frame_range,
+    new_folder,
+    output_file,
+    retrieval,
+)
 from .exceptions import GeolocError, InvalidInputError
 from .reference import REFERENCE_FORMATS
-
-if TYPE_CHECKING:
-    from .commands._common import FrameRange
 
 #: Exit status of a usage or input error (argparse uses 2 too).
 EXIT_USAGE = 2
@@ -31,10 +36,7 @@ EXIT_FAILURE = 1
 #: The largest trial / sample counts the commands accept (bounded run time and memory).
 MAX_TRIALS = 1_000_000
 MAX_SELFCHECK_SAMPLES = 100_000
-#: Seeds are stored in 64-bit unsigned integers by the core.
-MAX_SEED = 2**63 - 1
-#: The largest synthetic room (frames) and feature count the commands accept.
-MAX_SYNTHETIC_FRAMES = 100_000
+#: The largest feature count the commands accept.
 MAX_FEATURES = 100_000
 
 Handler = Callable[[argparse.Namespace], int]
@@ -53,135 +55,6 @@ class _HelpFormatter(argparse.HelpFormatter):
 def _example(*lines: str) -> str:
     """An epilog: ``example:`` then the command, continuation lines ending in a backslash."""
     return "example:\n  " + " \\\n      ".join(lines)
-
-
-def bounded_int(low: int, high: int) -> Callable[[str], int]:
-    """An argparse ``type`` accepting integers in [low, high]; the message says the range."""
-
-    def parse(text: str) -> int:
-        try:
-            value = int(text, 10)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-        if not low <= value <= high:
-            raise argparse.ArgumentTypeError(f"must be between {low} and {high}, got {value}")
-        return value
-
-    parse.__name__ = "integer"
-    return parse
-
-
-def output_file(text: str) -> str:
-    """An argparse ``type`` for a file to write: its folder must exist and be writable."""
-    from ._io import check_output_path
-
-    try:
-        check_output_path(text, "path")
-    except GeolocError as e:
-        raise argparse.ArgumentTypeError(str(e).removeprefix("path: ")) from None
-    return text
-
-
-def frame_range(text: str) -> "FrameRange":
-    """An argparse ``type`` for ``A:B`` or ``A:B:K`` (checked against the sequence later)."""
-    from .commands._common import FrameRange
-
-    try:
-        return FrameRange.parse(text)
-    except ValueError as e:
-        raise argparse.ArgumentTypeError(str(e)) from None
-
-
-frame_range.__name__ = "frame range"
-
-
-def intrinsics(text: str) -> tuple[float, float, float, float]:
-    """An argparse ``type`` for ``fx,fy,cx,cy``: four finite numbers, fx and fy > 0."""
-    parts = text.replace(" ", "").split(",")
-    try:
-        values = tuple(float(p) for p in parts)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected fx,fy,cx,cy (four numbers), got {text!r}") from None
-    if len(values) != 4 or not all(math.isfinite(v) for v in values) or values[0] <= 0 or values[1] <= 0:
-        raise argparse.ArgumentTypeError(f"expected fx,fy,cx,cy: four finite numbers with fx, fy > 0, got {text!r}")
-    return values
-
-
-intrinsics.__name__ = "intrinsics"
-
-
-def existing_file(text: str) -> str:
-    """An argparse ``type`` for a file to read: an existing regular file (a folder, a FIFO or
-    a device is named as such and never opened)."""
-    from ._io import check_input_file
-
-    try:
-        check_input_file(text, "path")
-    except GeolocError as e:
-        raise argparse.ArgumentTypeError(str(e).removeprefix("path: ")) from None
-    return text
-
-
-def new_folder(text: str) -> str:
-    """An argparse ``type`` for a folder to write into: an existing folder, or a new one
-    whose parent exists (it is created then; nothing above it ever is)."""
-    path = Path(text)
-    try:
-        exists = os.path.lexists(path)
-        if exists and not path.is_dir():
-            raise argparse.ArgumentTypeError(f"{text!r} exists and is not a folder")
-        if not exists and not path.parent.is_dir():
-            raise argparse.ArgumentTypeError(f"folder {str(path.parent)!r} does not exist (create it first)")
-    except OSError as e:  # a name too long for the file system, a loop of symlinks
-        raise argparse.ArgumentTypeError(f"cannot use {text!r} as a folder ({e.strerror or e})") from None
-    return text
-
-
-def retrieval(text: str) -> str:
-    """An argparse ``type`` for ``--retrieval``: ``bow`` or an existing ``MODEL.onnx`` file
-    (a descriptor network exported by ``geoloc train``)."""
-    if text == "bow":
-        return text
-    if text.endswith(".onnx"):
-        from ._io import check_input_file
-
-        try:
-            check_input_file(text, "path")
-        except GeolocError as e:
-            raise argparse.ArgumentTypeError("model " + str(e).removeprefix("path: ")) from None
-        return text
-    raise argparse.ArgumentTypeError(f"expected bow or a MODEL.onnx file, got {text!r}")
-
-
-def _dataset_options(
-    parser: argparse.ArgumentParser, trajectory: bool = False, required: bool = True, intrinsics_default: str | None = None
-) -> None:
-    from .commands._common import FORMATS
-
-    parser.add_argument(
-        "--dataset", metavar="P",
-        help="dataset folder (not needed with --format synthetic, the built-in room)",
-    )
-    parser.add_argument(
-        "--format", choices=FORMATS, required=required,
-        help="7scenes (frame-XXXXXX.color.{jpg,png} + .pose.txt), tum (rgb.txt + groundtruth.txt), "
-        "folder (images + a TUM trajectory), synthetic (the built-in room)",
-    )
-    parser.add_argument(
-        "--intrinsics", type=intrinsics, metavar="fx,fy,cx,cy",
-        help="pinhole intrinsics in pixels (default: "
-        + (intrinsics_default or "7scenes 525,525,320,240; tum from the folder name or camera.txt; folder: required")
-        + ")",
-    )
-    if trajectory:
-        parser.add_argument(
-            "--trajectory", metavar="FILE",
-            help="--format folder: the TUM trajectory, relative to the dataset folder (default: traj.txt)",
-        )
-    parser.add_argument(
-        "--synthetic-frames", type=bounded_int(20, MAX_SYNTHETIC_FRAMES), default=300, metavar="N",
-        help="--format synthetic: frames of the room, two laps (default: 300)",
-    )
 
 
 def _feature_options(parser: argparse.ArgumentParser) -> None:
@@ -253,7 +126,7 @@ def _add_build_map(commands: argparse._SubParsersAction[argparse.ArgumentParser]
             "--intrinsics 525,525,320,240 --frames 0:600 --out redkitchen.geoloc",
         ),
     )
-    _dataset_options(build, trajectory=True)
+    dataset_options(build, trajectory=True)
     build.add_argument("--frames", type=frame_range, metavar="A:B", help="frame positions A..B-1 (A:B:K every K-th; default: all)")
     build.add_argument(
         "--step", type=bounded_int(1, 10_000), default=1, metavar="K", help="every K-th selected frame becomes a keyframe (default: 1)"
@@ -294,7 +167,7 @@ def _add_localize(commands: argparse._SubParsersAction[argparse.ArgumentParser])
         help="a folder of images of the map camera's size, localized in order: by number when every name is a number "
         "(9.png before 10.png; the number is the timestamp in seconds), else by name (timestamps index/30 s)",
     )
-    _dataset_options(loc, required=False, intrinsics_default="the map's camera")
+    dataset_options(loc, required=False, intrinsics_default="the map's camera")
     loc.add_argument("--frames", type=frame_range, metavar="A:B", help="frame positions A..B-1 (A:B:K every K-th; default: all)")
     loc.add_argument(
         "--mode", choices=("single", "sequential"), default="sequential",
@@ -336,7 +209,7 @@ def _add_evaluate(commands: argparse._SubParsersAction[argparse.ArgumentParser])
             "--intrinsics 525,525,320,240 --train 0:600 --test 600:700 --json r.json --timings --plots out/",
         ),
     )
-    _dataset_options(ev, trajectory=True)
+    dataset_options(ev, trajectory=True)
     ev.add_argument("--train", type=frame_range, metavar="A:B", help="map frames (A:B:K every K-th)")
     ev.add_argument("--test", type=frame_range, metavar="C:D", help="test frames (C:D:K every K-th)")
     ev.add_argument(
@@ -434,6 +307,7 @@ def _add_montecarlo(commands: argparse._SubParsersAction[argparse.ArgumentParser
 
 
 def _add_train(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> Handler:
+    # The parser and handler live with the training code; importing them needs no torch.
     from .training.command import add_train_command
 
     return add_train_command(commands)

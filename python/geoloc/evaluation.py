@@ -33,8 +33,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from . import lie
 from ._io import write_text_atomic
-from ._validation import as_float64, real_scalar
-from .exceptions import InvalidInputError, NotARotationError
+from ._validation import as_float64, real_scalar, rigid_poses as _poses
+from .exceptions import InvalidInputError
 from .reference import ReferenceAlignment, align_reference, load_reference, match_reference
 
 __all__ = [
@@ -112,35 +112,6 @@ def chi2_6_quantile(p: ArrayLike) -> Array:
 
 
 # ---------------------------------------------------------------------------- errors
-
-
-def _poses(x: ArrayLike, name: str) -> Array:
-    arr = as_float64(x, name)
-    if arr.shape == (4, 4):
-        arr = arr[None]
-    if arr.ndim != 3 or arr.shape[1:] != (4, 4):
-        raise InvalidInputError(f"{name}: expected shape (4, 4) or (N, 4, 4), got {arr.shape}")
-    _check_rigid(arr, name)
-    return arr
-
-
-def _check_rigid(arr: Array, name: str) -> None:
-    """NotARotationError naming ``name[i]`` for the first pose that is not rigid (last row
-    (0, 0, 0, 1), |RᵀR − I| ≤ 1e-6, det R > 0) — checked here so that the error names this
-    function's argument, not the argument of the geoloc.lie call inside."""
-    if not len(arr):
-        return
-    rot = arr[:, :3, :3]
-    with np.errstate(all="ignore"):
-        ortho = np.abs(np.einsum("nji,njk->nik", rot, rot) - np.eye(3)).max(axis=(1, 2))
-        det = np.linalg.det(rot)
-    bad = (np.abs(arr[:, 3] - [0.0, 0.0, 0.0, 1.0]).max(axis=1) > 0) | ~(ortho <= 1e-6) | ~(det > 0)
-    if bad.any():
-        i = int(np.argmax(bad))
-        raise NotARotationError(
-            f"{name}[{i}] is not a rigid transform (last row {arr[i, 3].tolist()}, max |RᵀR − I| = {ortho[i]:.3g}); "
-            "project near-rotations first (geoloc.lie.se3_project)"
-        )
 
 
 def _pair(est: ArrayLike, gt: ArrayLike) -> tuple[Array, Array]:

@@ -46,7 +46,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from . import lie
 from ._io import as_path, read_bytes
-from ._validation import as_float64, choice, real_scalar
+from ._validation import as_float64, choice, real_scalar, rigid_poses as _poses
 from .exceptions import DatasetError, InvalidInputError, NotARotationError
 
 __all__ = [
@@ -156,7 +156,7 @@ def load_reference(
     p = as_path(path, "path")
     fmt = choice(fmt, "fmt", REFERENCE_FORMATS)
     if fmt == "tum":
-        from .datasets.tum import read_tum_trajectory
+        from .datasets._files import read_tum_trajectory
 
         return read_tum_trajectory(p)
     rows = _numbered_rows(p)
@@ -194,7 +194,7 @@ def match_reference(
     limit = real_scalar(max_time_difference, "max_time_difference")
     if not limit >= 0:
         raise InvalidInputError(f"max_time_difference: expected seconds ≥ 0, got {max_time_difference!r}")
-    from .datasets.tum import associate
+    from .datasets._files import associate
 
     times = as_float64(timestamps, "timestamps").reshape(-1)
     if not len(k):
@@ -236,8 +236,6 @@ class ReferenceAlignment:
         """The reference poses in the map's frame, S · R_j · X: rotation R_S R_j R_X, position
         s R_S (t_j + R_j t_X) + t_S. (4, 4) or (N, 4, 4) → (N, 4, 4). ``offset=False`` leaves
         X out (S · R_j), to see what the camera-frame offset accounts for."""
-        from .evaluation import _poses
-
         ref = _poses(reference_poses, "reference_poses")
         x = self.offset if offset else np.eye(4)
         return _transform(self.scale, self.rotation, self.translation, x[:3, :3], x[:3, 3], ref)
@@ -338,8 +336,6 @@ def align_reference(
     robust cost) for ``reference_poses`` R_i and ``map_poses`` M_i, each (N, 4, 4)
     world_from_cam of the same N ≥ 3 frames. ``position_scale_m`` and
     ``rotation_scale_deg`` are the Huber scales (residuals beyond them count linearly)."""
-    from .evaluation import _poses
-
     ref = _poses(reference_poses, "reference_poses")
     target = _poses(map_poses, "map_poses")
     if len(ref) != len(target):

@@ -208,7 +208,8 @@ def test_train_names_dataset_and_device_options(tmp_path: Path, capsys: pytest.C
         cli_main(["train", "--dataset", "synthetic", "--device", "nan,1,1,1", "--out", str(tmp_path / "m.onnx")])
     assert exit_info.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert err[-1].startswith("geoloc train: error: argument --device: ") and not any("frames" in e for e in err)
+    assert err[-1].startswith("geoloc train: error: argument --device: ")
+    assert not any(e.startswith("geoloc train: ") and " frames, " in e for e in err)  # no info line before it
 
 
 def test_long_profile_findings() -> None:

@@ -116,8 +116,9 @@ def load_dataset(args: argparse.Namespace, camera: Any = None) -> Any:
         raise InvalidInputError(f"--dataset: required with --format {fmt} (a dataset folder)")
     root = Path(args.dataset)
     if not root.is_dir():
-        what = "is a file, expected a folder" if root.exists() else "does not exist"
-        raise InvalidInputError(f"--dataset: folder {str(root)!r} {what}")
+        if root.exists():
+            raise InvalidInputError(f"--dataset: folder {str(root)!r} is a file, expected a folder")
+        raise InvalidInputError(f"--dataset: no such file or folder: {str(root)!r} does not exist")
     try:
         return _load_files(args, fmt, root, intrinsics if intrinsics is not None else camera)
     except DatasetError as e:

@@ -1,18 +1,68 @@
-"""File helpers shared by the dataset loaders; every failure names the file."""
+"""The file formats and file helpers the dataset loaders share — text rows, image files, the
+camera file, TUM trajectories and timestamp association — every failure naming the file.
+
+Nothing here builds a :class:`~geoloc.datasets.Sequence`, so every module of
+:mod:`geoloc.datasets` (and :mod:`geoloc.reference`) can import it without a cycle; the
+loaders (:mod:`.tum`, :mod:`.sevenscenes`, :mod:`.folder`) and :mod:`.sequence` build on it.
+"""
 
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from .. import lie
 from ..camera import Camera
-from ..exceptions import DatasetError
-from .sequence import ImageLoader, load_image
+from ..exceptions import DatasetError, InvalidInputError
 
-__all__ = ["data_rows", "existing_folder", "file_loader", "floats"]
+__all__ = [
+    "CAMERA_FILE_HEADER",
+    "ImageLoader",
+    "associate",
+    "check_image_size",
+    "data_rows",
+    "existing_folder",
+    "file_loader",
+    "floats",
+    "load_image",
+    "read_camera_file",
+    "read_tum_trajectory",
+    "write_camera_file",
+]
+
+CAMERA_FILE_HEADER = "# geoloc camera: fx fy cx cy width height [OpenCV distortion k1 k2 p1 p2 [k3 ...]]"
+
+
+ImageLoader = Callable[[int, bool], NDArray[np.uint8]]
+"""``loader(source_index, gray)``: the frame's (H, W, 3) uint8 BGR image, or with
+``gray=True`` its (H, W) uint8 grey image."""
+
+
+def load_image(path: str | os.PathLike[str], camera: Camera, gray: bool = False) -> NDArray[np.uint8]:
+    """Read one image as (H, W, 3) uint8 BGR — or, with ``gray``, decoded directly as
+    (H, W) grey (for JPEG that is libjpeg's own luma, not a conversion of decoded colour) —
+    and check its size against ``camera``.
+
+    Raises :class:`DatasetError` naming the file when it is missing, cannot be decoded or
+    is not ``camera.width × camera.height``.
+    """
+    from .._images import read_image
+
+    image = read_image(path, "path", gray, DatasetError)
+    check_image_size(image, camera, f"image file {os.fspath(path)!r}")
+    return np.ascontiguousarray(image, dtype=np.uint8)
+
+
+def check_image_size(image: NDArray[Any], camera: Camera, what: str) -> None:
+    """Raise DatasetError unless ``image`` is ``camera.height × camera.width``."""
+    h, w = image.shape[:2]
+    if (w, h) != (camera.width, camera.height):
+        raise DatasetError(f"{what}: image is {w}×{h}, the camera is {camera.width}×{camera.height}")
 
 
 def file_loader(files: list[Path], camera: Camera, numbers: list[int] | None = None) -> ImageLoader:
@@ -61,3 +111,79 @@ def floats(fields: list[str], path: Path, line: int) -> list[float]:
     if not all(np.isfinite(values)):
         raise DatasetError(f"file {str(path)!r}: entry {line} has a non-finite number")
     return values
+
+
+def read_camera_file(path: str | os.PathLike[str]) -> Camera:
+    """The camera of a ``camera.txt``: one line ``fx fy cx cy width height [dist...]``."""
+    p = Path(path)
+    rows = data_rows(p)
+    if len(rows) != 1 or len(rows[0]) < 6:
+        raise DatasetError(f"camera file {str(p)!r}: expected one line 'fx fy cx cy width height [dist...]'")
+    v = floats(rows[0], p, 1)
+    dist = tuple(v[6:]) or None
+    try:
+        return Camera(v[0], v[1], v[2], v[3], int(v[4]), int(v[5]), dist)
+    except InvalidInputError as exc:
+        raise DatasetError(f"camera file {str(p)!r}: {exc}") from None
+
+
+def write_camera_file(path: str | os.PathLike[str], camera: Camera) -> None:
+    """Write ``camera`` as the one-line ``camera.txt`` that :func:`read_camera_file` reads."""
+    from .._io import write_text_atomic
+
+    values = [*camera.intrinsics, camera.width, camera.height, *(camera.dist or ())]
+    write_text_atomic(path, CAMERA_FILE_HEADER + "\n" + " ".join(repr(v) for v in values) + "\n")
+
+
+def read_tum_trajectory(path: str | os.PathLike[str]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Timestamps (N,) and world_from_cam poses (N, 4, 4) of a TUM trajectory file.
+
+    Each line is ``timestamp tx ty tz qx qy qz qw`` (quaternion x, y, z, w; normalized
+    here); ``#`` comments and blank lines are skipped; commas also separate values.
+    """
+    p = Path(path)
+    rows = data_rows(p)
+    if not rows:
+        raise DatasetError(f"trajectory file {str(p)!r} has no poses")
+    values = np.empty((len(rows), 8))
+    for k, row in enumerate(rows):
+        if len(row) != 8:
+            raise DatasetError(
+                f"trajectory file {str(p)!r}: pose {k + 1} has {len(row)} values, expected 8 "
+                "(timestamp tx ty tz qx qy qz qw)"
+            )
+        values[k] = floats(row, p, k + 1)
+    q_xyzw = values[:, 4:8]
+    norms = np.linalg.norm(q_xyzw, axis=1)
+    # the unnormalized quaternion's matrix is |q|² R, so ‖MᵀM − I‖_F = √3 · | |q|⁴ − 1 |: the
+    # same near-rotation bound as a rotation block read from a file
+    defect = np.sqrt(3.0) * np.abs(norms**4 - 1.0)
+    if not (defect <= lie.MAX_ORTHONORMALITY_ERROR).all():
+        bad = int(np.flatnonzero(~(defect <= lie.MAX_ORTHONORMALITY_ERROR))[0])
+        raise DatasetError(
+            f"trajectory file {str(p)!r}: pose {bad + 1} has no unit quaternion (norm {norms[bad]:.6g}; "
+            f"√3·| |q|⁴ − 1 | at most {lie.MAX_ORTHONORMALITY_ERROR:g})"
+        )
+    q_wxyz = np.concatenate([q_xyzw[:, 3:], q_xyzw[:, :3]], axis=1) / norms[:, None]
+    poses = np.tile(np.eye(4), (len(rows), 1, 1))
+    poses[:, :3, :3] = lie.so3_from_quaternion_wxyz(q_wxyz)
+    poses[:, :3, 3] = values[:, 1:4]
+    return values[:, 0].copy(), poses
+
+
+def associate(
+    query_times: NDArray[np.float64], reference_times: NDArray[np.float64], max_time_difference: float
+) -> NDArray[np.int64]:
+    """For each query time, the index of the nearest reference time, or -1 when the nearest
+    is more than ``max_time_difference`` seconds away. Ties go to the earlier reference."""
+    ref = np.asarray(reference_times, dtype=np.float64)
+    order = np.argsort(ref, kind="stable")
+    sorted_ref = ref[order]
+    q = np.asarray(query_times, dtype=np.float64)
+    right = np.clip(np.searchsorted(sorted_ref, q), 0, len(ref) - 1)
+    left = np.clip(right - 1, 0, len(ref) - 1)
+    take_left = np.abs(q - sorted_ref[left]) <= np.abs(sorted_ref[right] - q)
+    nearest = np.where(take_left, left, right)
+    out = order[nearest].astype(np.int64)
+    out[np.abs(sorted_ref[nearest] - q) > max_time_difference] = -1
+    return out

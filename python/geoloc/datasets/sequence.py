@@ -12,7 +12,7 @@ nothing until a frame is read.
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, overload
@@ -22,13 +22,9 @@ from numpy.typing import ArrayLike, NDArray
 
 from ..camera import Camera
 from ..exceptions import DatasetError, InvalidInputError
+from ._files import ImageLoader, load_image
 
 __all__ = ["Frame", "Sequence", "load_image"]
-
-ImageLoader = Callable[[int, bool], NDArray[np.uint8]]
-"""``loader(source_index, gray)``: the frame's (H, W, 3) uint8 BGR image, or with
-``gray=True`` its (H, W) uint8 grey image."""
-
 
 @dataclass(frozen=True, eq=False)
 class Frame:
@@ -44,28 +40,6 @@ class Frame:
     timestamp: float
     pose: NDArray[np.float64] | None
     index: int
-
-
-def load_image(path: str | os.PathLike[str], camera: Camera, gray: bool = False) -> NDArray[np.uint8]:
-    """Read one image as (H, W, 3) uint8 BGR — or, with ``gray``, decoded directly as
-    (H, W) grey (for JPEG that is libjpeg's own luma, not a conversion of decoded colour) —
-    and check its size against ``camera``.
-
-    Raises :class:`DatasetError` naming the file when it is missing, cannot be decoded or
-    is not ``camera.width × camera.height``.
-    """
-    from .._images import read_image
-
-    image = read_image(path, "path", gray, DatasetError)
-    check_image_size(image, camera, f"image file {os.fspath(path)!r}")
-    return np.ascontiguousarray(image, dtype=np.uint8)
-
-
-def check_image_size(image: NDArray[Any], camera: Camera, what: str) -> None:
-    """Raise DatasetError unless ``image`` is ``camera.height × camera.width``."""
-    h, w = image.shape[:2]
-    if (w, h) != (camera.width, camera.height):
-        raise DatasetError(f"{what}: image is {w}×{h}, the camera is {camera.width}×{camera.height}")
 
 
 class Sequence:
@@ -225,11 +199,10 @@ class Sequence:
         order ``timestamp tx ty tz qx qy qz qw``) and ``camera.txt`` (see
         :func:`geoloc.datasets.tum.write_camera_file`). Returns the folder.
         """
-        from ..evaluation import write_tum_trajectory
-        from .tum import write_camera_file
-
         from .._images import write_image
         from .._io import write_text_atomic
+        from ..evaluation import write_tum_trajectory
+        from ._files import write_camera_file
 
         root = Path(path)
         if not root.parent.is_dir():

@@ -27,16 +27,25 @@ import re
 from pathlib import Path
 
 import numpy as np
-from numpy.typing import NDArray
 
-from .. import lie
 from .._validation import real_scalar
 from ..camera import Camera
 from ..exceptions import DatasetError, InvalidInputError
-from ._files import data_rows, existing_folder, file_loader, floats
+from ._files import (  # the TUM trajectory and camera file formats: defined in ._files (no Sequence there), public here
+    CAMERA_FILE_HEADER,
+    associate,
+    data_rows,
+    existing_folder,
+    file_loader,
+    floats,
+    read_camera_file,
+    read_tum_trajectory,
+    write_camera_file,
+)
 from .sequence import Sequence
 
 __all__ = [
+    "CAMERA_FILE_HEADER",
     "TUM_CAMERAS",
     "associate",
     "load_tum",
@@ -56,85 +65,7 @@ TUM_CAMERAS: dict[str, Camera] = {
     "freiburg3": Camera(535.4, 539.2, 320.1, 247.6, 640, 480, None),
 }
 
-CAMERA_FILE_HEADER = "# geoloc camera: fx fy cx cy width height [OpenCV distortion k1 k2 p1 p2 [k3 ...]]"
-
 Intrinsics = tuple[float, float, float, float] | Camera
-
-
-def read_camera_file(path: str | os.PathLike[str]) -> Camera:
-    """The camera of a ``camera.txt``: one line ``fx fy cx cy width height [dist...]``."""
-    p = Path(path)
-    rows = data_rows(p)
-    if len(rows) != 1 or len(rows[0]) < 6:
-        raise DatasetError(f"camera file {str(p)!r}: expected one line 'fx fy cx cy width height [dist...]'")
-    v = floats(rows[0], p, 1)
-    dist = tuple(v[6:]) or None
-    try:
-        return Camera(v[0], v[1], v[2], v[3], int(v[4]), int(v[5]), dist)
-    except InvalidInputError as exc:
-        raise DatasetError(f"camera file {str(p)!r}: {exc}") from None
-
-
-def write_camera_file(path: str | os.PathLike[str], camera: Camera) -> None:
-    """Write ``camera`` as the one-line ``camera.txt`` that :func:`read_camera_file` reads."""
-    from .._io import write_text_atomic
-
-    values = [*camera.intrinsics, camera.width, camera.height, *(camera.dist or ())]
-    write_text_atomic(path, CAMERA_FILE_HEADER + "\n" + " ".join(repr(v) for v in values) + "\n")
-
-
-def read_tum_trajectory(path: str | os.PathLike[str]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Timestamps (N,) and world_from_cam poses (N, 4, 4) of a TUM trajectory file.
-
-    Each line is ``timestamp tx ty tz qx qy qz qw`` (quaternion x, y, z, w; normalized
-    here); ``#`` comments and blank lines are skipped; commas also separate values.
-    """
-    p = Path(path)
-    rows = data_rows(p)
-    if not rows:
-        raise DatasetError(f"trajectory file {str(p)!r} has no poses")
-    values = np.empty((len(rows), 8))
-    for k, row in enumerate(rows):
-        if len(row) != 8:
-            raise DatasetError(
-                f"trajectory file {str(p)!r}: pose {k + 1} has {len(row)} values, expected 8 "
-                "(timestamp tx ty tz qx qy qz qw)"
-            )
-        values[k] = floats(row, p, k + 1)
-    q_xyzw = values[:, 4:8]
-    norms = np.linalg.norm(q_xyzw, axis=1)
-    # the unnormalized quaternion's matrix is |q|² R, so ‖MᵀM − I‖_F = √3 · | |q|⁴ − 1 |: the
-    # same near-rotation bound as a rotation block read from a file
-    defect = np.sqrt(3.0) * np.abs(norms**4 - 1.0)
-    if not (defect <= lie.MAX_ORTHONORMALITY_ERROR).all():
-        bad = int(np.flatnonzero(~(defect <= lie.MAX_ORTHONORMALITY_ERROR))[0])
-        raise DatasetError(
-            f"trajectory file {str(p)!r}: pose {bad + 1} has no unit quaternion (norm {norms[bad]:.6g}; "
-            f"√3·| |q|⁴ − 1 | at most {lie.MAX_ORTHONORMALITY_ERROR:g})"
-        )
-    q_wxyz = np.concatenate([q_xyzw[:, 3:], q_xyzw[:, :3]], axis=1) / norms[:, None]
-    poses = np.tile(np.eye(4), (len(rows), 1, 1))
-    poses[:, :3, :3] = lie.so3_from_quaternion_wxyz(q_wxyz)
-    poses[:, :3, 3] = values[:, 1:4]
-    return values[:, 0].copy(), poses
-
-
-def associate(
-    query_times: NDArray[np.float64], reference_times: NDArray[np.float64], max_time_difference: float
-) -> NDArray[np.int64]:
-    """For each query time, the index of the nearest reference time, or -1 when the nearest
-    is more than ``max_time_difference`` seconds away. Ties go to the earlier reference."""
-    ref = np.asarray(reference_times, dtype=np.float64)
-    order = np.argsort(ref, kind="stable")
-    sorted_ref = ref[order]
-    q = np.asarray(query_times, dtype=np.float64)
-    right = np.clip(np.searchsorted(sorted_ref, q), 0, len(ref) - 1)
-    left = np.clip(right - 1, 0, len(ref) - 1)
-    take_left = np.abs(q - sorted_ref[left]) <= np.abs(sorted_ref[right] - q)
-    nearest = np.where(take_left, left, right)
-    out = order[nearest].astype(np.int64)
-    out[np.abs(sorted_ref[nearest] - q) > max_time_difference] = -1
-    return out
 
 
 def resolve_camera(intrinsics: Intrinsics | None, root: Path, size: tuple[int, int], name: str = "intrinsics") -> Camera:

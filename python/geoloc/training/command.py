@@ -1,14 +1,22 @@
 """``geoloc train``: train the descriptor network on posed images and export it to ONNX.
 
-Registered by ``geoloc.cli`` with :func:`add_train_command` (the style of the other
-commands: argparse types that name the option, a handler returning the exit status, user
-errors as :class:`geoloc.InvalidInputError`). Importing this module needs no torch; the
-handler says ``pip install "geoloc[train]"`` in one line when torch is missing.
+Registered by ``geoloc.cli`` with :func:`add_train_command`, in the style of the other
+commands: the dataset options, ``--frames A:B:K`` and the argparse types of
+:mod:`geoloc.commands._options`, the dataset read by :func:`geoloc.commands._common.load_dataset`,
+a handler returning the exit status, user errors as :class:`geoloc.InvalidInputError`.
+Importing this module needs no torch; the handler says ``pip install "geoloc[train]"`` in one
+line when torch is missing.
 
-    geoloc train --dataset P|synthetic [--format 7scenes|tum|folder] [--tiny] [--epochs N]
-                 [--train A:B] [--stride K] [--dim D] [--pairs N] [--batch-size N] [--lr X] [--seed S]
+    geoloc train --dataset P|synthetic [--format 7scenes|tum|folder|synthetic] [--intrinsics …]
+                 [--trajectory FILE] [--synthetic-frames N] [--frames A:B[:K]] [--tiny] [--epochs N]
+                 [--dim D] [--pairs N] [--batch-size N] [--lr X] [--seed S]
                  [--hard-negatives] [--checkpoint FILE [--resume]] [--init FILE]
                  [--device auto|cpu|cuda] [--threads N] [--no-progress] --out model.onnx
+
+``--format`` defaults to ``7scenes`` (``synthetic`` when ``--dataset synthetic``). The
+spelling of earlier releases, ``--train A:B [--stride K]``, still works for this release: it
+means ``--frames A:B:K`` (and, on the synthetic room, ``--synthetic-frames B`` as before) and
+prints a deprecation line on stderr.
 
 Defaults are the paper's schedule (GoogLeNet, 500 epochs of 128 + 128 pairs, batch 128,
 Adam 1e-3); ``--tiny`` switches to the small backbone and :data:`TINY_EPOCHS` epochs, a run
@@ -18,13 +26,22 @@ of a few minutes on 2 CPU cores.
 from __future__ import annotations
 
 import argparse
-import importlib
+import re
 import sys
 import time
-from pathlib import Path
 from typing import Any, Callable
 
-from ..exceptions import GeolocError, InvalidInputError
+from ..commands._common import SYNTHETIC_FRAMES, FrameRange, dataset_inputs, load_dataset, select
+from ..commands._options import (
+    MAX_SEED,
+    bounded_int,
+    dataset_options,
+    existing_file,
+    frame_range,
+    output_file,
+    positive_float,
+)
+from ..exceptions import InvalidInputError
 from . import INSTALL_HINT
 
 __all__ = ["TINY_EPOCHS", "add_train_command", "load_frames"]
@@ -33,149 +50,53 @@ __all__ = ["TINY_EPOCHS", "add_train_command", "load_frames"]
 TINY_EPOCHS = 10
 #: The paper's epochs (GoogLeNet) when ``--epochs`` is not given.
 PAPER_EPOCHS = 500
-#: Frames of ``--dataset synthetic``.
-SYNTHETIC_FRAMES = 300
 MAX_EPOCHS = 100_000
 MAX_PAIRS = 1_000_000
+#: What the deprecated ``--train A:B`` / ``--stride K`` are now spelled as.
+DEPRECATED = "geoloc train: --train A:B and --stride K are deprecated and will be removed in the next release; use --frames A:B:K"
 
 Handler = Callable[[argparse.Namespace], int]
-
-
-def frame_range(text: str) -> tuple[int, int | None]:
-    """An argparse ``type`` for ``A:B`` (frames A ≤ i < B; either side may be empty)."""
-    parts = text.split(":")
-    try:
-        if len(parts) != 2:
-            raise ValueError
-        a = int(parts[0]) if parts[0] else 0
-        b = int(parts[1]) if parts[1] else None
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected A:B (frame indices, e.g. 0:600), got {text!r}") from None
-    if a < 0 or (b is not None and b <= a):
-        raise argparse.ArgumentTypeError(f"expected 0 ≤ A < B, got {text!r}")
-    return a, b
-
-
-def positive_float(text: str) -> float:
-    """An argparse ``type`` for a finite number > 0."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not (value > 0 and value < float("inf")):
-        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
-    return value
-
-
-def input_file(text: str) -> str:
-    """An argparse ``type`` for a file to read: an existing regular file (a FIFO or a folder
-    is named as such and never opened)."""
-    from .._io import check_input_file
-
-    try:
-        check_input_file(text, "path")
-    except InvalidInputError as e:
-        raise argparse.ArgumentTypeError(str(e).removeprefix("path: ")) from None
-    return text
-
-
-def _dataset_files(frames: Any) -> list[tuple[str, Any]]:
-    """``("--dataset", file)`` for the files the training frames are read from."""
-    seq = getattr(frames, "frames", frames)
-    return [("--dataset", f) for f in getattr(seq, "files", ())]
-
-
-class _Subset:
-    """frames[a:b:stride] of any posed-frame sequence (only ``len`` and ``[i]`` are used)."""
-
-    def __init__(self, frames: Any, indices: range) -> None:
-        self.frames, self.indices = frames, indices
-
-    def __len__(self) -> int:
-        return len(self.indices)
-
-    def __getitem__(self, i: int) -> Any:
-        return self.frames[self.indices[i]]
-
-
-def load_frames(
-    dataset: str,
-    fmt: str = "7scenes",
-    frames: tuple[int, int | None] = (0, None),
-    seed: int = 0,
-    trajectory: str | None = None,
-    stride: int = 1,
-) -> Any:
-    """The posed frames of ``--dataset`` (a path, or ``synthetic``): frames A ≤ i < B, every
-    ``stride``-th.
-
-    Uses ``geoloc.datasets``; where it is not installed, 7-Scenes folders are read by
-    :class:`geoloc.training.frames.SevenScenesFrames`.
-    """
-    datasets: Any
-    try:
-        datasets = importlib.import_module("geoloc.datasets")
-    except ModuleNotFoundError as e:
-        if e.name != "geoloc.datasets":
-            raise
-        datasets = None
-    if dataset == "synthetic":
-        if datasets is None:
-            raise GeolocError("--dataset synthetic needs geoloc.datasets, which this installation lacks")
-        n = SYNTHETIC_FRAMES if frames[1] is None else frames[1]
-        seq: Any = datasets.synthetic_room(n_frames=n, seed=seed)
-    else:
-        path = Path(dataset)
-        if not path.exists():
-            raise InvalidInputError(f"--dataset: no such file or folder: {dataset!r}")
-        if fmt == "7scenes":
-            if datasets is not None:
-                seq = _load(datasets, fmt, path, trajectory)
-            else:
-                from .frames import SevenScenesFrames
-
-                seq = SevenScenesFrames(path)
-        elif datasets is None:
-            raise GeolocError(f"--format {fmt} needs geoloc.datasets, which this installation lacks")
-        else:
-            seq = _load(datasets, fmt, path, trajectory)
-    start, stop = frames
-    stop = len(seq) if stop is None else stop
-    if start >= len(seq) or stop > len(seq):
-        raise InvalidInputError(f"--train: frames {start}:{stop} are outside the dataset's {len(seq)} frames")
-    return seq if (start, stop, stride) == (0, len(seq), 1) else _Subset(seq, range(start, stop, stride))
 
 
 def device_name(text: str) -> str:
     """``auto``, ``cpu``, ``cuda`` or ``cuda:N``, checked while parsing, so a bad ``--device`` is
     an argparse error naming the option before anything is loaded or printed."""
-    import re
-
     if not re.fullmatch(r"auto|cpu|cuda(:\d{1,3})?", text):
         raise argparse.ArgumentTypeError(f"expected auto, cpu, cuda or cuda:N, got {text!r}")
     return text
 
 
-def _load(datasets: Any, fmt: str, path: Path, trajectory: str | None) -> Any:
-    """The dataset loader's DatasetError (``"path: …"``) re-headed with the option that set
-    the argument (``--dataset``, ``--trajectory``), as the other commands do."""
-    from ..commands._common import option_message
-    from ..exceptions import DatasetError
+def _frame_option(args: argparse.Namespace) -> tuple[FrameRange | None, str, bool]:
+    """The frame range to train on, the option that named it, and whether it was given in the
+    deprecated spelling (``--train A:B`` / ``--stride K``)."""
+    deprecated = args.train is not None or args.stride is not None
+    if not deprecated:
+        return args.frames, "--frames", False
+    if args.frames is not None:
+        given = "--train" if args.train is not None else "--stride"
+        raise InvalidInputError(f"{given}: replaced by --frames A:B:K; give --frames only")
+    old = args.train or FrameRange(None, None)
+    if old.step != 1 and args.stride is not None:
+        raise InvalidInputError("--stride: the range already has a step (A:B:K); give --frames A:B:K only")
+    step = args.stride if args.stride is not None else old.step
+    return FrameRange(old.start, old.stop, step), "--train" if args.train is not None else "--stride", True
 
-    try:
-        if fmt == "7scenes":
-            return datasets.load_7scenes(path)
-        if fmt == "tum":
-            return datasets.load_tum(path)
-        return datasets.load_folder(path, trajectory=trajectory or "traj.txt")
-    except DatasetError as e:
-        raise InvalidInputError(option_message(str(e), "--dataset")) from None
+
+def load_frames(args: argparse.Namespace) -> tuple[Any, Any]:
+    """The dataset of ``--dataset``/``--format`` (as every command loads it) and the frames of
+    ``--frames`` (or the deprecated ``--train``/``--stride``) to train on."""
+    frames, option, deprecated = _frame_option(args)
+    if args.format is None:
+        args.format = "synthetic" if args.dataset == "synthetic" else "7scenes"
+    if args.synthetic_frames is None:  # --train 0:B built a room of B frames; keep that for its last release
+        old_stop = frames.stop if deprecated and frames is not None else None
+        args.synthetic_frames = old_stop if args.format == "synthetic" and old_stop is not None else SYNTHETIC_FRAMES
+    dataset = load_dataset(args)
+    return dataset, select(dataset, frames, option)
 
 
 def add_train_command(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> Handler:
     """Add ``geoloc train`` to ``commands`` (the subparsers of ``geoloc``); return its handler."""
-    from ..cli import MAX_SEED, bounded_int, output_file
-
     p = commands.add_parser(
         "train",
         help="train the CNN image descriptor (Siamese GoogLeNet) and export it to ONNX (needs geoloc[train])",
@@ -185,11 +106,11 @@ def add_train_command(commands: argparse._SubParsersAction[argparse.ArgumentPars
         f"{INSTALL_HINT}.",
         epilog="example: geoloc train --dataset synthetic --tiny --out model.onnx",
     )
-    p.add_argument("--dataset", required=True, metavar="P", help="dataset folder, or 'synthetic' for the built-in room")
-    p.add_argument("--format", choices=("7scenes", "tum", "folder"), default="7scenes", help="layout of --dataset (default: 7scenes)")
-    p.add_argument("--trajectory", metavar="FILE", help="trajectory file of a --format folder dataset (default: traj.txt)")
-    p.add_argument("--train", type=frame_range, default=(0, None), metavar="A:B", help="train on frames A ≤ i < B (default: all)")
-    p.add_argument("--stride", type=bounded_int(1, 1_000_000), default=1, metavar="K", help="use every K-th frame of the range (default: 1)")
+    dataset_options(p, trajectory=True, required=False, format_default="7scenes, or synthetic with --dataset synthetic")
+    p.set_defaults(synthetic_frames=None)  # 300, or B of the deprecated --train A:B (see load_frames)
+    p.add_argument("--frames", type=frame_range, metavar="A:B", help="train on frame positions A..B-1 (A:B:K every K-th; default: all)")
+    p.add_argument("--train", type=frame_range, metavar="A:B", help="deprecated: --frames A:B")
+    p.add_argument("--stride", type=bounded_int(1, 1_000_000), metavar="K", help="deprecated: --frames A:B:K")
     p.add_argument("--out", required=True, type=output_file, metavar="MODEL.onnx", help="the ONNX model to write")
     p.add_argument("--tiny", action="store_true", help=f"the small CPU backbone instead of GoogLeNet ({TINY_EPOCHS} epochs by default)")
     p.add_argument("--epochs", type=bounded_int(1, MAX_EPOCHS), metavar="N", help=f"epochs (default: {PAPER_EPOCHS}, or {TINY_EPOCHS} with --tiny)")
@@ -201,15 +122,14 @@ def add_train_command(commands: argparse._SubParsersAction[argparse.ArgumentPars
     p.add_argument("--hard-negatives", action="store_true", help="mine each negative among 32 candidates with the current network")
     p.add_argument("--checkpoint", type=output_file, metavar="FILE", help="save a checkpoint every 10 epochs and at the end")
     p.add_argument("--resume", action="store_true", help="continue from --checkpoint")
-    p.add_argument("--init", type=input_file, metavar="FILE", help="start from the weights of a local checkpoint")
+    p.add_argument("--init", type=existing_file, metavar="FILE", help="start from the weights of a local checkpoint")
     p.add_argument("--device", type=device_name, default="auto", metavar="DEV", help="auto (CUDA when present), cpu, cuda, cuda:N (default: auto)")
     p.add_argument("--threads", type=bounded_int(1, 1024), metavar="N", help="torch CPU threads (default: torch's)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
     def run(args: argparse.Namespace) -> int:
-        from . import require_torch
-
         from .._io import refuse_alias, shown
+        from . import require_torch
 
         if args.resume and not args.checkpoint:
             raise InvalidInputError("--resume: needs --checkpoint FILE")
@@ -224,9 +144,9 @@ def add_train_command(commands: argparse._SubParsersAction[argparse.ArgumentPars
                 load_checkpoint(args.init)
             except InvalidInputError as e:
                 raise InvalidInputError(f"--init: {str(e).removeprefix('checkpoint: ')}") from None
-        frames = load_frames(args.dataset, args.format, args.train, args.seed, args.trajectory, args.stride)
-        refuse_alias(args.out, "--out", _dataset_files(frames))
-        refuse_alias(args.checkpoint, "--checkpoint", _dataset_files(frames))
+        dataset, frames = load_frames(args)
+        refuse_alias(args.out, "--out", dataset_inputs(dataset, "--dataset"))
+        refuse_alias(args.checkpoint, "--checkpoint", dataset_inputs(dataset, "--dataset"))
         epochs = args.epochs or (TINY_EPOCHS if args.tiny else PAPER_EPOCHS)
         config = TrainConfig(
             backbone="tiny" if args.tiny else "googlenet",
@@ -245,6 +165,8 @@ def add_train_command(commands: argparse._SubParsersAction[argparse.ArgumentPars
             init_from=args.init,
             progress=not args.no_progress,
         )
+        if args.train is not None or args.stride is not None:
+            print(DEPRECATED, file=sys.stderr)
         print(f"geoloc train: {len(frames)} frames, {config.backbone}, D = {config.dim}, {epochs} epochs", file=sys.stderr)
         start = time.perf_counter()
         result = train(frames, config)

@@ -5,8 +5,9 @@ The protocol is tiny on purpose — ``len(frames)`` and ``frames[i]`` giving an 
 ``geoloc.datasets.Sequence`` satisfies it, and so does a list of :class:`PosedImage`.
 
 :class:`SevenScenesFrames` reads a 7-Scenes folder (``frame-XXXXXX.color.{png,jpg}`` +
-``frame-XXXXXX.pose.txt``) lazily; ``geoloc train`` uses it only where ``geoloc.datasets``
-is not installed.
+``frame-XXXXXX.pose.txt``) lazily, poses as written in the files (benchmarks/retrieval_networks.py
+reads its frames with it); ``geoloc train`` reads its dataset with :mod:`geoloc.datasets`, as
+every command does.
 """
 
 from __future__ import annotations
