@@ -8,9 +8,9 @@ Two ways in:
         --command "python benchmarks/x.py --json result.json" [--measured "2026-11-25, 2 cores"]
 
 ``run`` runs the benchmark itself (appending ``--json FILE`` to its command line), so the
-header it writes is what happened: the date and duration, the git commit (and whether the
-work tree had uncommitted changes), the machine (CPU model, cores usable, memory, OS, Python
-and library versions, ``GEOLOC_*`` settings) and the exact command. The page holds that
+header it writes is what happened: the date and duration, the git commit (and the tracked
+files that differed from it), the machine (CPU model, cores usable, memory, OS, Python and
+library versions, ``GEOLOC_*`` settings, the load average) and the exact command. The page holds that
 header, the benchmark's printed output (its own tables) and the JSON rendered as tables
 (per-frame arrays are summarized by their length, not printed). ``render`` does the same for
 a JSON file made earlier; as this script cannot know where that ran, the header says so
@@ -54,12 +54,12 @@ def _git(*args: str) -> str | None:
         out = subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True, check=True, timeout=30)
     except (OSError, subprocess.SubprocessError):
         return None
-    return out.stdout.strip()
+    return out.stdout.rstrip("\n")
 
 
 def commit() -> str:
     """The checked-out commit, and the tracked files that differ from it, if any."""
-    head = _git("rev-parse", "HEAD")
+    head = (_git("rev-parse", "HEAD") or "").strip() or None
     if head is None:
         return "unknown (not a git checkout)"
     dirty = [line[3:] for line in (_git("status", "--porcelain", "--untracked-files=no") or "").splitlines()]
@@ -105,13 +105,15 @@ def _versions() -> str:
 def machine() -> dict[str, str]:
     """What the numbers were measured on."""
     usable = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    env = {k: v for k, v in os.environ.items() if k.startswith("GEOLOC_")}
+    env = {k: v for k, v in os.environ.items() if k.startswith("GEOLOC_") or k == "PYTHONPATH"}
+    load = ", ".join(f"{x:.1f}" for x in os.getloadavg()) if hasattr(os, "getloadavg") else "unknown"
     return {
         "CPU": f"{_cpu_model()}, {usable} of {os.cpu_count()} cores usable",
         "memory": _memory(),
         "OS": platform.platform(),
         "software": _versions(),
         "settings": ", ".join(f"{k}={v}" for k, v in sorted(env.items())) or "no GEOLOC_* variables set",
+        "load": f"{load} (1, 5, 15 min load average at the start: other work on the machine slows timings)",
     }
 
 
@@ -243,6 +245,7 @@ def run(args: argparse.Namespace) -> int:
         raise SystemExit("report.py run: give the benchmark's command after --")
     if "--json" in command:
         raise SystemExit("report.py run: leave --json out; this script adds it")
+    where = [("commit", commit()), *machine().items()]  # before the run: what it ran on
     with tempfile.TemporaryDirectory() as folder:
         result_path = Path(folder) / "result.json"
         started = dt.datetime.now(dt.timezone.utc)
@@ -259,8 +262,7 @@ def run(args: argparse.Namespace) -> int:
         result = json.loads(result_path.read_text())
     provenance = [
         ("date", f"{started:%Y-%m-%d %H:%M} UTC, {seconds:.0f} s"),
-        ("commit", commit()),
-        *machine().items(),
+        *where,
         ("command", f"`{shlex.join(command)} --json FILE`"),
         ("page", f"`python benchmarks/report.py run --out {args.out} -- {shlex.join(command)}`"),
     ]
