@@ -58,6 +58,27 @@ fn keyframes(
         .collect()
 }
 
+/// An optional 1-D array argument of element type `T` (`dtype` and length `len` name it in
+/// the error).
+fn optional_vector<'py, T: numpy::Element>(
+    value: Option<&Bound<'py, PyAny>>,
+    name: &str,
+    dtype: &str,
+    len: &str,
+) -> PyResult<Option<PyReadonlyArray1<'py, T>>> {
+    value
+        .map(|v| v.extract().map_err(|_| invalid(name, format!("expected a 1-D {dtype} array of shape ({len},)"))))
+        .transpose()
+}
+
+/// The contiguous values of an optional 1-D array.
+fn slice_of<'a, T: numpy::Element>(
+    array: Option<&'a PyReadonlyArray1<'_, T>>,
+    name: &str,
+) -> PyResult<Option<&'a [T]>> {
+    array.map(|a| a.as_slice().map_err(|_| invalid(name, "must be contiguous"))).transpose()
+}
+
 /// A map of keyframes (features level).
 #[pyclass(module = "geoloc._core", frozen)]
 pub struct FeatureMap {
@@ -327,22 +348,10 @@ impl FeatureLocalizer {
     ) -> PyResult<Localization> {
         let kps = self::keypoints("keypoints", &keypoints)?;
         let borrowed = BorrowedDescriptors::extract(&descriptors, "descriptors")?;
-        let global: Option<PyReadonlyArray1<'_, f32>> = global_descriptor
-            .map(|g| {
-                g.extract().map_err(|_| invalid("global_descriptor", "expected a 1-D float32 array of shape (D,)"))
-            })
-            .transpose()?;
-        let global = global
-            .as_ref()
-            .map(|g| g.as_slice().map_err(|_| invalid("global_descriptor", "must be contiguous")))
-            .transpose()?;
-        let sigmas: Option<PyReadonlyArray1<'_, f64>> = pixel_sigmas
-            .map(|s| s.extract().map_err(|_| invalid("pixel_sigmas", "expected a 1-D float64 array of shape (N,)")))
-            .transpose()?;
-        let sigmas = sigmas
-            .as_ref()
-            .map(|s| s.as_slice().map_err(|_| invalid("pixel_sigmas", "must be contiguous")))
-            .transpose()?;
+        let global = optional_vector::<f32>(global_descriptor.as_ref(), "global_descriptor", "float32", "D")?;
+        let sigmas = optional_vector::<f64>(pixel_sigmas.as_ref(), "pixel_sigmas", "float64", "N")?;
+        let (global, sigmas) =
+            (slice_of(global.as_ref(), "global_descriptor")?, slice_of(sigmas.as_ref(), "pixel_sigmas")?);
         let frame = Frame {
             timestamp,
             keypoints: &kps,
