@@ -11,6 +11,7 @@ pub mod file;
 pub mod group_matches;
 pub mod labels;
 pub mod model;
+pub mod noise;
 mod persist;
 
 pub use group_matches::GroupMatches;
