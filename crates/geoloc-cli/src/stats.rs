@@ -3,6 +3,7 @@
 use std::time::Duration;
 
 use geoloc_core::localizer::Timings;
+use geoloc_core::stats::EvenMedian;
 
 /// Reads one stage's milliseconds.
 type Stage = fn(&Timings) -> f64;
@@ -16,12 +17,7 @@ pub struct Stats {
 
 /// Median of `values` (mean of the middle two for an even count); NaN when empty.
 fn median(mut values: Vec<f64>) -> f64 {
-    if values.is_empty() {
-        return f64::NAN;
-    }
-    values.sort_by(f64::total_cmp);
-    let n = values.len();
-    if n % 2 == 1 { values[n / 2] } else { 0.5 * (values[n / 2 - 1] + values[n / 2]) }
+    geoloc_core::stats::median(&mut values, EvenMedian::Mean).unwrap_or(f64::NAN)
 }
 
 /// Peak resident set size in kB (`VmHWM` of /proc/self/status), where Linux provides it.

@@ -22,7 +22,6 @@ use std::time::Instant;
 use nalgebra::{Matrix6, Vector2};
 
 use crate::error::{GeolocError, Result};
-use crate::fusion::chi2_6_quantile_for_sigma;
 use crate::fusion::{FusionSource, Gate, fuse_gated_with};
 use crate::keyframes::KeyframeOptions;
 use crate::lie::SE3;
@@ -41,6 +40,7 @@ pub use crate::map::noise::{
     DEFAULT_MAP_SIGMA_DEG, DEFAULT_MAP_SIGMA_M, MIN_NOISE_SAMPLES, NoiseOptions, default_map_covariance,
 };
 use crate::pnp::PnpOptions;
+use crate::stats::chi2::chi2_6_quantile_for_sigma;
 use crate::triangulate::TriangulationOptions;
 pub use acceptance::{AcceptanceOptions, rejection as acceptance_rejection, viewpoint_consistent};
 use paper::MapPoints;

@@ -35,6 +35,7 @@ use crate::error::{GeolocError, Result};
 use crate::lie::{SE3, Twist, se3};
 use crate::optim::covariance::{check_covariance, check_covariances, spd_inverse};
 use crate::optim::{LeastSquares, LmOptions, PoseEstimate, solve};
+use crate::stats::chi2;
 
 mod estimate;
 pub use estimate::{estimate_acceleration_psd, estimate_velocity_prior};
@@ -149,7 +150,7 @@ fn fit_and_predict(
     // constant-velocity: scale Σ by the variance factor χ²/dof when χ² exceeds its 99 %
     // quantile (rarely triggered by noise alone, so a consistent model stays calibrated).
     let dof = 6 * m - 12 + if velocity_information.is_some() { 6 } else { 0 };
-    if covariances.is_some() && dof > 0 && at_fit.cost > chi2_quantile_99(dof) {
+    if covariances.is_some() && dof > 0 && at_fit.cost > chi2::quantile_99_wilson_hilferty(dof) {
         sigma *= at_fit.cost / dof as f64;
     }
     let (world_from_cam, covariance) = predict(&reference, &velocity, &sigma, t_query - fit.t_ref);
@@ -301,15 +302,6 @@ fn predict(reference: &SE3, velocity: &Twist, sigma: &SMatrix<f64, 12, 12>, tau:
     g.fixed_view_mut::<6, 6>(0, 6).copy_from(&(se3::right_jacobian(&step) * tau));
     let covariance = g * sigma * g.transpose();
     (*reference * SE3::exp(&step), 0.5 * (covariance + covariance.transpose()))
-}
-
-/// The 99 % quantile of χ² with `dof` degrees of freedom (Wilson–Hilferty; within 1 % for
-/// dof ≥ 3, and the fit has dof = 6m − 12 ≥ 6).
-fn chi2_quantile_99(dof: usize) -> f64 {
-    let k = dof as f64;
-    let z = 2.326_347_874_040_841; // Φ⁻¹(0.99)
-    let c = 2.0 / (9.0 * k);
-    k * (1.0 - c + z * c.sqrt()).powi(3)
 }
 
 /// ξ from the latest pose and the one before it in time: log(T_prev⁻¹ T_latest)/Δt.
@@ -502,7 +494,7 @@ mod tests {
             let e = (start * SE3::exp(&(v * t_q))).inverse() * p.world_from_cam;
             let e = e.log();
             let nees = e.dot(&(p.covariance.try_inverse().expect("spd") * e));
-            inside += usize::from(nees <= 12.591_587_243_743_977);
+            inside += usize::from(nees <= chi2::CHI2_6_95);
         }
         let coverage = inside as f64 / trials as f64;
         assert!((0.93..=0.97).contains(&coverage), "coverage {coverage}");
@@ -542,14 +534,6 @@ mod tests {
         }
         let h_numeric = numeric.transpose() * numeric;
         assert!((h - h_numeric).abs().max() < 1e-5 * h.abs().max(), "{}", (h - h_numeric).abs().max());
-    }
-
-    #[test]
-    fn chi2_quantiles() {
-        // tabulated χ²(0.99): dof 6 → 16.812, 12 → 26.217, 30 → 50.892
-        for (dof, q) in [(6, 16.812), (12, 26.217), (30, 50.892)] {
-            assert!((chi2_quantile_99(dof) - q).abs() < 0.01 * q, "{dof}: {}", chi2_quantile_99(dof));
-        }
     }
 
     /// An accelerating camera with tiny pose covariances: the variance factor widens the

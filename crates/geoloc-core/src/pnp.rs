@@ -566,7 +566,7 @@ fn validate(
 }
 
 /// √χ²₂(0.9999): a correct 2D residual exceeds this many σ with probability 1e-4.
-pub const CHI2_2DOF_9999_SQRT: f64 = 4.291_932_052_578_985;
+pub const CHI2_2DOF_9999_SQRT: f64 = crate::stats::chi2::CHI2_2_9999_SQRT;
 
 /// The refit gate: η_r, widened to 4.29σ when σ is large enough that η_r would cut into
 /// correct correspondences — a hard cut at ~2.5σ inflates the estimator's variance beyond

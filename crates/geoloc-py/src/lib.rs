@@ -12,6 +12,7 @@ mod lie;
 mod localizer;
 mod matching;
 mod retrieval;
+mod stats;
 mod temporal;
 
 use pyo3::prelude::*;
@@ -30,5 +31,6 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     bow::register(m)?;
     localizer::register(m)?;
     frames::register(m)?;
+    stats::register(m)?;
     Ok(())
 }

@@ -295,6 +295,7 @@ fn lloyd(desc: &Descriptors<'_>, members: &[usize], seeds: &[usize]) -> (Descrip
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::stats::chi2::CHI2_19_999;
 
     /// The k-majority centre against a bit-by-bit reference (bit b of byte i is set when more
     /// than half of the members have it; exactly half is not a majority), members repeated
@@ -386,7 +387,6 @@ mod tests {
             chi2
         };
         // 20 cells with positive probability, 19 degrees of freedom: χ²₁₉(0.999) = 43.82
-        const CHI2_19_999: f64 = 43.82;
         let (d2, d4) = (chi2(2), chi2(4));
         assert!(d2 < CHI2_19_999, "D² seeding rejected: χ² = {d2}");
         assert!(d4 > 10.0 * CHI2_19_999, "the test cannot tell D⁴ from D²: χ² = {d4}");

@@ -10,9 +10,9 @@ use nalgebra::Vector6;
 use super::VelocityPrior;
 use crate::error::{GeolocError, Result};
 use crate::lie::{SE3, Twist};
+use crate::stats::chi2::CHI2_1_MEDIAN;
+use crate::stats::{EvenMedian, median};
 
-/// Median of χ²₁ (the robust scale of a squared Gaussian).
-const CHI2_1_MEDIAN: f64 = 0.454_936_423_119_572_8;
 /// Consecutive steps longer than this (s) are a break in the trajectory, not motion.
 const MAX_STEP_S: f64 = 1.0;
 
@@ -46,9 +46,7 @@ pub fn estimate_acceleration_psd(poses: &[SE3], timestamps: &[f64]) -> Result<Ve
     }
     Ok(Vector6::from_fn(|axis, _| {
         let mut v: Vec<f64> = samples.iter().map(|s| s[axis]).collect();
-        v.sort_by(f64::total_cmp);
-        let n = v.len();
-        let median = if n % 2 == 1 { v[n / 2] } else { 0.5 * (v[n / 2 - 1] + v[n / 2]) };
+        let median = median(&mut v, EvenMedian::Mean).expect("invariant: samples is not empty");
         median / CHI2_1_MEDIAN
     }))
 }

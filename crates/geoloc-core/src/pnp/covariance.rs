@@ -222,7 +222,6 @@ mod tests {
     fn variance_factor_estimates_the_noise_ratio() {
         let camera = Camera::new(525.0, 525.0, 320.0, 240.0).expect("valid");
         let options = PnpOptions { max_residual_px: 20.0, ..PnpOptions::default() };
-        let chi2_6_95 = 12.591_586_820_429_4;
         let cases: [(f64, f64, f64); 3] = [(1.0, 0.0, 1.0), (2.0, 0.0, 4.0), (1.0, 0.01, 1.0)];
         for (sigma_true, point_sigma, want) in cases {
             let mut rng = SplitMix64::new(11);
@@ -249,7 +248,7 @@ mod tests {
                 sum += res.variance_factor;
                 let e = (truth.inverse() * res.world_from_cam).log();
                 let info = res.covariance.try_inverse().expect("invertible");
-                inside += usize::from((e.transpose() * info * e)[0] <= chi2_6_95);
+                inside += usize::from((e.transpose() * info * e)[0] <= crate::stats::chi2::CHI2_6_95);
             }
             let mean = sum / trials as f64;
             // the mean of 300 factors with 114 degrees of freedom: σ ≈ want·0.0076
