@@ -10,6 +10,9 @@ from numpy.typing import NDArray
 __version__: str
 PARALLEL_MIN_ITEMS: int
 MIN_NOISE_SAMPLES: int
+CHI2_6_95: float
+
+def chi2_quantile(p: NDArray[np.float64], dof: int) -> NDArray[np.float64]: ...
 
 def so3_hat(phi: NDArray[np.float64], *, single: bool = False) -> NDArray[np.float64]: ...
 def so3_vee(m: NDArray[np.float64], *, single: bool = False) -> NDArray[np.float64]: ...

@@ -6,6 +6,7 @@ use std::path::Path;
 
 use geoloc_core::map::file::{FORMAT_NAME, FORMAT_VERSION};
 use geoloc_core::map::{Map, MapHeader, RetrievalHeader};
+use geoloc_core::stats::{EvenMedian, median};
 use serde_json::Value;
 
 /// Prints the summary of the map at `path` on stdout.
@@ -108,10 +109,7 @@ fn retrieval(h: &MapHeader) -> String {
 /// root-mean diagonal of each 3×3 block (rotation σ is small, so its angle is σ itself).
 fn pose_covariances(map: &Map) -> String {
     let Some(covs) = &map.pose_covariances else { return "no".to_string() };
-    let median = |mut v: Vec<f64>| {
-        v.sort_by(f64::total_cmp);
-        v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
-    };
+    let median = |mut v: Vec<f64>| median(&mut v, EvenMedian::Upper).unwrap_or(f64::NAN);
     let sigma_p = median(covs.iter().map(|c| ((c[(0, 0)] + c[(1, 1)] + c[(2, 2)]) / 3.0).sqrt()).collect());
     let sigma_r = median(covs.iter().map(|c| ((c[(3, 3)] + c[(4, 4)] + c[(5, 5)]) / 3.0).sqrt()).collect());
     format!("yes (median σ position {:.4} m, rotation {:.3}°)", sigma_p, sigma_r.to_degrees())

@@ -3,9 +3,7 @@
 use std::time::Duration;
 
 use geoloc_core::localizer::Timings;
-
-/// Reads one stage's milliseconds.
-type Stage = fn(&Timings) -> f64;
+use geoloc_core::stats::EvenMedian;
 
 /// Per-frame stage times, collected for the summary.
 #[derive(Default)]
@@ -16,12 +14,7 @@ pub struct Stats {
 
 /// Median of `values` (mean of the middle two for an even count); NaN when empty.
 fn median(mut values: Vec<f64>) -> f64 {
-    if values.is_empty() {
-        return f64::NAN;
-    }
-    values.sort_by(f64::total_cmp);
-    let n = values.len();
-    if n % 2 == 1 { values[n / 2] } else { 0.5 * (values[n / 2 - 1] + values[n / 2]) }
+    geoloc_core::stats::median(&mut values, EvenMedian::Mean).unwrap_or(f64::NAN)
 }
 
 /// Peak resident set size in kB (`VmHWM` of /proc/self/status), where Linux provides it.
@@ -51,18 +44,10 @@ impl Stats {
         let sources: Vec<String> =
             geoloc_core::localizer::Source::ALL.iter().zip(self.sources).map(|(s, c)| format!("{s} {c}")).collect();
         out += &format!("  sources: {}\n", sources.join(", "));
-        let stages: [(&str, Stage); 7] = [
-            ("retrieval", |t| t.retrieval_ms),
-            ("keyframes", |t| t.keyframes_ms),
-            ("map_points", |t| t.map_points_ms),
-            ("matching", |t| t.matching_ms),
-            ("pnp", |t| t.pnp_ms),
-            ("motion_fusion", |t| t.motion_fusion_ms),
-            ("total", |t| t.total_ms),
-        ];
-        let medians: Vec<String> = stages
+        let medians: Vec<String> = Timings::STAGES
             .iter()
-            .map(|(name, f)| format!("{name} {:.3}", median(self.timings.iter().map(f).collect())))
+            .enumerate()
+            .map(|(i, name)| format!("{name} {:.3}", median(self.timings.iter().map(|t| t.stages()[i].1).collect())))
             .collect();
         out += &format!("  median ms per stage: {}\n", medians.join(", "));
         out += &match peak_rss_kb() {

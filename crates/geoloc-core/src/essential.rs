@@ -1265,10 +1265,8 @@ mod tests {
         let scenes: Vec<Scene> = (0..20).map(|_| scene(&mut rng, 500, 0.5, 15.0 * DEG, 0.2)).collect();
         let options = TwoViewOptions::default();
         // the median of five rounds of each measurement (the machine may be shared)
-        let median = |mut v: Vec<f64>| {
-            v.sort_by(f64::total_cmp);
-            v[v.len() / 2]
-        };
+        let median =
+            |mut v: Vec<f64>| crate::stats::median(&mut v, crate::stats::EvenMedian::Upper).expect("five rounds");
         let mut samples = 0;
         let per_call = median(
             (0..5)

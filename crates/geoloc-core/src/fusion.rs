@@ -18,6 +18,7 @@ use crate::error::{GeolocError, Result};
 use crate::lie::{SE3, se3};
 use crate::optim::covariance::{check_covariance, isometric_sigmas, spd_inverse};
 use crate::optim::{LeastSquares, LmOptions, PoseEstimate, solve};
+pub use crate::stats::chi2::chi2_6_quantile_for_sigma;
 
 /// Which gate decides that the geometric pose is a failure.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -76,34 +77,6 @@ pub type Fusion = PoseEstimate<FusionSource>;
 
 const MAX_ITERATIONS: usize = 20;
 const STEP_TOLERANCE: f64 = 1e-13;
-
-/// The χ²₆ quantile with the two-sided probability of ±`gate_sigma` for a 1-D Gaussian
-/// (3σ ↔ 99.73 % ↔ 20.06), by bisection on the regularized incomplete gamma function.
-pub fn chi2_6_quantile_for_sigma(gate_sigma: f64) -> f64 {
-    let p = libm_erf(gate_sigma / std::f64::consts::SQRT_2);
-    // P(χ²₆ ≤ x) = 1 − e^{−x/2}(1 + x/2 + x²/8)
-    let cdf = |x: f64| 1.0 - (-x / 2.0).exp() * (1.0 + x / 2.0 + x * x / 8.0);
-    let (mut lo, mut hi) = (0.0_f64, 1e4_f64);
-    for _ in 0..200 {
-        let mid = 0.5 * (lo + hi);
-        if cdf(mid) < p { lo = mid } else { hi = mid }
-    }
-    0.5 * (lo + hi)
-}
-
-/// erf(x) = 2/√π ∫₀ˣ e^{−t²} dt by composite Simpson with 2000 panels (error far below 1e-10
-/// for the gate widths in use; std has no erf).
-fn libm_erf(x: f64) -> f64 {
-    let n = 2000;
-    let h = x / n as f64;
-    let f = |t: f64| (-t * t).exp();
-    let mut sum = f(0.0) + f(x);
-    for i in 1..n {
-        let t = i as f64 * h;
-        sum += if i % 2 == 1 { 4.0 * f(t) } else { 2.0 * f(t) };
-    }
-    sum * h / 3.0 * 2.0 / std::f64::consts::PI.sqrt()
-}
 
 /// Gates and fuses; see the module doc.
 ///
@@ -349,13 +322,6 @@ mod tests {
             assert_eq!(gate.as_str().parse::<Gate>(), Ok(gate));
         }
         assert!(matches!("χ²".parse::<Gate>(), Err(GeolocError::InvalidInput { name, .. }) if name == "gate"));
-    }
-
-    #[test]
-    fn chi2_quantile_known_values() {
-        // 3σ two-sided = 0.99730 → χ²₆ quantile 20.062; 1.96σ → 0.95 → 12.592
-        assert!((chi2_6_quantile_for_sigma(3.0) - 20.062).abs() < 2e-3);
-        assert!((chi2_6_quantile_for_sigma(1.959_963_984_540_054) - 12.591_587).abs() < 1e-4);
     }
 
     #[test]

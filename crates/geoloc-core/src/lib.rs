@@ -28,6 +28,7 @@ pub mod pnp;
 pub mod retrieval;
 pub mod rng;
 pub mod selfcal;
+pub mod stats;
 pub mod testing;
 pub mod triangulate;
 

@@ -12,6 +12,7 @@ pub mod file;
 pub mod group_matches;
 pub mod labels;
 pub mod model;
+pub mod noise;
 mod persist;
 
 pub use build::BuildOptions;
@@ -32,6 +33,7 @@ use crate::lie::SE3;
 pub use crate::matching::DescriptorSet;
 use crate::matching::Descriptors;
 use crate::motion::VelocityPrior;
+use crate::optim::covariance::check_covariances;
 use crate::retrieval::DescriptorIndex;
 use crate::selfcal::{IntrinsicsCorrection, SelfCalibration, SelfCalibrationOptions, TrackObservation, self_calibrate};
 use crate::triangulate::TriangulationOptions;
@@ -192,28 +194,6 @@ impl std::str::FromStr for RetrievalMethod {
             .find(|m| m.as_str() == s)
             .ok_or_else(|| GeolocError::invalid("retrieval", format!("expected \"bow\" or \"global\", got {s:?}")))
     }
-}
-
-/// Relative tolerance of the symmetry and positive-semi-definiteness checks of covariances.
-const COVARIANCE_TOLERANCE: f64 = 1e-9;
-
-/// Checks that `c` is a covariance: finite, symmetric (|cᵢⱼ − cⱼᵢ| ≤ tol·max|c|) and positive
-/// semi-definite (smallest eigenvalue ≥ −tol·max|c|). Errors name `name`.
-// The other helper adds optim::covariance::check_covariance; deduplicate at merge.
-fn check_covariance(name: &str, c: &Matrix6<f64>) -> Result<()> {
-    if c.iter().any(|v| !v.is_finite()) {
-        return Err(GeolocError::invalid(name, "holds a non-finite value"));
-    }
-    let scale = c.amax();
-    let tol = COVARIANCE_TOLERANCE * scale;
-    if (c - c.transpose()).amax() > tol {
-        return Err(GeolocError::invalid(name, "must be symmetric"));
-    }
-    let smallest = c.symmetric_eigenvalues().min();
-    if smallest < -tol {
-        return Err(GeolocError::invalid(name, format!("must be positive semi-definite, has eigenvalue {smallest:e}")));
-    }
-    Ok(())
 }
 
 impl std::fmt::Debug for Map {
@@ -679,7 +659,7 @@ fn check_pose_covariances(covariances: &[Matrix6<f64>], keyframes: usize) -> Res
             format!("has {} entries for {keyframes} keyframes", covariances.len()),
         ));
     }
-    covariances.iter().enumerate().try_for_each(|(i, c)| check_covariance(&format!("pose_covariances[{i}]"), c))
+    check_covariances("pose_covariances", covariances)
 }
 
 /// (a) by global descriptor: the exact index over the keyframes' descriptors.

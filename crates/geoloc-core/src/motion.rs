@@ -1,4 +1,7 @@
-//! The constant-velocity motion model on SE(3) (the paper's §"motion model").
+//! The constant-velocity motion model on SE(3) (the paper's §"motion model"): the
+//! per-frame prediction T_M, C_M from the last poses. The statistics of a recorded
+//! trajectory that parameterize it (process noise, velocity prior) are estimated at build
+//! time by the `estimate` submodule.
 //!
 //! The last m poses Tᵢ (world_from_cam) at times tᵢ are fitted by a constant body velocity:
 //!
@@ -32,6 +35,10 @@ use crate::error::{GeolocError, Result};
 use crate::lie::{SE3, Twist, se3};
 use crate::optim::covariance::{check_covariance, check_covariances, spd_inverse};
 use crate::optim::{LeastSquares, LmOptions, PoseEstimate, solve};
+use crate::stats::chi2;
+
+mod estimate;
+pub use estimate::{estimate_acceleration_psd, estimate_velocity_prior};
 
 /// What the motion model adds to its prediction.
 #[derive(Clone, Debug, PartialEq)]
@@ -143,7 +150,7 @@ fn fit_and_predict(
     // constant-velocity: scale Σ by the variance factor χ²/dof when χ² exceeds its 99 %
     // quantile (rarely triggered by noise alone, so a consistent model stays calibrated).
     let dof = 6 * m - 12 + if velocity_information.is_some() { 6 } else { 0 };
-    if covariances.is_some() && dof > 0 && at_fit.cost > chi2_quantile_99(dof) {
+    if covariances.is_some() && dof > 0 && at_fit.cost > chi2::quantile_99_wilson_hilferty(dof) {
         sigma *= at_fit.cost / dof as f64;
     }
     let (world_from_cam, covariance) = predict(&reference, &velocity, &sigma, t_query - fit.t_ref);
@@ -218,101 +225,6 @@ pub fn motion_predict_with_prior(
     let latest = timestamps.iter().copied().fold(f64::NEG_INFINITY, f64::max);
     p.covariance += process_noise(acceleration_psd, t_query - latest, latest - first);
     Ok(p)
-}
-
-/// Median of χ²₁ (the robust scale of a squared Gaussian).
-const CHI2_1_MEDIAN: f64 = 0.454_936_423_119_572_8;
-/// Consecutive steps longer than this (s) are a break in the trajectory, not motion.
-const MAX_STEP_S: f64 = 1.0;
-
-/// Estimates the power spectral density q of white body acceleration from a trajectory
-/// (poses world_from_cam at increasing `timestamps`, e.g. a map's training frames).
-///
-/// Mean body velocities over consecutive steps, vᵢ = log(Tᵢ₋₁⁻¹Tᵢ)^∨/Δtᵢ, differ by
-/// Δvᵢ = vᵢ₊₁ − vᵢ with Var(Δvᵢ,ₐ) = q_a (Δtᵢ + Δtᵢ₊₁)/3 when the velocity is a random walk
-/// of rate q (the difference of a Brownian motion's means over adjacent intervals). Per axis
-/// q_a = median(Δvᵢ,ₐ² · 3/(Δtᵢ + Δtᵢ₊₁)) / median(χ²₁): robust to the odd glitch in the
-/// labels. Pose-label jitter adds to it (a larger q is the conservative side). Steps longer
-/// than 1 s are breaks and skipped.
-///
-/// # Errors
-/// Mismatched lengths, non-finite or non-increasing timestamps, fewer than 3 poses (or no
-/// usable triple).
-pub fn estimate_acceleration_psd(poses: &[SE3], timestamps: &[f64]) -> Result<Vector6<f64>> {
-    check_trajectory(poses, timestamps)?;
-    let velocity = |i: usize| step_velocity(poses, timestamps, i);
-    let mut samples: Vec<Vector6<f64>> = Vec::new();
-    for i in 1..poses.len().saturating_sub(1) {
-        let (a, b) = (timestamps[i] - timestamps[i - 1], timestamps[i + 1] - timestamps[i]);
-        if a > MAX_STEP_S || b > MAX_STEP_S {
-            continue;
-        }
-        let dv = velocity(i + 1) - velocity(i);
-        samples.push(dv.component_mul(&dv) * (3.0 / (a + b)));
-    }
-    if samples.is_empty() {
-        return Err(GeolocError::invalid("poses", "need at least 3 poses with steps ≤ 1 s"));
-    }
-    Ok(Vector6::from_fn(|axis, _| {
-        let mut v: Vec<f64> = samples.iter().map(|s| s[axis]).collect();
-        v.sort_by(f64::total_cmp);
-        let n = v.len();
-        let median = if n % 2 == 1 { v[n / 2] } else { 0.5 * (v[n / 2 - 1] + v[n / 2]) };
-        median / CHI2_1_MEDIAN
-    }))
-}
-
-/// Estimates the velocity prior ([`VelocityPrior`]) from a trajectory (poses world_from_cam at
-/// increasing `timestamps`, e.g. a map's training frames): the mean and the variance per twist
-/// axis of the body velocities over consecutive steps, vᵢ = log(Tᵢ₋₁⁻¹Tᵢ)^∨/Δtᵢ. The plain
-/// mean and variance, not robust ones: the prior must allow the fastest motion the recording
-/// has (pose-label jitter widens it, the conservative side). Steps longer than 1 s are breaks
-/// and skipped. A trajectory without variation on some axis (a variance below 10⁻¹² of the
-/// axis' mean square, i.e. rounding) gives no prior.
-///
-/// # Errors
-/// Mismatched lengths, non-finite or non-increasing timestamps, no step of at most 1 s.
-pub fn estimate_velocity_prior(poses: &[SE3], timestamps: &[f64]) -> Result<VelocityPrior> {
-    check_trajectory(poses, timestamps)?;
-    let velocities: Vec<Vector6<f64>> = (1..poses.len())
-        .filter(|&i| timestamps[i] - timestamps[i - 1] <= MAX_STEP_S)
-        .map(|i| step_velocity(poses, timestamps, i))
-        .collect();
-    if velocities.is_empty() {
-        return Err(GeolocError::invalid("poses", "need at least 2 poses with a step ≤ 1 s"));
-    }
-    let n = velocities.len() as f64;
-    let mean = velocities.iter().sum::<Vector6<f64>>() / n;
-    let variance = velocities.iter().map(|v| (v - mean).component_mul(&(v - mean))).sum::<Vector6<f64>>() / n;
-    // no variation on an axis (below rounding of its mean square): no prior
-    if variance.iter().zip(mean.iter()).any(|(v, m)| v.is_nan() || *v <= 1e-12 * (v + m * m)) {
-        return Ok(VelocityPrior::default());
-    }
-    Ok(VelocityPrior { mean, variance })
-}
-
-/// The mean body velocity over step i of a trajectory: vᵢ = log(Tᵢ₋₁⁻¹Tᵢ)^∨/Δtᵢ (twist per
-/// second, translation first).
-fn step_velocity(poses: &[SE3], timestamps: &[f64], i: usize) -> Twist {
-    (poses[i - 1].inverse() * poses[i]).log() / (timestamps[i] - timestamps[i - 1])
-}
-
-/// The input checks of the trajectory estimators: as many timestamps as poses, finite and
-/// increasing.
-fn check_trajectory(poses: &[SE3], timestamps: &[f64]) -> Result<()> {
-    if poses.len() != timestamps.len() {
-        return Err(GeolocError::invalid(
-            "timestamps",
-            format!("has {} entries for {} poses", timestamps.len(), poses.len()),
-        ));
-    }
-    if let Some(i) = timestamps.iter().position(|t| !t.is_finite()) {
-        return Err(GeolocError::NonFinite { name: "timestamps".into(), index: i });
-    }
-    if timestamps.windows(2).any(|w| w[1] <= w[0]) {
-        return Err(GeolocError::invalid("timestamps", "must increase"));
-    }
-    Ok(())
 }
 
 /// Smallest time between two poses of a fit (1 ns): closer timestamps make the velocity's
@@ -390,15 +302,6 @@ fn predict(reference: &SE3, velocity: &Twist, sigma: &SMatrix<f64, 12, 12>, tau:
     g.fixed_view_mut::<6, 6>(0, 6).copy_from(&(se3::right_jacobian(&step) * tau));
     let covariance = g * sigma * g.transpose();
     (*reference * SE3::exp(&step), 0.5 * (covariance + covariance.transpose()))
-}
-
-/// The 99 % quantile of χ² with `dof` degrees of freedom (Wilson–Hilferty; within 1 % for
-/// dof ≥ 3, and the fit has dof = 6m − 12 ≥ 6).
-fn chi2_quantile_99(dof: usize) -> f64 {
-    let k = dof as f64;
-    let z = 2.326_347_874_040_841; // Φ⁻¹(0.99)
-    let c = 2.0 / (9.0 * k);
-    k * (1.0 - c + z * c.sqrt()).powi(3)
 }
 
 /// ξ from the latest pose and the one before it in time: log(T_prev⁻¹ T_latest)/Δt.
@@ -481,7 +384,13 @@ mod tests {
 
     /// A body-frame white-acceleration trajectory: the velocity random-walks with PSD `q`
     /// at a fine step `h`; returns the poses every `every` steps, starting at `start`.
-    fn random_walk(rng: &mut SplitMix64, q: &Vector6<f64>, h: f64, samples: usize, every: usize) -> Vec<SE3> {
+    pub(super) fn random_walk(
+        rng: &mut SplitMix64,
+        q: &Vector6<f64>,
+        h: f64,
+        samples: usize,
+        every: usize,
+    ) -> Vec<SE3> {
         let mut pose = SE3::identity();
         let mut v = Vector6::new(0.3, -0.1, 0.2, 0.2, 0.1, -0.3);
         let mut out = vec![pose];
@@ -493,26 +402,6 @@ mod tests {
             out.push(pose);
         }
         out
-    }
-
-    /// Relative tolerance of the q estimate from ~4000 robust (median) samples: the median's
-    /// standard error is about 1.25/√n·(its scale) ≈ 3 %; 15 % leaves room for the
-    /// between-axis coupling of the exponential map.
-    const PSD_TOLERANCE: f64 = 0.15;
-
-    #[test]
-    fn acceleration_psd_is_recovered_from_a_simulated_trajectory() {
-        let mut rng = SplitMix64::new(17);
-        let q = Vector6::new(0.5, 0.2, 1.0, 0.8, 0.3, 0.05);
-        let (h, every) = (1.0 / 3000.0, 100);
-        let poses = random_walk(&mut rng, &q, h, 4000, every);
-        let times: Vec<f64> = (0..poses.len()).map(|i| i as f64 * h * every as f64).collect();
-        let est = estimate_acceleration_psd(&poses, &times).expect("valid");
-        for a in 0..6 {
-            assert!((est[a] / q[a] - 1.0).abs() < PSD_TOLERANCE, "axis {a}: {} vs {}", est[a], q[a]);
-        }
-        assert!(estimate_acceleration_psd(&poses[..2], &times[..2]).is_err());
-        assert!(estimate_acceleration_psd(&poses, &times[1..]).is_err());
     }
 
     /// Per-axis ratio of the empirical prediction-error variance to diag(C_M) must lie here
@@ -543,7 +432,7 @@ mod tests {
         assert!(motion_predict_with_noise(&[SE3::identity(); 2], &[0.0, 0.1], 0.2, None, &bad).is_err());
     }
 
-    fn trajectory(start: &SE3, velocity: &Twist, times: &[f64]) -> Vec<SE3> {
+    pub(super) fn trajectory(start: &SE3, velocity: &Twist, times: &[f64]) -> Vec<SE3> {
         times.iter().map(|&t| *start * SE3::exp(&(velocity * t))).collect()
     }
 
@@ -605,7 +494,7 @@ mod tests {
             let e = (start * SE3::exp(&(v * t_q))).inverse() * p.world_from_cam;
             let e = e.log();
             let nees = e.dot(&(p.covariance.try_inverse().expect("spd") * e));
-            inside += usize::from(nees <= 12.591_587_243_743_977);
+            inside += usize::from(nees <= chi2::CHI2_6_95);
         }
         let coverage = inside as f64 / trials as f64;
         assert!((0.93..=0.97).contains(&coverage), "coverage {coverage}");
@@ -645,14 +534,6 @@ mod tests {
         }
         let h_numeric = numeric.transpose() * numeric;
         assert!((h - h_numeric).abs().max() < 1e-5 * h.abs().max(), "{}", (h - h_numeric).abs().max());
-    }
-
-    #[test]
-    fn chi2_quantiles() {
-        // tabulated χ²(0.99): dof 6 → 16.812, 12 → 26.217, 30 → 50.892
-        for (dof, q) in [(6, 16.812), (12, 26.217), (30, 50.892)] {
-            assert!((chi2_quantile_99(dof) - q).abs() < 0.01 * q, "{dof}: {}", chi2_quantile_99(dof));
-        }
     }
 
     /// An accelerating camera with tiny pose covariances: the variance factor widens the
@@ -773,54 +654,6 @@ mod tests {
                 .expect("valid");
             assert!((p.world_from_cam.translation - none.world_from_cam.translation).norm() < 1e-9);
             assert!((p.covariance - none.covariance).abs().max() < 1e-9);
-        }
-    }
-
-    /// Body velocities alternating v + d and v − d: mean v, variance d² on every axis; a step
-    /// over 1 s (a break in the recording) is skipped; a constant velocity has no variation,
-    /// so no prior; bad priors are refused by name.
-    #[test]
-    fn velocity_prior_of_a_trajectory() {
-        let v = Vector6::new(0.3, -0.1, 0.2, 0.2, 0.1, -0.3);
-        let d = Vector6::new(0.05, 0.02, 0.04, 0.03, 0.01, 0.06);
-        // 30 steps, a 5 s break, 30 steps: 30 of each sign
-        let mut times: Vec<f64> = (0..31).map(|i| i as f64 / 30.0).collect();
-        times.extend((0..31).map(|i| 6.0 + i as f64 / 30.0));
-        let mut poses = vec![SE3::identity()];
-        for i in 1..times.len() {
-            let dt = times[i] - times[i - 1];
-            let step = if dt > 1.0 {
-                Vector6::repeat(0.7)
-            } else if i % 2 == 0 {
-                v + d
-            } else {
-                v - d
-            };
-            poses.push(poses[i - 1] * SE3::exp(&(step * dt.min(1.0))));
-        }
-        let prior = estimate_velocity_prior(&poses, &times).expect("valid");
-        assert!((prior.mean - v).abs().max() < 1e-9, "{:?}", prior.mean);
-        assert!((prior.variance - d.component_mul(&d)).abs().max() < 1e-9, "{:?}", prior.variance);
-        let constant = trajectory(&SE3::identity(), &v, &times[..30]);
-        assert!(estimate_velocity_prior(&constant, &times[..30]).expect("valid").is_none());
-        assert!(estimate_velocity_prior(&poses[..1], &times[..1]).is_err());
-        let two = [SE3::identity(), SE3::identity()];
-        let err = estimate_velocity_prior(&two, &[0.0, 5.0]).expect_err("only a break");
-        assert!(err.to_string().contains("poses"), "{err}");
-        let covs = [Matrix6::identity() * 1e-4; 2];
-        let bad = [
-            (Vector6::zeros(), Vector6::new(0.1, 0.0, 0.1, 0.1, 0.1, 0.1), "velocity_variance"),
-            (Vector6::zeros(), Vector6::repeat(f64::NAN), "velocity_variance"),
-            (Vector6::zeros(), Vector6::repeat(-1.0), "velocity_variance"),
-            (Vector6::repeat(f64::INFINITY), Vector6::repeat(0.1), "velocity_mean"),
-            (Vector6::new(1e300, 0.0, 0.0, 0.0, 0.0, 0.0), Vector6::repeat(0.05), "velocity_mean"),
-            (Vector6::zeros(), Vector6::repeat(1e-320), "velocity_variance"),
-        ];
-        for (mean, variance, name) in bad {
-            let prior = VelocityPrior { mean, variance };
-            let err = motion_predict_with_prior(&two, &[0.0, 0.1], 0.2, Some(&covs), &Vector6::zeros(), &prior)
-                .expect_err("refused");
-            assert!(err.to_string().contains(name), "{err}");
         }
     }
 }

@@ -1,6 +1,6 @@
 //! Backward intersection: the world_from_cam pose of a camera from 2D–3D correspondences
 //! (the paper's Eq. back_projection), with a 6×6 covariance in the right-perturbation
-//! tangent space (translation first).
+//! tangent space (translation first). This module is the driver, the steps in order:
 //!
 //! 1. Start: the given `init` pose, or P3P RANSAC ([`p3p`]) with MSAC scoring, an adaptive
 //!    iteration count (confidence 0.9999 by default) and local optimization of every new
@@ -12,35 +12,25 @@
 //!    predicted error exceeds η_r are not thrown away for it. Either gate is widened to
 //!    4.29σ ([`gate_px`]) when the pixel noise is too large for η_r. With the propagated
 //!    covariance, a last solve on the stable inlier set is plain weighted least squares
-//!    (outliers are gone; it is the efficient estimator, and the one the covariance is for).
-//! 3. Covariance, one of [`CovarianceModel`]:
-//!    * `Paper`: C = σ̂² (Σ wⱼ JⱼᵀJⱼ)⁻¹ with σ̂² = Σ‖rⱼ‖²/(2p − 1) and Huber weights wⱼ — the
-//!      paper's formula; it ignores the error of the points and is over-confident.
-//!    * `Propagated` (default; σ is the query's known pixel noise). Without point
-//!      uncertainty: a last least-squares solve on the inliers and C = σ²(ΣJⱼᵀJⱼ)⁻¹.
-//!      With independent point covariances Σⱼ: maximum likelihood over the pose and the
-//!      point corrections jointly (`joint`), C the pose block of its inverse information.
-//!      With keyframe-pose errors shared by the points (D_jk = ∂Xⱼ/∂δ_k, C_k): the same
-//!      joint solve over the independent part (the shared errors stay out of the weights:
-//!      weights that depend on the label-error realization bias the pose, see `joint`), and
-//!      the first-order sandwich covariance
-//!      C = H⁻¹ (Σⱼ JⱼᵀWⱼ Sⱼ^ind WⱼJⱼ) H⁻¹ + Σ_k M_k C_k M_kᵀ = H⁻¹ + Σ_k M_k C_k M_kᵀ with
-//!      Wⱼ = (Sⱼ^ind)⁻¹, Sⱼ^ind = σ²I + J_X,j Σⱼ^ind J_X,jᵀ the errors independent between
-//!      points, H = Σⱼ JⱼᵀWⱼJⱼ and M_k = −H⁻¹ Σⱼ JⱼᵀWⱼ J_X,j D_jk the errors all points share.
-//!
-//!    The propagated covariance is then scaled by max(1, s²), s² = Σⱼ rⱼᵀSⱼ⁻¹rⱼ/(2n − 6) the
-//!    variance factor of the inliers ([`PnpResult::variance_factor`]): it only inflates.
+//!    (outliers are gone; it is the efficient estimator, and the one the covariance is for),
+//!    or with uncertain points the joint maximum-likelihood solve (`joint`).
+//! 3. Covariance, one of [`CovarianceModel`] (the models and the variance factor: the
+//!    `covariance` submodule).
+//! 4. Acceptance: enough inliers, more than random pixels would give (the `chance`
+//!    submodule, [`chance_probability`]).
 //!
 //! Geometry that is merely bad (too few points, no consensus, a singular information
 //! matrix) gives `success = false` with a reason, never an error.
 
+mod chance;
+mod covariance;
 mod joint;
 pub mod p3p;
 mod ransac;
 
-use nalgebra::{Matrix2, Matrix2x3, Matrix3, Matrix3x6, Matrix6, Vector2, Vector3, Vector6};
+use nalgebra::{Matrix2, Matrix3, Matrix3x6, Matrix6, Vector2, Vector3, Vector6};
 
-use crate::camera::{Camera, j_uv_point, j_uv_pose, project};
+use crate::camera::{Camera, project};
 use crate::error::{GeolocError, Result};
 use crate::lie::SE3;
 pub use crate::optim::covariance::isometric_sigmas;
@@ -48,40 +38,9 @@ use crate::optim::covariance::{check_covariances, inverse_information};
 use crate::optim::{
     LeastSquares, LmOptions, LmReport, RobustLoss, levenberg_marquardt, levenberg_marquardt_with_information,
 };
-
-/// How the returned covariance is computed.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum CovarianceModel {
-    /// Point errors (and keyframe-pose errors) propagated; calibrated. The default.
-    Propagated,
-    /// The paper's σ̂²(ΣJᵀJ)⁻¹ with σ̂² = ‖r‖²/(2p − 1); for comparison.
-    Paper,
-}
-
-impl CovarianceModel {
-    /// The option string: "propagated" or "paper".
-    pub fn as_str(self) -> &'static str {
-        match self {
-            Self::Propagated => "propagated",
-            Self::Paper => "paper",
-        }
-    }
-}
-
-impl std::str::FromStr for CovarianceModel {
-    type Err = GeolocError;
-
-    /// Parses [`CovarianceModel::as_str`]; the error names the argument "covariance".
-    fn from_str(s: &str) -> Result<Self> {
-        match s {
-            "propagated" => Ok(Self::Propagated),
-            "paper" => Ok(Self::Paper),
-            other => {
-                Err(GeolocError::invalid("covariance", format!("expected \"propagated\" or \"paper\", got {other:?}")))
-            }
-        }
-    }
-}
+pub use chance::{MAX_CHANCE_PROBABILITY, MIN_ACCEPTED_INLIERS, chance_probability};
+pub use covariance::CovarianceModel;
+use covariance::{paper_covariance, propagated_covariance, residual_moments};
 
 /// RANSAC settings.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -213,11 +172,6 @@ const ROBUST_ROUND_COST_TOLERANCE: f64 = 1e-4;
 pub const MIN_POINTS_RANSAC: usize = 4;
 /// Fewest inliers the solver iterates on (6 DoF: three points fix a pose, one checks it).
 pub const MIN_INLIERS: usize = 4;
-/// Fewest inliers a pose is *accepted* from: six beyond the three any 6-DoF pose fits exactly.
-pub const MIN_ACCEPTED_INLIERS: usize = 9;
-/// A pose is accepted only if random pixels would give its inlier count with probability
-/// below this, corrected for the number of hypotheses RANSAC tried ([`chance_probability`]).
-pub const MAX_CHANCE_PROBABILITY: f64 = 1e-3;
 /// Cap of `RansacOptions::{min,max}_iterations` (a larger request is refused, not run).
 pub const MAX_RANSAC_ITERATIONS: usize = 1_000_000;
 /// Cap of `LmOptions::max_iterations` in PnP options.
@@ -516,121 +470,6 @@ impl Correspondences<'_> {
             lm: report,
         }
     }
-
-    /// s² = Σⱼ rⱼᵀSⱼ⁻¹rⱼ / (2n − 6) over the inliers at `pose`, rⱼ = π(T, Xⱼ) − bⱼ − zⱼ and
-    /// Sⱼ = σ²I + J_X,j Σⱼ J_X,jᵀ the predicted residual covariance with the points' marginal
-    /// uncertainty (σ²I for exact points). Under the model E[Σ rᵀS⁻¹r] = 2n − 6 (the pose
-    /// absorbs 6 of the 2n dimensions), so s² estimates how much larger the real noise is;
-    /// NaN for n ≤ 3.
-    fn variance_factor(&self, pose: &SE3, subset: &[usize]) -> f64 {
-        let dof = 2.0 * subset.len() as f64 - 6.0;
-        if dof <= 0.0 {
-            return f64::NAN;
-        }
-        let sigma = self.options.pixel_sigma;
-        if self.uncertainty.is_none() && self.noise.scales.is_none() {
-            // exact points: S = σ²I and no bias, one projection per inlier
-            let sum_sq: f64 = subset
-                .iter()
-                .map(|&j| (project(self.camera, pose, &self.points[j]).uv - self.pixels[j]).norm_squared())
-                .sum();
-            return sum_sq / (sigma * sigma) / dof;
-        }
-        let chi2: f64 = subset
-            .iter()
-            .map(|&j| {
-                let sigma = self.noise.at(j);
-                let (s, bias) = residual_moments(self.camera, self.points, pose, j, self.uncertainty, sigma, true);
-                let r = project(self.camera, pose, &self.points[j]).uv - bias - self.pixels[j];
-                s.try_inverse().map_or(r.norm_squared() / (sigma * sigma), |s_inv| r.dot(&(s_inv * r)))
-            })
-            .sum();
-        chi2 / dof
-    }
-
-    /// Why the inlier set cannot be told from chance, if it cannot: fewer than
-    /// [`MIN_ACCEPTED_INLIERS`], or a [`chance_probability`] above [`MAX_CHANCE_PROBABILITY`].
-    fn chance_rejection(&self, subset: &[usize], ransac_iterations: usize) -> Option<String> {
-        let k = subset.len();
-        if k < MIN_ACCEPTED_INLIERS {
-            return Some(format!("too few inliers to tell the pose from chance: {k} < {MIN_ACCEPTED_INLIERS}"));
-        }
-        let o = self.options;
-        let gate = gate_px(o.max_residual_px, o.pixel_sigma);
-        let mean_gate_sq = match self.noise.scales {
-            None => gate * gate,
-            Some(_) => {
-                (0..self.points.len()).map(|j| gate_px(o.max_residual_px, self.noise.at(j)).powi(2)).sum::<f64>()
-                    / self.points.len() as f64
-            }
-        };
-        // The area within the gate of a projection, π·gate², gate = η_r (widened to 4.29σ):
-        // exactly the inlier region for exact points. Uncertain points are gated in the
-        // Mahalanobis metric of S = σ²I + J_X Σ J_Xᵀ, a wider region; measured against it,
-        // well-determined poses from poorly triangulated points (label noise of 3 cm / 1°, σ
-        // of the projected points ≈ 12 px) read as chance, so the test uses the pixel-noise
-        // gate for them too: it is lenient for uncertain points, exact for exact ones.
-        let mean_radius_sq = mean_gate_sq;
-        let hypotheses = 1 + 4 * ransac_iterations;
-        let p = chance_probability(self.pixels, mean_radius_sq, k, hypotheses);
-        (p > MAX_CHANCE_PROBABILITY).then(|| {
-            format!("the inliers cannot be told from chance: {k} of {} (chance probability {p:.2e})", self.points.len())
-        })
-    }
-}
-
-/// The probability that uniformly random pixels give `inliers` inliers, corrected for the
-/// search: N pixels spread over their bounding box of area A, each falls within the gate
-/// (mean squared radius r̄²) of its projection with probability p̄ = min(1, π r̄²/A); any
-/// 6-DoF pose fits 3 correspondences exactly, so the count beyond those is binomial,
-///
-///   P = min(1, H · P(Bin(N − 3, p̄) ≥ k − 3)),
-///
-/// with H the number of pose hypotheses scored (Bonferroni: RANSAC keeps the best of H).
-pub fn chance_probability(pixels: &[Vector2<f64>], mean_radius_sq: f64, inliers: usize, hypotheses: usize) -> f64 {
-    let n = pixels.len();
-    if n <= 3 || inliers <= 3 {
-        return 1.0;
-    }
-    let (lo, hi) =
-        pixels.iter().fold((Vector2::repeat(f64::INFINITY), Vector2::repeat(f64::NEG_INFINITY)), |(lo, hi), p| {
-            (lo.inf(p), hi.sup(p))
-        });
-    let area = (hi.x - lo.x) * (hi.y - lo.y);
-    let p = (std::f64::consts::PI * mean_radius_sq / area).min(1.0);
-    let tail = binomial_tail_ln(n - 3, p, inliers - 3);
-    (tail + (hypotheses.max(1) as f64).ln()).exp().min(1.0)
-}
-
-/// Terms of the binomial tail more than e⁴⁰ below its largest one are not summed.
-const TAIL_CUTOFF_LN: f64 = 40.0;
-
-/// ln P(X ≥ m) for X ~ Bin(n, p), summed in log space (exact to rounding).
-fn binomial_tail_ln(n: usize, p: f64, m: usize) -> f64 {
-    if m == 0 || p >= 1.0 || p.is_nan() {
-        return 0.0;
-    }
-    if m > n || p <= 0.0 {
-        return f64::NEG_INFINITY;
-    }
-    let (nf, mf) = (n as f64, m as f64);
-    // ln C(n, m) = Σⱼ ln((n − m + j)/j)
-    let ln_choose: f64 = (1..=m).map(|j| ((nf - mf + j as f64) / j as f64).ln()).sum();
-    let mut term = ln_choose + mf * p.ln() + (nf - mf) * (-p).ln_1p();
-    let ratio = p.ln() - (-p).ln_1p();
-    let (mut max, mut terms) = (term, vec![term]);
-    for i in m..n {
-        let step = ((nf - i as f64) / (i as f64 + 1.0)).ln() + ratio;
-        term += step;
-        max = max.max(term);
-        terms.push(term);
-        // past the mode the terms fall geometrically: stop once they are below e⁻⁴⁰ of the
-        // largest (the rest adds less than 1e-17 relative)
-        if step < 0.0 && term < max - TAIL_CUTOFF_LN {
-            break;
-        }
-    }
-    max + terms.iter().map(|t| (t - max).exp()).sum::<f64>().ln()
 }
 
 /// The last least-squares solve, which starts at the robust optimum: when the Gauss–Newton
@@ -727,7 +566,7 @@ fn validate(
 }
 
 /// √χ²₂(0.9999): a correct 2D residual exceeds this many σ with probability 1e-4.
-pub const CHI2_2DOF_9999_SQRT: f64 = 4.291_932_052_578_985;
+pub const CHI2_2DOF_9999_SQRT: f64 = crate::stats::chi2::CHI2_2_9999_SQRT;
 
 /// The refit gate: η_r, widened to 4.29σ when σ is large enough that η_r would cut into
 /// correct correspondences — a hard cut at ~2.5σ inflates the estimator's variance beyond
@@ -822,51 +661,6 @@ fn weighting(
     Weighting { weights, biases }
 }
 
-/// Point j's covariance: the independent part, plus (if `marginal`) the shared
-/// keyframe-pose part Σ_k D_jk C_k D_jkᵀ. None without uncertainty.
-fn point_covariance(j: usize, uncertainty: Option<&PointUncertainty<'_>>, marginal: bool) -> Option<Matrix3<f64>> {
-    let u = uncertainty?;
-    let mut cov = u.covariances[j];
-    if marginal && let Some(shared) = &u.shared {
-        let k_count = shared.pose_covariances.len();
-        for (k, c_k) in shared.pose_covariances.iter().enumerate() {
-            let d = &shared.jacobians[j * k_count + k];
-            cov += d * c_k * d.transpose();
-        }
-    }
-    Some(cov)
-}
-
-/// Mean and covariance of correspondence j's residual π(T, X̂ⱼ) − zⱼ when X̂ⱼ = Xⱼ + e,
-/// e ~ N(0, Σⱼ) and the pixel has noise σ:
-///   Sⱼ = σ²I + J_X Σⱼ J_Xᵀ,
-///   bⱼ = ½ tr(∇²π Σⱼ) = (f_x (x Σ_zz/z − Σ_xz), f_y (y Σ_zz/z − Σ_yz)) / z²
-/// with Σ in camera coordinates. The bias is the second-order effect of the perspective
-/// division on an uncertain point; it has the same sign for many points, so unlike their
-/// noise it does not average out, and ignoring it leaves the pose covariance over-confident
-/// along the translation–rotation ambiguity.
-fn residual_moments(
-    camera: &Camera,
-    points: &[Vector3<f64>],
-    pose: &SE3,
-    j: usize,
-    uncertainty: Option<&PointUncertainty<'_>>,
-    sigma: f64,
-    marginal: bool,
-) -> (Matrix2<f64>, Vector2<f64>) {
-    let mut s = Matrix2::identity() * (sigma * sigma);
-    let Some(cov) = point_covariance(j, uncertainty, marginal) else { return (s, Vector2::zeros()) };
-    let p = project(camera, pose, &points[j]);
-    let j_x = j_uv_point(camera, pose, &p);
-    s += j_x * cov * j_x.transpose();
-    let r = pose.rotation.matrix();
-    let c = r.transpose() * cov * r;
-    let (x, y, z) = (p.p_cam.x, p.p_cam.y, p.p_cam.z);
-    let bias = Vector2::new(camera.fx * (x * c[(2, 2)] / z - c[(0, 2)]), camera.fy * (y * c[(2, 2)] / z - c[(1, 2)]))
-        / (z * z);
-    (s, bias)
-}
-
 /// The two rows ∂u/∂δ, ∂v/∂δ of the projection's Jacobian for the right perturbation
 /// T ⊞ δ = T exp(δ^) of world_from_cam, translation first, at p = (x, y, z) in camera
 /// coordinates — [`j_uv_pose`] in closed form for PnP's hot loop (checked against it and
@@ -945,73 +739,10 @@ impl LeastSquares<6> for PoseProblem<'_> {
     }
 }
 
-fn paper_covariance(
-    camera: &Camera,
-    points: &[Vector3<f64>],
-    pixels: &[Vector2<f64>],
-    pose: &SE3,
-    subset: &[usize],
-    loss: RobustLoss,
-) -> Option<Matrix6<f64>> {
-    let mut info = Matrix6::zeros();
-    let mut sum_sq = 0.0;
-    for &j in subset {
-        let p = project(camera, pose, &points[j]);
-        let r = p.uv - pixels[j];
-        let jac = j_uv_pose(camera, &p);
-        info += loss.weight(r.norm_squared()) * jac.transpose() * jac;
-        sum_sq += r.norm_squared();
-    }
-    let sigma2 = sum_sq / (2.0 * subset.len() as f64 - 1.0);
-    inverse_information(&info).map(|c| c * sigma2)
-}
-
-/// The `Propagated` covariance of the module doc at `pose` over the inliers `subset` (before
-/// the variance factor).
-fn propagated_covariance(
-    camera: &Camera,
-    points: &[Vector3<f64>],
-    pose: &SE3,
-    subset: &[usize],
-    uncertainty: Option<&PointUncertainty<'_>>,
-    noise: PixelNoise<'_>,
-) -> Option<Matrix6<f64>> {
-    let mut h = Matrix6::zeros();
-    // JⱼᵀWⱼ J_X,j per point, needed for the shared part
-    let mut couplings: Vec<(usize, nalgebra::Matrix6x3<f64>)> = Vec::new();
-    for &j in subset {
-        let p = project(camera, pose, &points[j]);
-        // Wⱼ = (Sⱼ^ind)⁻¹, the weights of the solve (the shared errors are not in them)
-        let (s_ind, _) = residual_moments(camera, points, pose, j, uncertainty, noise.at(j), false);
-        let w = s_ind.try_inverse()?;
-        let jac = j_uv_pose(camera, &p);
-        let jt_w = jac.transpose() * w;
-        h += jt_w * jac;
-        if uncertainty.is_some_and(|u| u.shared.is_some()) {
-            let j_x: Matrix2x3<f64> = j_uv_point(camera, pose, &p);
-            couplings.push((j, jt_w * j_x));
-        }
-    }
-    // the independent errors: H⁻¹ (Σ JᵀW Sⁱⁿᵈ W J) H⁻¹ = H⁻¹ since W = (Sⁱⁿᵈ)⁻¹
-    let h_inv = inverse_information(&h)?;
-    let mut c = h_inv;
-    if let Some(shared) = uncertainty.and_then(|u| u.shared.as_ref()) {
-        let k_count = shared.pose_covariances.len();
-        for (k, c_k) in shared.pose_covariances.iter().enumerate() {
-            let mut m = Matrix6::zeros();
-            for (j, coupling) in &couplings {
-                m -= coupling * shared.jacobians[j * k_count + k];
-            }
-            let m = h_inv * m;
-            c += m * c_k * m.transpose();
-        }
-    }
-    Some(0.5 * (c + c.transpose()))
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::camera::j_uv_pose;
     use crate::testing::SplitMix64;
 
     /// The hand-written rows of PoseProblem's hot loop equal camera::j_uv_pose and central
@@ -1039,79 +770,6 @@ mod tests {
                 assert!((ju[i] - numeric.x).abs() <= 1e-6 * scale, "u vs differences, column {i}");
                 assert!((jv[i] - numeric.y).abs() <= 1e-6 * scale, "v vs differences, column {i}");
             }
-        }
-    }
-
-    /// Binomial tail against a brute-force sum of the pmf, and the chance probability of a
-    /// few inliers among random pixels against the hand computation of the doc.
-    #[test]
-    fn binomial_tail_and_chance_probability() {
-        let (n, p) = (30_usize, 0.07_f64);
-        for m in [0, 1, 3, 10, 30] {
-            let brute: f64 = (m..=n)
-                .map(|i| {
-                    let ln_choose: f64 = (1..=i).map(|j| ((n - i + j) as f64 / j as f64).ln()).sum();
-                    (ln_choose + i as f64 * p.ln() + (n - i) as f64 * (1.0 - p).ln()).exp()
-                })
-                .sum();
-            let tail = binomial_tail_ln(n, p, m).exp();
-            assert!((tail - brute).abs() <= 1e-12 * brute.max(1e-300), "m = {m}: {tail} vs {brute}");
-        }
-        assert!(binomial_tail_ln(10, 0.5, 11).is_infinite() && binomial_tail_ln(10, 0.5, 11) < 0.0);
-        // 200 pixels over 640 × 480, gate 5 px: p = 25π/307200; 6 inliers after one hypothesis
-        let pixels: Vec<Vector2<f64>> = (0..200)
-            .map(|i| Vector2::new(if i == 0 { 0.0 } else { 640.0 }, if i == 1 { 0.0 } else { 480.0 }))
-            .collect();
-        let radii = 25.0;
-        let p1 = 25.0 * std::f64::consts::PI / 307_200.0;
-        let expected = (binomial_tail_ln(197, p1, 3)).exp();
-        assert!((chance_probability(&pixels, radii, 6, 1) - expected).abs() < 1e-12 * expected);
-        assert!((chance_probability(&pixels, radii, 6, 10) - 10.0 * expected).abs() < 1e-11 * expected);
-        assert!((chance_probability(&pixels, radii, 3, 1) - 1.0).abs() < f64::EPSILON);
-    }
-
-    /// Monte-Carlo: the variance factor s² estimates (σ_true/σ)² — ≈ 1 when the model is
-    /// right (exact points, and uncertain points with their true covariances), ≈ 4 when the
-    /// pixel noise is twice what PnP is told; the inflated covariance then covers the truth at
-    /// the χ²₆ 95 % level, and a right model is not shrunk below itself.
-    #[test]
-    fn variance_factor_estimates_the_noise_ratio() {
-        let camera = Camera::new(525.0, 525.0, 320.0, 240.0).expect("valid");
-        let options = PnpOptions { max_residual_px: 20.0, ..PnpOptions::default() };
-        let chi2_6_95 = 12.591_586_820_429_4;
-        let cases: [(f64, f64, f64); 3] = [(1.0, 0.0, 1.0), (2.0, 0.0, 4.0), (1.0, 0.01, 1.0)];
-        for (sigma_true, point_sigma, want) in cases {
-            let mut rng = SplitMix64::new(11);
-            let (trials, mut sum, mut inside) = (300, 0.0, 0);
-            for _ in 0..trials {
-                let truth = rng.pose(2.0);
-                let local = |rng: &mut SplitMix64| {
-                    Vector3::new(rng.uniform_in(-2.0, 2.0), rng.uniform_in(-1.5, 1.5), rng.uniform_in(3.0, 8.0))
-                };
-                let exact: Vec<Vector3<f64>> = (0..60).map(|_| truth * local(&mut rng)).collect();
-                let pixels: Vec<Vector2<f64>> = exact
-                    .iter()
-                    .map(|x| project(&camera, &truth, x).uv + Vector2::new(rng.normal(), rng.normal()) * sigma_true)
-                    .collect();
-                let noisy: Vec<Vector3<f64>> = exact
-                    .iter()
-                    .map(|x| x + Vector3::new(rng.normal(), rng.normal(), rng.normal()) * point_sigma)
-                    .collect();
-                let covs = vec![Matrix3::identity() * point_sigma * point_sigma; exact.len()];
-                let u = PointUncertainty { covariances: &covs, shared: None };
-                let unc = (point_sigma > 0.0).then_some(&u);
-                let res = solve_pnp(&camera, &noisy, &pixels, Some(&truth), unc, &options).expect("valid input");
-                assert!(res.success, "{}", res.reason);
-                sum += res.variance_factor;
-                let e = (truth.inverse() * res.world_from_cam).log();
-                let info = res.covariance.try_inverse().expect("invertible");
-                inside += usize::from((e.transpose() * info * e)[0] <= chi2_6_95);
-            }
-            let mean = sum / trials as f64;
-            // the mean of 300 factors with 114 degrees of freedom: σ ≈ want·0.0076
-            assert!((mean - want).abs() < 0.04 * want, "σ_true {sigma_true}, σ_X {point_sigma}: mean s² {mean}");
-            let coverage = inside as f64 / trials as f64;
-            assert!((0.92..=0.985).contains(&coverage), "σ_true {sigma_true}, σ_X {point_sigma}: coverage {coverage}");
         }
     }
 

@@ -32,6 +32,7 @@ use crate::camera::{Camera, Distortion};
 use crate::error::{GeolocError, Result};
 use crate::lie::SE3;
 use crate::optim::{DampedStep, Evaluation, LeastSquares, Linearization, LmOptions, LmReport, solve};
+use crate::stats::{EvenMedian, median};
 
 /// Observed pixels at which [`SelfCalibration::correction_sigma_px`] is evaluated, at most.
 const SIGMA_PROBES: usize = 512;
@@ -264,13 +265,13 @@ pub fn self_calibrate(
         prior_information: options.prior_sigmas(nominal).map(|s| 1.0 / (s * s)),
     };
     let start = State { theta: prior_mean, points: points.to_vec() };
-    let before = problem.residual_norms(&start);
+    let mut before = problem.residual_norms(&start);
     let mut out = SelfCalibration {
         correction: None,
         reason: String::new(),
         rms_before_px: rms(&before),
         rms_after_px: f64::NAN,
-        median_before_px: median(before),
+        median_before_px: median(&mut before, EvenMedian::Upper).unwrap_or(f64::NAN),
         median_after_px: f64::NAN,
         observations: observations.len(),
         points: observed,
@@ -287,10 +288,10 @@ pub fn self_calibrate(
         return Ok(out);
     }
     let (end, report, _) = solve(&problem, start, &options.lm);
-    let after = problem.residual_norms(&end);
+    let mut after = problem.residual_norms(&end);
     out.report = Some(report);
     out.rms_after_px = rms(&after);
-    out.median_after_px = median(after);
+    out.median_after_px = median(&mut after, EvenMedian::Upper).unwrap_or(f64::NAN);
     let Some((camera, distortion)) = camera_of(&end.theta) else {
         out.reason = "the estimate is not a camera (f ≤ 0 or not finite)".into();
         return Ok(out);
@@ -364,14 +365,6 @@ fn camera_of(theta: &Theta) -> Option<(Camera, Distortion)> {
 
 fn rms(norms: &[f64]) -> f64 {
     (norms.iter().map(|e| e * e).sum::<f64>() / norms.len().max(1) as f64).sqrt()
-}
-
-fn median(mut values: Vec<f64>) -> f64 {
-    if values.is_empty() {
-        return f64::NAN;
-    }
-    values.sort_by(f64::total_cmp);
-    values[values.len() / 2]
 }
 
 /// The camera parameters and every track point.

@@ -9,6 +9,7 @@ use geoloc_core::lie::SE3;
 use geoloc_core::localizer::{Frame, Localizer, LocalizerOptions, NoiseOptions, Source};
 use geoloc_core::map::{DescriptorSet, Keyframe, Map, RetrievalKind};
 use geoloc_core::matching::Descriptors;
+use geoloc_core::stats::chi2::CHI2_6_95;
 use geoloc_core::testing::{self, LandmarkScene, SplitMix64};
 
 const WIDTH: usize = testing::LANDMARK_DESCRIPTOR_BYTES;
@@ -23,8 +24,6 @@ fn walk(t: f64, offset: f64) -> SE3 {
 /// Injected pose-label noise per axis: 1 cm, 0.4°.
 const LABEL_SIGMA_M: f64 = 0.01;
 const LABEL_SIGMA_RAD: f64 = 0.4 * std::f64::consts::PI / 180.0;
-/// χ²₆ 95 % quantile.
-const CHI2_6_95: f64 = 12.591_587_243_743_977;
 /// NEES coverage band of the queries (88–99 %, widened by the binomial σ of
 /// 120 frames, ≈ 2 %).
 const COVERAGE_BAND: (f64, f64) = (0.85, 0.995);

@@ -104,9 +104,7 @@ fn run_frames(corrupt_fraction: f64, frames: usize) -> Run {
 }
 
 fn median(v: &[f64]) -> f64 {
-    let mut s = v.to_vec();
-    s.sort_by(f64::total_cmp);
-    s[s.len() / 2]
+    geoloc_core::stats::median(&mut v.to_vec(), geoloc_core::stats::EvenMedian::Upper).expect("not empty")
 }
 
 #[test]

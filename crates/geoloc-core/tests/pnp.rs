@@ -3,7 +3,7 @@
 
 mod common;
 
-use common::{CHI2_95_DOF6, look_at, observe};
+use common::{Coverage, Sample, look_at, observe};
 use geoloc_core::camera::{Camera, project};
 use geoloc_core::lie::{SE3, Twist};
 use geoloc_core::pnp::{CovarianceModel, PnpOptions, PointUncertainty, SharedPoseUncertainty, solve_pnp};
@@ -126,15 +126,7 @@ fn invalid_input_is_an_error() {
     assert!(solve_pnp(&cam, &pts, &px, None, None, &bad).is_err());
 }
 
-/// The paper's Monte-Carlo scene, randomized: 4 training cameras and the target on a
-/// random short arc, ~119 random points, pixel noise σ, optional label noise.
-struct McOutcome {
-    nees_inside: usize,
-    axis_inside: [usize; 6],
-    trials: usize,
-}
-
-/// A Monte-Carlo scene: 4 training cameras, the query, the points.
+/// A Monte-Carlo scene (the paper's, randomized): 4 training cameras, the query, the points.
 struct Scene {
     train: Vec<SE3>,
     query: SE3,
@@ -157,13 +149,8 @@ fn random_scene(rng: &mut SplitMix64) -> Scene {
 
 /// One trial on `scene`: labels with noise (σ_t m, σ_r rad per axis) when `label` is given,
 /// pixel noise σ, triangulation from the labels, PnP of the query with the propagated
-/// covariance. The error log(T_true⁻¹ T_est)^∨ and the covariance, or None when PnP fails.
-fn trial(
-    rng: &mut SplitMix64,
-    scene: &Scene,
-    sigma_px: f64,
-    label: Option<(f64, f64)>,
-) -> Option<(Twist, Matrix6<f64>)> {
+/// covariance. The true and estimated query pose with the covariance, or None when PnP fails.
+fn trial(rng: &mut SplitMix64, scene: &Scene, sigma_px: f64, label: Option<(f64, f64)>) -> Option<Sample> {
     let cam = camera();
     let (train, query, points) = (&scene.train, scene.query, &scene.points);
     let (labels, label_cov) = match label {
@@ -208,23 +195,15 @@ fn trial(
     let unc = PointUncertainty { covariances: &covs, shared };
     let opts = PnpOptions { pixel_sigma: sigma_px, covariance: CovarianceModel::Propagated, ..Default::default() };
     let res = solve_pnp(&cam, &pts, &px, None, Some(&unc), &opts).expect("valid");
-    res.success.then(|| ((query.inverse() * res.world_from_cam).log(), res.covariance))
+    res.success.then_some(Sample { truth: query, estimate: res.world_from_cam, covariance: res.covariance })
 }
 
-fn monte_carlo(seed: u64, trials: usize, sigma_px: f64, label: Option<(f64, f64)>) -> McOutcome {
-    let mut rng = SplitMix64::new(seed);
-    let mut out = McOutcome { nees_inside: 0, axis_inside: [0; 6], trials: 0 };
-    for _ in 0..trials {
-        let scene = random_scene(&mut rng);
-        let Some((e, cov)) = trial(&mut rng, &scene, sigma_px, label) else { continue };
-        out.trials += 1;
-        let c_inv = cov.try_inverse().expect("spd");
-        out.nees_inside += usize::from((e.transpose() * c_inv * e)[0] <= CHI2_95_DOF6);
-        for i in 0..6 {
-            out.axis_inside[i] += usize::from(e[i].abs() <= 1.96 * cov[(i, i)].sqrt());
-        }
-    }
-    out
+/// A fresh random scene per trial, pixel noise σ, optional label noise.
+fn monte_carlo(seed: u64, trials: usize, sigma_px: f64, label: Option<(f64, f64)>) -> Coverage {
+    Coverage::run(seed, trials, |rng| {
+        let scene = random_scene(rng);
+        trial(rng, &scene, sigma_px, label)
+    })
 }
 
 /// Keyframe-rotation label noise must not bias the pose: on each of 12 random scenes, 200
@@ -240,7 +219,8 @@ fn rotation_label_noise_does_not_bias_the_pose() {
         let mut rng = SplitMix64::new(77);
         let (mut sum_e, mut sum_c, mut n) = (Twist::zeros(), Matrix6::zeros(), 0.0);
         for _ in 0..200 {
-            if let Some((e, c)) = trial(&mut rng, &scene, 2.0, Some((0.0, 0.5f64.to_radians()))) {
+            if let Some(sample) = trial(&mut rng, &scene, 2.0, Some((0.0, 0.5f64.to_radians()))) {
+                let (e, c) = (sample.error(), sample.covariance);
                 sum_e += e;
                 sum_c += c;
                 n += 1.0;
@@ -253,18 +233,12 @@ fn rotation_label_noise_does_not_bias_the_pose() {
     }
 }
 
-fn assert_coverage(o: &McOutcome, lo: f64, hi: f64, what: &str) {
-    eprintln!(
-        "{what}: {} trials, NEES {:.3}, axes {:?}",
-        o.trials,
-        o.nees_inside as f64 / o.trials as f64,
-        o.axis_inside.map(|a| a as f64 / o.trials as f64)
-    );
+fn assert_coverage(o: &Coverage, lo: f64, hi: f64, what: &str) {
+    eprintln!("{what}: {} trials, NEES {:.3}, axes {:?}", o.trials, o.nees(), o.axes());
     assert!(o.trials >= 990, "{what}: only {} successes", o.trials);
-    let nees = o.nees_inside as f64 / o.trials as f64;
+    let nees = o.nees();
     assert!((lo..=hi).contains(&nees), "{what}: NEES coverage {nees}");
-    for (i, &a) in o.axis_inside.iter().enumerate() {
-        let c = a as f64 / o.trials as f64;
+    for (i, c) in o.axes().into_iter().enumerate() {
         assert!((lo..=hi).contains(&c), "{what}: axis {i} coverage {c}");
     }
 }

@@ -6,7 +6,7 @@
 
 mod common;
 
-use common::{CHI2_95_DOF6, FD_STEP, central_difference, look_at, observe, relative_error};
+use common::{Coverage, FD_STEP, Sample, central_difference, look_at, observe, relative_error};
 use geoloc_core::camera::{Camera, project};
 use geoloc_core::lie::SE3;
 use geoloc_core::pnp::{PnpOptions, PnpResult, PointUncertainty, solve_pnp, solve_pnp_with_pixel_sigmas};
@@ -116,34 +116,18 @@ fn covariance_is_the_weighted_closed_form() {
     }
 }
 
-struct Outcome {
-    nees_inside: usize,
-    sum_sq_error: f64,
-    trials: usize,
-}
-
 /// Heteroscedastic pixel noise (σⱼ from the ORB levels); PnP with and without the σⱼ.
-fn monte_carlo(seed: u64, trials: usize, with_sigmas: bool) -> Outcome {
-    let mut rng = SplitMix64::new(seed);
+fn monte_carlo(seed: u64, trials: usize, with_sigmas: bool) -> Coverage {
     let cam = camera();
-    let mut out = Outcome { nees_inside: 0, sum_sq_error: 0.0, trials: 0 };
-    for _ in 0..trials {
-        let (truth, points, sigmas) = scene(&mut rng, 100);
-        let pixels = noisy_pixels(&mut rng, &truth, &points, &sigmas);
+    Coverage::run(seed, trials, |rng| {
+        let (truth, points, sigmas) = scene(rng, 100);
+        let pixels = noisy_pixels(rng, &truth, &points, &sigmas);
         let per_point = with_sigmas.then_some(sigmas.as_slice());
         let res: PnpResult =
             solve_pnp_with_pixel_sigmas(&cam, &points, &pixels, per_point, None, None, &PnpOptions::default())
                 .expect("valid");
-        if !res.success {
-            continue;
-        }
-        out.trials += 1;
-        let e = pose_error(&res.world_from_cam, &truth);
-        let c_inv = res.covariance.try_inverse().expect("spd");
-        out.nees_inside += usize::from((e.transpose() * c_inv * e)[0] <= CHI2_95_DOF6);
-        out.sum_sq_error += (res.world_from_cam.translation - truth.translation).norm_squared();
-    }
-    out
+        res.success.then_some(Sample { truth, estimate: res.world_from_cam, covariance: res.covariance })
+    })
 }
 
 /// With each keypoint's σ the covariance is calibrated (NEES coverage 93–97 %) and the pose
@@ -154,12 +138,12 @@ fn pixel_sigmas_calibrate_and_sharpen_heteroscedastic_pnp() {
     let weighted = monte_carlo(33, 1000, true);
     let uniform = monte_carlo(33, 1000, false);
     assert!(weighted.trials >= 995 && uniform.trials >= 995, "{} / {}", weighted.trials, uniform.trials);
-    let coverage = weighted.nees_inside as f64 / weighted.trials as f64;
-    let rms = |o: &Outcome| (o.sum_sq_error / o.trials as f64).sqrt();
+    let coverage = weighted.nees();
+    let rms = Coverage::rms_position_m;
     eprintln!(
         "weighted: NEES coverage {coverage:.3}, RMS {:.2} cm; uniform: coverage {:.3}, RMS {:.2} cm",
         rms(&weighted) * 100.0,
-        uniform.nees_inside as f64 / uniform.trials as f64,
+        uniform.nees(),
         rms(&uniform) * 100.0
     );
     assert!((0.93..=0.97).contains(&coverage), "NEES coverage {coverage}");

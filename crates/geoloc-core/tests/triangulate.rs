@@ -3,10 +3,11 @@
 
 mod common;
 
-use common::{CHI2_95_DOF3, arc_scene, observe};
+use common::{arc_scene, observe};
 use geoloc_core::GeolocError;
 use geoloc_core::camera::project;
 use geoloc_core::lie::{SE3, Twist};
+use geoloc_core::stats::chi2::CHI2_3_95;
 use geoloc_core::testing::{SplitMix64, isotropic_pose_covariance};
 use geoloc_core::triangulate::{TrackStatus, TriangulationOptions, View, triangulate, triangulate_track};
 use nalgebra::{Matrix6, Vector2, Vector3};
@@ -67,7 +68,7 @@ fn outlier_observations_are_dropped() {
             valid += 1;
             let e = p.point - x;
             let nees = (e.transpose() * p.covariance.try_inverse().expect("spd") * e)[0];
-            inside += usize::from(nees <= CHI2_95_DOF3);
+            inside += usize::from(nees <= CHI2_3_95);
         }
     }
     assert!(valid >= 295, "valid {valid}");
@@ -121,7 +122,7 @@ fn pixel_covariance_is_calibrated() {
             let e = p.point - x;
             let nees = (e.transpose() * p.covariance.try_inverse().expect("spd") * e)[0];
             nees_sum += nees;
-            inside += usize::from(nees <= CHI2_95_DOF3);
+            inside += usize::from(nees <= CHI2_3_95);
             total += 1;
         }
     }
@@ -195,7 +196,7 @@ fn pose_noise_is_propagated() {
             }
             let e = p.point - x;
             let nees = (e.transpose() * p.covariance.try_inverse().expect("spd") * e)[0];
-            inside += usize::from(nees <= CHI2_95_DOF3);
+            inside += usize::from(nees <= CHI2_3_95);
             total += 1;
         }
     }

@@ -250,3 +250,8 @@ pub fn one_matrix<const D: usize>(name: &str, array: &PyReadonlyArray2<'_, f64>)
     }
     Ok(m)
 }
+
+/// The values of an optional 1-D array, which must be C-contiguous (`name` in the error).
+pub fn contiguous<'a>(name: &str, array: Option<&'a numpy::PyReadonlyArray1<'_, f64>>) -> PyResult<Option<&'a [f64]>> {
+    array.map(|a| a.as_slice().map_err(|_| crate::errors::invalid(name, "must be contiguous"))).transpose()
+}

@@ -15,7 +15,7 @@ use numpy::{IntoPyArray, PyArray1, PyArray2, PyArray3, PyReadonlyArray1, PyReado
 use pyo3::prelude::*;
 
 use crate::convert::{
-    count, count_usize, indices, matrices, matrices_to_array3, matrix_to_array, one_pose, poses, rows,
+    contiguous, count, count_usize, indices, matrices, matrices_to_array3, matrix_to_array, one_pose, poses, rows,
 };
 use crate::errors::{invalid, to_py_err};
 
@@ -230,35 +230,54 @@ impl PnPResult {
     }
 }
 
-/// The keyword options of `solve_pnp`, turned into core options in one place.
+/// The keyword options of `solve_pnp`, turned into core options in one place: the
+/// robust loss and the noise model, and RANSAC's (`ransac`, `min_iterations`,
+/// `max_iterations`, `confidence`, `seed`).
 struct PnpKeywords<'a, 'py> {
     loss: &'a str,
     huber: f64,
     pixel_sigma: f64,
     max_residual: f64,
     covariance: &'a str,
-    ransac_with_init: bool,
+    ransac: RansacKeywords<'a, 'py>,
+}
+
+/// The RANSAC keywords of `solve_pnp`.
+struct RansacKeywords<'a, 'py> {
+    ransac: Option<bool>,
     min_iterations: Option<&'a Bound<'py, PyAny>>,
     max_iterations: Option<&'a Bound<'py, PyAny>>,
     confidence: f64,
     seed: Option<&'a Bound<'py, PyAny>>,
 }
 
+impl RansacKeywords<'_, '_> {
+    /// `ransac=False` needs an initial pose.
+    fn check(&self, has_init: bool) -> PyResult<()> {
+        if self.ransac == Some(false) && !has_init {
+            return Err(invalid("init_pose", "required when ransac=False"));
+        }
+        Ok(())
+    }
+}
+
 impl PnpKeywords<'_, '_> {
-    fn options(&self) -> PyResult<PnpOptions> {
-        let d = RansacOptions::default();
+    /// The core options; `has_init`: whether an initial pose was given (`ransac=True` with
+    /// one runs RANSAC too).
+    fn options(&self, has_init: bool) -> PyResult<PnpOptions> {
+        let (d, r) = (RansacOptions::default(), &self.ransac);
         let or = |name, v: Option<&Bound<'_, PyAny>>, default| v.map_or(Ok(default), |v| count_usize(name, v));
         Ok(PnpOptions {
             loss: RobustLoss::from_name(self.loss, self.huber, "huber").map_err(to_py_err)?,
             pixel_sigma: self.pixel_sigma,
             max_residual_px: self.max_residual,
             covariance: self.covariance.parse::<CovarianceModel>().map_err(to_py_err)?,
-            ransac_with_init: self.ransac_with_init,
+            ransac_with_init: r.ransac == Some(true) && has_init,
             ransac: RansacOptions {
-                min_iterations: or("min_iterations", self.min_iterations, d.min_iterations)?,
-                max_iterations: or("max_iterations", self.max_iterations, d.max_iterations)?,
-                confidence: self.confidence,
-                seed: self.seed.map_or(Ok(d.seed), |v| count("seed", v))?,
+                min_iterations: or("min_iterations", r.min_iterations, d.min_iterations)?,
+                max_iterations: or("max_iterations", r.max_iterations, d.max_iterations)?,
+                confidence: r.confidence,
+                seed: r.seed.map_or(Ok(d.seed), |v| count("seed", v))?,
             },
             ..PnpOptions::default()
         })
@@ -282,6 +301,43 @@ fn uncertainty_arrays(
         (Some(c), Some(j), Some(p)) => Ok(Some((c, Some((j, p))))),
         (None, _, _) => Err(invalid("point_covariances", "required when pose_jacobians / pose_covariances are given")),
         _ => Err(invalid("pose_covariances", "pose_jacobians and pose_covariances go together")),
+    }
+}
+
+/// The arrays of one `solve_pnp` call, converted and checked for shape (in the order the
+/// arguments are named: intrinsics, points3d, pixels, init_pose).
+struct PnpInputs {
+    camera: Camera,
+    points: Vec<Vector3<f64>>,
+    pixels: Vec<Vector2<f64>>,
+    init: Option<geoloc_core::lie::SE3>,
+}
+
+impl PnpInputs {
+    fn read(
+        intrinsics: (f64, f64, f64, f64),
+        points3d: &PyReadonlyArray2<'_, f64>,
+        pixels: &PyReadonlyArray2<'_, f64>,
+        init_pose: Option<&PyReadonlyArray2<'_, f64>>,
+    ) -> PyResult<Self> {
+        let (camera, points, pixels) =
+            (camera(intrinsics)?, vectors3("points3d", points3d)?, vectors2("pixels", pixels)?);
+        let init = init_pose.map(|p| one_pose("init_pose", p)).transpose()?;
+        Ok(Self { camera, points, pixels, init })
+    }
+
+    /// The core solve with the uncertainty arrays and per-correspondence σ scales, if given.
+    fn solve(
+        &self,
+        unc: Option<&Uncertainty>,
+        sigmas: Option<&[f64]>,
+        options: &PnpOptions,
+    ) -> geoloc_core::Result<PnpResult> {
+        let shared =
+            unc.and_then(|(_, s)| s.as_ref()).map(|(j, c)| SharedPoseUncertainty { jacobians: j, pose_covariances: c });
+        let uncertainty = unc.map(|(c, _)| PointUncertainty { covariances: c, shared });
+        let (cam, init) = (&self.camera, self.init.as_ref());
+        solve_pnp_with_pixel_sigmas(cam, &self.points, &self.pixels, sigmas, init, uncertainty.as_ref(), options)
     }
 }
 
@@ -310,41 +366,20 @@ pub fn solve_pnp<'py>(
     confidence: f64,
     seed: Option<Bound<'py, PyAny>>,
 ) -> PyResult<PnPResult> {
-    let (cam, points, pixels) = (camera(intrinsics)?, vectors3("points3d", &points3d)?, vectors2("pixels", &pixels)?);
-    let init = init_pose.as_ref().map(|p| one_pose("init_pose", p)).transpose()?;
-    if ransac == Some(false) && init.is_none() {
-        return Err(invalid("init_pose", "required when ransac=False"));
-    }
-    let ransac_with_init = ransac == Some(true) && init.is_some();
-    let unc = uncertainty_arrays(point_covariances.as_ref(), point_pose_jacobians.as_ref(), pose_covariances.as_ref())?;
-    let sigmas = pixel_sigmas
-        .as_ref()
-        .map(|s| s.as_slice().map_err(|_| invalid("pixel_sigmas", "must be contiguous")))
-        .transpose()?;
-    let (min_iterations, max_iterations, seed) = (min_iterations.as_ref(), max_iterations.as_ref(), seed.as_ref());
-    let keywords = PnpKeywords {
-        loss,
-        huber,
-        pixel_sigma,
-        max_residual,
-        covariance,
-        ransac_with_init,
-        min_iterations,
-        max_iterations,
+    let inputs = PnpInputs::read(intrinsics, &points3d, &pixels, init_pose.as_ref())?;
+    let ransac = RansacKeywords {
+        ransac,
+        min_iterations: min_iterations.as_ref(),
+        max_iterations: max_iterations.as_ref(),
         confidence,
-        seed,
+        seed: seed.as_ref(),
     };
-    let options = keywords.options()?;
-    let inner = py
-        .detach(|| {
-            let shared = unc
-                .as_ref()
-                .and_then(|(_, s)| s.as_ref())
-                .map(|(j, c)| SharedPoseUncertainty { jacobians: j, pose_covariances: c });
-            let uncertainty = unc.as_ref().map(|(c, _)| PointUncertainty { covariances: c, shared });
-            solve_pnp_with_pixel_sigmas(&cam, &points, &pixels, sigmas, init.as_ref(), uncertainty.as_ref(), &options)
-        })
-        .map_err(to_py_err)?;
+    ransac.check(inputs.init.is_some())?;
+    let unc = uncertainty_arrays(point_covariances.as_ref(), point_pose_jacobians.as_ref(), pose_covariances.as_ref())?;
+    let sigmas = contiguous("pixel_sigmas", pixel_sigmas.as_ref())?;
+    let keywords = PnpKeywords { loss, huber, pixel_sigma, max_residual, covariance, ransac };
+    let options = keywords.options(inputs.init.is_some())?;
+    let inner = py.detach(|| inputs.solve(unc.as_ref(), sigmas, &options)).map_err(to_py_err)?;
     Ok(PnPResult { inner })
 }
 

@@ -13,6 +13,7 @@ mod localizer;
 mod matching;
 mod options;
 mod retrieval;
+mod stats;
 mod temporal;
 
 use pyo3::prelude::*;
@@ -32,5 +33,6 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     localizer::register(m)?;
     frames::register(m)?;
     options::register(m)?;
+    stats::register(m)?;
     Ok(())
 }

@@ -5,9 +5,8 @@ use nalgebra::Vector6;
 
 use super::LabelSigma;
 use crate::lie::{SE3, se3};
-
-/// The median of the χ²₃ distribution: median(‖e‖²/σ²) of a 3-D isotropic Gaussian.
-const CHI2_3_MEDIAN: f64 = 2.365_973_884_375_61;
+use crate::stats::chi2::CHI2_3_MEDIAN;
+use crate::stats::{EvenMedian, median};
 
 /// Smallest estimated label σ (1 mm, 0.05°): labels that agree with the images to the
 /// last bit still get a finite prior.
@@ -24,10 +23,7 @@ pub(super) fn estimate_label_sigma(labels: &[SE3], adjusted: &[SE3]) -> LabelSig
             (se3::rho(&e).norm_squared(), se3::phi(&e).norm_squared())
         })
         .unzip();
-    let median = |v: &mut Vec<f64>| {
-        v.sort_by(f64::total_cmp);
-        v[v.len() / 2]
-    };
+    let median = |v: &mut [f64]| median(v, EvenMedian::Upper).expect("invariant: one correction per label");
     LabelSigma {
         translation_m: (median(&mut t) / CHI2_3_MEDIAN).sqrt().max(MIN_LABEL_SIGMA.translation_m),
         rotation_rad: (median(&mut r) / CHI2_3_MEDIAN).sqrt().max(MIN_LABEL_SIGMA.rotation_rad),

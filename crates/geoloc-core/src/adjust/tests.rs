@@ -45,8 +45,7 @@ fn pose_error(a: &SE3, b: &SE3) -> (f64, f64) {
 }
 
 fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
+    crate::stats::median(&mut v, crate::stats::EvenMedian::Upper).expect("not empty")
 }
 
 /// The residual's Jacobians against central differences of the whitened residual.
@@ -291,7 +290,7 @@ fn covariances_cover_the_error() {
             let e = (estimate.inverse() * truth).log();
             let m = (e.transpose() * covariance.try_inverse().expect("SPD") * e)[0];
             nees.push(m);
-            inside += usize::from(m < 12.59);
+            inside += usize::from(m < crate::stats::chi2::CHI2_6_95);
             total += 1;
         }
     }

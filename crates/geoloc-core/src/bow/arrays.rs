@@ -12,7 +12,7 @@
 //! the file says; a crafted chain of 200 000 nodes (one descent of 200 000 distances per
 //! descriptor) is refused in one pass over the offsets, before any node is built.
 
-use super::{Child, MAX_BRANCHING, MAX_DEPTH, MAX_WORDS, Node, Vocabulary};
+use super::vocabulary::{Child, MAX_BRANCHING, MAX_DEPTH, MAX_WORDS, Node, Vocabulary};
 use crate::error::{GeolocError, Result};
 use crate::matching::DescriptorSet;
 

@@ -356,8 +356,7 @@ mod scene_tests {
     }
 
     fn median(mut v: Vec<f64>) -> f64 {
-        v.sort_by(f64::total_cmp);
-        v[v.len() / 2]
+        crate::stats::median(&mut v, crate::stats::EvenMedian::Upper).expect("not empty")
     }
 
     /// On the synthetic scene the model locator is at least as accurate as the paper's, with

@@ -17,7 +17,7 @@ use crate::camera::Camera;
 use crate::error::{GeolocError, Result};
 use crate::keyframes::{KeyframeOptions, select_keyframes};
 use crate::lie::SE3;
-use crate::matching::{MatchOptions, epipolar_filter, match_descriptors};
+use crate::matching::{Match, MatchOptions, epipolar_filter, match_descriptors};
 
 /// Seeds below which the preparation stays on the calling thread.
 const PARALLEL_MIN_SEEDS: usize = 8;
@@ -42,13 +42,30 @@ pub fn pair_matches(
     epipolar_px: f64,
 ) -> Result<Vec<(usize, usize)>> {
     let matches = match_descriptors(&seed.descriptors.view(), &g.descriptors.view(), matching)?;
+    epipolar_checked(camera, seed, g, &matches, epipolar_px)
+}
+
+/// (keypoint in `a`, keypoint in `b`) of the descriptor `matches` between two keyframes that
+/// pass the epipolar check with their known poses ([`epipolar_filter`], Sampson distance ≤
+/// `epipolar_px`), in the matches' order: the one keyframe-pair check of the paper's locator
+/// ([`pair_matches`]) and of the map-level model ([`super::SceneModel`]).
+///
+/// # Errors
+/// A bad threshold; match indices beyond the keypoints.
+pub fn epipolar_checked(
+    camera: &Camera,
+    a: &Keyframe,
+    b: &Keyframe,
+    matches: &[Match],
+    epipolar_px: f64,
+) -> Result<Vec<(usize, usize)>> {
     let keep = epipolar_filter(
         camera,
-        &seed.world_from_cam,
-        &g.world_from_cam,
-        &seed.keypoints,
-        &g.keypoints,
-        &matches,
+        &a.world_from_cam,
+        &b.world_from_cam,
+        &a.keypoints,
+        &b.keypoints,
+        matches,
         epipolar_px,
     )?;
     Ok(matches.iter().zip(keep).filter(|(_, k)| *k).map(|(m, _)| (m.a, m.b)).collect())

@@ -11,9 +11,11 @@ use nalgebra::{Matrix6, Vector6};
 
 use crate::adjust::{Adjustment, LabelSigma, correction};
 use crate::lie::{SE3, se3};
+use crate::stats::chi2::CHI2_6_999;
+use crate::stats::{EvenMedian, median};
 
 /// χ²₆ 99.9 % quantile: a correction beyond it is significant.
-pub const SIGNIFICANT_CORRECTION_CHI2: f64 = 22.457_744_484_825_32;
+pub const SIGNIFICANT_CORRECTION_CHI2: f64 = CHI2_6_999;
 
 /// Fewest consecutive keyframes with significant corrections that make a run.
 pub const MIN_RUN_LENGTH: usize = 3;
@@ -212,10 +214,7 @@ impl LabelAdjustment {
 
     /// Median translation (m) and rotation (rad) corrections over the keyframes.
     pub fn median_correction(&self) -> (f64, f64) {
-        let median = |mut v: Vec<f64>| {
-            v.sort_by(f64::total_cmp);
-            v.get(v.len() / 2).copied().unwrap_or(0.0)
-        };
+        let median = |mut v: Vec<f64>| median(&mut v, EvenMedian::Upper).unwrap_or(0.0);
         (
             median(self.corrections.iter().map(|e| se3::rho(e).norm()).collect()),
             median(self.corrections.iter().map(|e| se3::phi(e).norm()).collect()),

@@ -8,7 +8,7 @@
 //!    the first `neighbours` of them; the pairs (min, max) of all keyframes, sorted, deduplicated.
 //! 2. **Matches** of each pair: mutual ratio matching of the local descriptors
 //!    ([`match_descriptors`]), then the Sampson check against the epipolar geometry of the two
-//!    known poses ([`epipolar_filter`], `epipolar_px`) — the localizer's own keyframe check.
+//!    known poses ([`epipolar_checked`], `epipolar_px`) — the localizer's own keyframe check.
 //! 3. **Tracks** by union-find over the global keypoint index g = offset_k + i, pairs in
 //!    order, the larger root joining the smaller (so a track's root is its smallest g);
 //!    tracks are numbered by root. A track with two observations in one keyframe (matching
@@ -29,10 +29,11 @@
 use nalgebra::{Matrix3, Vector2, Vector3};
 
 use super::Keyframe;
+use super::group_matches::epipolar_checked;
 use crate::camera::Camera;
 use crate::error::{GeolocError, Result};
 use crate::lie::SE3;
-use crate::matching::{DescriptorSet, Match, MatchOptions, epipolar_filter, match_descriptors};
+use crate::matching::{DescriptorSet, Match, MatchOptions, match_descriptors};
 use crate::parallel::{map_indices, map_slice};
 use crate::triangulate::{TrackStatus, TriangulationOptions, triangulate};
 
@@ -371,17 +372,7 @@ fn epipolar_matches(
 ) -> Result<Vec<Vec<(usize, usize)>>> {
     let jobs: Vec<(&(usize, usize), &Vec<Match>)> = pair_matches.pairs.iter().zip(&pair_matches.matches).collect();
     map_slice(&jobs, 2, |&(&(a, b), matches)| {
-        let (ka, kb) = (&keyframes[a], &keyframes[b]);
-        let keep = epipolar_filter(
-            camera,
-            &ka.world_from_cam,
-            &kb.world_from_cam,
-            &ka.keypoints,
-            &kb.keypoints,
-            matches,
-            options.epipolar_px,
-        )?;
-        Ok(matches.iter().zip(keep).filter(|(_, k)| *k).map(|(m, _)| (m.a, m.b)).collect())
+        epipolar_checked(camera, &keyframes[a], &keyframes[b], matches, options.epipolar_px)
     })
     .into_iter()
     .collect()
@@ -562,11 +553,13 @@ mod tests {
         errors.sort_by(f64::total_cmp);
         assert!(errors[errors.len() / 2] < 0.01, "median {}", errors[errors.len() / 2]);
         // Σ_X covers the error: (X − X_true)ᵀ Σ_X⁻¹ (X − X_true) below the χ²₃ 99.9 % quantile
-        // (16.27) for ≥ 98 % of points (σ = 1 px assumed, 0.5 px simulated).
+        // for ≥ 98 % of points (σ = 1 px assumed, 0.5 px simulated).
         let covered = (0..model.len())
             .filter(|&p| {
                 let e = model.points[p] - truth[p];
-                model.covariances[p].try_inverse().is_some_and(|i| (e.transpose() * i * e)[0] < 16.27)
+                model.covariances[p]
+                    .try_inverse()
+                    .is_some_and(|i| (e.transpose() * i * e)[0] < crate::stats::chi2::CHI2_3_999)
             })
             .count();
         assert!(covered as f64 >= 0.98 * model.len() as f64, "{covered} of {}", model.len());

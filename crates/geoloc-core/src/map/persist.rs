@@ -44,7 +44,7 @@ use crate::error::{GeolocError, Result};
 use crate::lie::SE3;
 use crate::matching::DescriptorSet;
 use crate::motion::VelocityPrior;
-use crate::optim::covariance::check_covariances;
+use crate::optim::covariance::{check_covariance, check_covariances};
 use crate::retrieval::DescriptorIndex;
 use crate::selfcal::{IntrinsicsCorrection, SelfCalibration};
 
@@ -186,7 +186,7 @@ impl LabelsHeader {
         let offset = SE3::from_matrix(&Matrix4::from_row_slice(&self.label_from_cam))
             .map_err(|e| format_error(format!("labels.label_from_cam is not a rigid transform: {e}")))?;
         let offset_covariance = Matrix6::from_row_slice(&self.label_from_cam_covariance);
-        super::check_covariance("labels.label_from_cam_covariance", &offset_covariance).map_err(as_format)?;
+        check_covariance("labels.label_from_cam_covariance", &offset_covariance).map_err(as_format)?;
         let [t, r] = self.label_sigma;
         if !(t.is_finite() && t > 0.0 && r.is_finite() && r > 0.0) {
             return Err(format_error("labels.label_sigma: must be finite and > 0"));
@@ -347,7 +347,7 @@ impl NoiseHeader {
             return Err(format_error("map_noise: expected 36 pose_covariance and 6 acceleration_psd values"));
         }
         let c = Matrix6::from_row_slice(&self.pose_covariance);
-        super::check_covariance("map_noise.pose_covariance", &c).map_err(as_format)?;
+        check_covariance("map_noise.pose_covariance", &c).map_err(as_format)?;
         let q = Vector6::from_column_slice(&self.acceleration_psd);
         if q.iter().any(|v| !(v.is_finite() && *v >= 0.0)) {
             return Err(format_error("map_noise.acceleration_psd: must be finite and ≥ 0"));

@@ -21,6 +21,9 @@ pub const MIN_RECIPROCAL_CONDITION: f64 = 1e-12;
 
 /// Checks that `m` is a covariance: finite, symmetric (|M − Mᵀ| ≤ 1e-9·max|M|) and positive
 /// semi-definite (λ_min ≥ −1e-9·max|λ|). A zero matrix (an exact quantity) passes.
+/// The one covariance check of the crate (map building and map files, PnP, triangulation,
+/// the motion model, fusion). The eigenvalue tolerance is relative to the spectral radius
+/// max|λ| — the scale of the eigensolver's rounding — not to the largest entry.
 ///
 /// # Errors
 /// [`GeolocError::NonFinite`] (index = flat row-major position of the first bad value) or

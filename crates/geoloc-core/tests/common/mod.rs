@@ -48,8 +48,9 @@ pub fn relative_error<const R: usize, const C: usize>(a: &SMatrix<f64, R, C>, b:
 
 use geoloc_core::camera::{Camera, project};
 use geoloc_core::lie::SE3;
+use geoloc_core::stats::chi2::CHI2_6_95;
 use geoloc_core::testing::SplitMix64;
-use nalgebra::{Vector2, Vector3};
+use nalgebra::{Matrix6, Vector2, Vector3, Vector6};
 
 pub use geoloc_core::testing::look_at;
 
@@ -76,6 +77,64 @@ pub fn observe(rng: &mut SplitMix64, camera: &Camera, pose: &SE3, x: &Vector3<f6
     project(camera, pose, x).uv + Vector2::new(rng.normal(), rng.normal()) * sigma
 }
 
-/// χ² quantiles at 95 %.
-pub const CHI2_95_DOF3: f64 = 7.814_727_903_251_178;
-pub const CHI2_95_DOF6: f64 = 12.591_587_243_743_977;
+/// One Monte-Carlo trial's pose: the truth, the estimate (world_from_cam) and its 6×6
+/// covariance (right perturbation, translation first).
+pub struct Sample {
+    pub truth: SE3,
+    pub estimate: SE3,
+    pub covariance: Matrix6<f64>,
+}
+
+impl Sample {
+    /// The error e = log(T_true⁻¹ T_est)^∨ in the covariance's tangent space.
+    pub fn error(&self) -> Vector6<f64> {
+        (self.truth.inverse() * self.estimate).log()
+    }
+}
+
+/// The Monte-Carlo harness of the pose-covariance tests: `trials` trials drawn from one
+/// generator seeded `seed`, and how often the truth falls inside the 95 % regions of the
+/// returned covariance — the 6-DoF NEES eᵀC⁻¹e ≤ χ²₆(0.95) and per axis |e_a| ≤ 1.96 √C_aa —
+/// with the squared position errors ‖t_est − t_true‖² for the RMS.
+#[derive(Debug, Default)]
+pub struct Coverage {
+    /// Trials that gave a pose (a trial returning None is not counted).
+    pub trials: usize,
+    pub nees_inside: usize,
+    pub axis_inside: [usize; 6],
+    pub sum_sq_position_m2: f64,
+}
+
+impl Coverage {
+    pub fn run(seed: u64, trials: usize, mut trial: impl FnMut(&mut SplitMix64) -> Option<Sample>) -> Self {
+        let mut rng = SplitMix64::new(seed);
+        let mut out = Self::default();
+        for _ in 0..trials {
+            let Some(sample) = trial(&mut rng) else { continue };
+            let (e, cov) = (sample.error(), sample.covariance);
+            out.trials += 1;
+            let c_inv = cov.try_inverse().expect("spd");
+            out.nees_inside += usize::from((e.transpose() * c_inv * e)[0] <= CHI2_6_95);
+            for i in 0..6 {
+                out.axis_inside[i] += usize::from(e[i].abs() <= 1.96 * cov[(i, i)].sqrt());
+            }
+            out.sum_sq_position_m2 += (sample.estimate.translation - sample.truth.translation).norm_squared();
+        }
+        out
+    }
+
+    /// Share of trials with NEES ≤ χ²₆(0.95).
+    pub fn nees(&self) -> f64 {
+        self.nees_inside as f64 / self.trials as f64
+    }
+
+    /// Share of trials inside the 95 % interval, per axis.
+    pub fn axes(&self) -> [f64; 6] {
+        self.axis_inside.map(|a| a as f64 / self.trials as f64)
+    }
+
+    /// RMS position error (m).
+    pub fn rms_position_m(&self) -> f64 {
+        (self.sum_sq_position_m2 / self.trials as f64).sqrt()
+    }
+}

@@ -1,4 +1,4 @@
-//! The map's own noise, estimated when it is built: the map-frame covariance
+//! The map's own noise, estimated when it is built ([`Map::with_estimated_noise`]): the map-frame covariance
 //! C_map from held-out keyframes re-localized against the rest of the map, and the
 //! acceleration process noise from the keyframes' timestamps and poses.
 //!
@@ -35,11 +35,9 @@ use std::sync::Arc;
 
 use nalgebra::{Matrix6, Vector6};
 
-use super::{Estimate, Frame, Localizer, LocalizerOptions, Locator, Timings};
+use super::{HoldoutSample, Map, MapNoise};
 use crate::error::{GeolocError, Result};
-use crate::keyframes::select_keyframes;
-use crate::lie::SE3;
-use crate::map::{HoldoutSample, Map, MapNoise};
+use crate::localizer::{Localizer, LocalizerOptions, Locator};
 use crate::motion::{VelocityPrior, estimate_acceleration_psd, estimate_velocity_prior};
 
 /// Fewest held-out samples for a C_map estimate (below: [`default_map_covariance`];
@@ -129,7 +127,7 @@ impl Map {
             let localizer =
                 LocalizerOptions { locator: options.locator.unwrap_or(default_locator), ..options.localizer };
             let mut loc = Localizer::new(Arc::clone(&map), localizer)?;
-            holdout_residuals(&mut loc, options)?
+            holdout_residuals(&map, &mut loc, options)?
         };
         let mut map = Arc::try_unwrap(map).map_err(|_| GeolocError::invalid("map", "is shared"))?;
         let mut holdout = samples;
@@ -144,8 +142,8 @@ impl Map {
 }
 
 /// (k, δ_k, C_G,k) of every held-out keyframe the locator placed within the gross-failure bounds.
-fn holdout_residuals(loc: &mut Localizer, options: &NoiseOptions) -> Result<Vec<HoldoutSample>> {
-    let n = loc.map.keyframes.len();
+fn holdout_residuals(map: &Map, loc: &mut Localizer, options: &NoiseOptions) -> Result<Vec<HoldoutSample>> {
+    let n = map.keyframes.len();
     let block = options.block.min(n / 4).max(1);
     let mut samples = Vec::new();
     for k in (options.holdout_step / 2..n).step_by(options.holdout_step) {
@@ -155,7 +153,7 @@ fn holdout_residuals(loc: &mut Localizer, options: &NoiseOptions) -> Result<Vec<
             continue; // a map this small has nothing to re-localize against
         }
         let Some(estimate) = loc.localize_held_out(k, excluded)? else { continue };
-        let delta = (loc.map.keyframes[k].world_from_cam.inverse() * estimate.world_from_cam).log();
+        let delta = (map.keyframes[k].world_from_cam.inverse() * estimate.world_from_cam).log();
         let rotation = delta.fixed_rows::<3>(3).norm();
         if delta.fixed_rows::<3>(0).norm() <= options.max_error_m && rotation <= options.max_error_rad {
             samples.push(HoldoutSample { keyframe: k, delta, covariance: estimate.covariance, used: false });
@@ -181,37 +179,6 @@ fn map_covariance(samples: &[HoldoutSample]) -> (Matrix6<f64>, Vec<bool>) {
     let excess = (second - measured) / n;
     let diagonal = Matrix6::from_diagonal(&excess.diagonal().map(|v| v.max(0.0)));
     (diagonal * (n / (n - 7.0)), vec![true; samples.len()])
-}
-
-impl Localizer {
-    /// The geometric pose of keyframe `k`'s own features against the map without the
-    /// keyframes in `excluded` (retrieval and the keyframe group skip them); None when the
-    /// locator fails. The model locator uses no point that an excluded keyframe observes.
-    pub(super) fn localize_held_out(&mut self, k: usize, excluded: std::ops::Range<usize>) -> Result<Option<Estimate>> {
-        let map = Arc::clone(&self.map);
-        let kf = &map.keyframes[k];
-        let descriptors = kf.descriptors.view();
-        let frame = Frame {
-            timestamp: 0.0,
-            keypoints: &kf.keypoints,
-            descriptors,
-            global: kf.global.as_deref(),
-            pixel_sigmas: None,
-        };
-        if self.options.locator == Locator::Model {
-            let (_, pose, _) = self.model_pose(&frame, excluded, &mut Timings::default())?;
-            return Ok(pose.ok());
-        }
-        let seed = map.retrieve_excluding(&descriptors, kf.global.as_deref(), excluded.clone())?;
-        let allowed: Vec<usize> = (0..map.keyframes.len()).filter(|i| !excluded.contains(i)).collect();
-        let poses: Vec<SE3> = allowed.iter().map(|&i| map.keyframes[i].world_from_cam).collect();
-        let local = allowed.iter().position(|&i| i == seed).expect("invariant: retrieval skips the excluded");
-        let group: Vec<usize> =
-            select_keyframes(&poses, local, &self.options.keyframes)?.into_iter().map(|j| allowed[j]).collect();
-        let points = self.map_points(seed, &group)?;
-        let (pose, _) = self.geometric_pose(&frame, seed, &points, group.len(), &mut Timings::default())?;
-        Ok(pose.ok())
-    }
 }
 
 #[cfg(test)]
