@@ -129,6 +129,9 @@ def test_the_cli_leaves_unset_options_to_the_core(tmp_path: Path) -> None:
     assert parser.parse_args(["build-map", "--format", "synthetic", "--out", "m.geoloc", "--keep-labels", "--nominal-intrinsics"]).adjust_labels is False
     localize = parser.parse_args(["localize", "--map", str(tmp_path / "m.geoloc"), "--format", "synthetic", "--out", "p.txt"])
     assert localize.locator is None
+    # the Python side's own defaults (features are extracted in Python) are Map.build's
+    signature = inspect.signature(geoloc.Map.build).parameters
+    assert (build.features, build.n_features) == (signature["features"].default, signature["n_features"].default)
 
 
 def test_the_former_names_work_and_warn(room: tuple[datasets.Sequence, datasets.Sequence], tmp_path: Path) -> None:

@@ -58,10 +58,14 @@ def _example(*lines: str) -> str:
 
 
 def _feature_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--features", choices=("orb", "sift"), default="orb", help="local features (default: orb)")
+    from .features import DEFAULT_KIND, DEFAULT_N_FEATURES
+
     parser.add_argument(
-        "--n-features", type=bounded_int(50, MAX_FEATURES), default=1000, metavar="N",
-        help="features per image (default: 1000)",
+        "--features", choices=("orb", "sift"), default=DEFAULT_KIND, help=f"local features (default: {DEFAULT_KIND})"
+    )
+    parser.add_argument(
+        "--n-features", type=bounded_int(50, MAX_FEATURES), default=DEFAULT_N_FEATURES, metavar="N",
+        help=f"features per image (default: {DEFAULT_N_FEATURES})",
     )
     parser.add_argument(
         "--retrieval", type=retrieval, default="bow", metavar="bow|MODEL.onnx",

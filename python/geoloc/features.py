@@ -41,6 +41,11 @@ from .exceptions import InvalidInputError
 
 __all__ = ["FeatureExtractor", "Features", "decode_sift_octave"]
 
+#: The feature kind and the features per image a map uses unless told otherwise (the
+#: Python side's defaults: features are extracted here, not in the core).
+DEFAULT_KIND: Literal["orb", "sift"] = "orb"
+DEFAULT_N_FEATURES = 1000
+
 ORB_SCALE_FACTOR = 1.2
 ORB_LEVELS = 8
 SIFT_OCTAVE_LAYERS = 3
@@ -92,7 +97,9 @@ class FeatureExtractor:
     """``FeatureExtractor(kind="orb"|"sift", n_features=1000, root_sift=False)(image, camera)``
     → :class:`Features`. ``image``: (H, W) gray or (H, W, 3) BGR uint8 of the camera's size."""
 
-    def __init__(self, kind: Literal["orb", "sift"] = "orb", n_features: int = 1000, root_sift: bool = False) -> None:
+    def __init__(
+        self, kind: Literal["orb", "sift"] = DEFAULT_KIND, n_features: int = DEFAULT_N_FEATURES, root_sift: bool = False
+    ) -> None:
         if kind not in ("orb", "sift"):
             raise InvalidInputError(f"kind: expected 'orb' or 'sift', got {kind!r}")
         if not isinstance(n_features, (int, np.integer)) or isinstance(n_features, bool) or n_features < 1:

@@ -28,7 +28,7 @@ from ._io import shown
 from ._validation import as_batch, as_float64, choice, given_options, keypoint_rows
 from .camera import Camera
 from .exceptions import FileAccessError, InvalidInputError
-from .features import FeatureExtractor
+from .features import DEFAULT_KIND, DEFAULT_N_FEATURES, FeatureExtractor
 from .retrieval import _f32_rows, _local_descriptors
 
 __all__ = ["GlobalDescriptor", "INTRINSICS_MODELS", "Map"]
@@ -165,9 +165,9 @@ class Map:
         cls,
         sequence: Any,
         retrieval: str | GlobalDescriptor = "bow",
-        features: str = "orb",
+        features: str = DEFAULT_KIND,
         *,
-        n_features: int = 1000,
+        n_features: int = DEFAULT_N_FEATURES,
         root_sift: bool = False,
         keyframe_step: int = 1,
         branching: int | None = None,

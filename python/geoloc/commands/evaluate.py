@@ -24,6 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..exceptions import DatasetError, InvalidInputError
+from ..features import DEFAULT_KIND, DEFAULT_N_FEATURES
 from ._common import (
     FrameRange,
     MAP_DONE,
@@ -131,8 +132,8 @@ def evaluate_split(
     test: FrameRange,
     modes: tuple[str, ...],
     *,
-    features: str = "orb",
-    n_features: int = 1000,
+    features: str = DEFAULT_KIND,
+    n_features: int = DEFAULT_N_FEATURES,
     retrieval: str = "bow",
     options: tuple[str, str] = ("--train", "--test"),
     locator: str | None = None,
