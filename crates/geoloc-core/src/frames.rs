@@ -456,12 +456,59 @@ pub fn write_json_record(out: &mut impl Write, record: &FrameRecord, index: usiz
     writeln!(out, "{line}").map_err(io_error)
 }
 
+/// The longest line of a JSON-lines frame stream (256 MiB): far above a frame of
+/// [`MAX_KEYPOINTS`] binary descriptors, and a bound on what one line may allocate (a stream
+/// without newlines is refused, not read into memory whole). Larger frames: the binary format.
+pub const MAX_JSON_LINE_BYTES: usize = 256 << 20;
+
+/// The lines of `input`, each at most `max` bytes long (without its `\n` / `\r\n`); a longer
+/// line is an error and ends the iteration, having read at most `max + 2` bytes of it.
+struct BoundedLines<R> {
+    input: R,
+    max: usize,
+    done: bool,
+}
+
+impl<R: BufRead> Iterator for BoundedLines<R> {
+    type Item = std::io::Result<String>;
+
+    fn next(&mut self) -> Option<Self::Item> {
+        if self.done {
+            return None;
+        }
+        let mut buf = Vec::new();
+        let limit = self.max as u64 + 2; // the line and its "\r\n"
+        match self.input.by_ref().take(limit).read_until(b'\n', &mut buf) {
+            Err(e) => {
+                self.done = true;
+                Some(Err(e))
+            }
+            Ok(0) => None,
+            Ok(_) => {
+                let ended = buf.last() == Some(&b'\n');
+                if ended {
+                    buf.pop();
+                    if buf.last() == Some(&b'\r') {
+                        buf.pop();
+                    }
+                }
+                if buf.len() > self.max || (!ended && buf.len() as u64 == limit) {
+                    self.done = true;
+                    let message = format!("a line longer than {} bytes (use the binary format)", self.max);
+                    return Some(Err(std::io::Error::new(std::io::ErrorKind::InvalidData, message)));
+                }
+                Some(String::from_utf8(buf).map_err(|e| std::io::Error::new(std::io::ErrorKind::InvalidData, e)))
+            }
+        }
+    }
+}
+
 /// Reads a JSON-lines frame stream (header line first).
 ///
 /// # Errors
 /// `Format` naming the frame index (or the header) for malformed lines or invalid records.
 pub fn read_json_records(input: impl BufRead) -> impl Iterator<Item = Result<FrameRecord>> {
-    let mut lines = input.lines().enumerate();
+    let mut lines = BoundedLines { input, max: MAX_JSON_LINE_BYTES, done: false }.enumerate();
     let header = match lines.next() {
         None => Err(GeolocError::Format { reason: "empty JSON frame stream (no header line)".into() }),
         Some((_, line)) => line.map_err(io_error).and_then(|l| check_json_header(&l)),
@@ -674,6 +721,40 @@ mod tests {
         let err = FrameReader::new(&mut counted).expect("header intact").next_record().expect_err("truncated");
         assert_eq!(err.to_string(), format!("frame 0: truncated record (24 of {len} payload bytes)"));
         assert!(counted.largest_buffer <= READ_CHUNK_BYTES, "asked to fill {} bytes", counted.largest_buffer);
+    }
+
+    /// Bounded lines are std's `lines()` for every input whose lines fit (LF, CRLF, a last
+    /// line without newline, blank lines, invalid UTF-8), across the bound's edges.
+    #[test]
+    fn bounded_lines_match_std_lines_below_the_bound() {
+        let inputs: [&[u8]; 8] =
+            [b"", b"a", b"a\n", b"a\r\nbb\n\nccc", b"\n\n", b"abcd\nabcde\r\n", b"ab\xffc\nok\n", b"\r\n"];
+        for input in inputs {
+            let ours: Vec<_> = BoundedLines { input, max: 5, done: false }.map(|l| l.map_err(|e| e.kind())).collect();
+            let std: Vec<_> = input.lines().map(|l| l.map_err(|e| e.kind())).collect();
+            assert_eq!(ours, std, "{:?}", String::from_utf8_lossy(input));
+        }
+    }
+
+    /// A line over the bound is refused after reading at most bound + 2 bytes of it, with or
+    /// without a newline; exactly the bound (with CRLF) is read.
+    #[test]
+    fn a_line_over_the_bound_is_refused_without_reading_it_whole() {
+        let exact = b"12345\r\nnext";
+        let lines: Vec<_> = BoundedLines { input: exact.as_slice(), max: 5, done: false }.collect();
+        assert_eq!(lines.into_iter().map(|l| l.expect("fits")).collect::<Vec<_>>(), ["12345", "next"]);
+        for input in [b"123456\n".as_slice(), b"1234567890".as_slice(), b"123456".as_slice()] {
+            let mut counted = CountingReader { input, largest_buffer: 0 };
+            let mut lines =
+                BoundedLines { input: std::io::BufReader::with_capacity(4, &mut counted), max: 5, done: false };
+            let err = lines.next().expect("one item").expect_err("too long");
+            assert!(err.to_string().contains("longer than 5 bytes"), "{err}");
+            assert!(lines.next().is_none());
+        }
+        // an endless stream without a newline: refused at the bound, not read forever
+        let endless = std::io::BufReader::new(std::io::repeat(b'x'));
+        let err = read_json_records(endless).next().expect("one item").expect_err("endless header");
+        assert!(err.to_string().contains(&format!("longer than {MAX_JSON_LINE_BYTES} bytes")), "{err}");
     }
 
     /// A reader that records the largest buffer it was asked to fill.
