@@ -206,7 +206,21 @@ pub fn check_regular_file(path: &Path, what: &str) -> Result<fs::Metadata> {
 /// As [`check_regular_file`]; `Io` naming `path` when opening fails.
 pub fn open_regular(path: &Path, what: &str) -> Result<(File, u64)> {
     check_regular_file(path, what)?;
-    let file = File::open(path).map_err(|e| io_error(path, &format!("cannot open {what}"), &e))?;
+    open_checked(path, what)
+}
+
+/// Opens `path` for reading without blocking (O_NONBLOCK on Unix: a FIFO put at `path` after
+/// the check opens at once instead of waiting for a writer; it has no effect on a regular
+/// file's reads) and checks that the opened file is a regular file.
+fn open_checked(path: &Path, what: &str) -> Result<(File, u64)> {
+    let mut options = fs::OpenOptions::new();
+    options.read(true);
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::OpenOptionsExt;
+        options.custom_flags(libc::O_NONBLOCK);
+    }
+    let file = options.open(path).map_err(|e| io_error(path, &format!("cannot open {what}"), &e))?;
     let meta = file.metadata().map_err(|e| io_error(path, &format!("cannot read {what}"), &e))?;
     if !meta.is_file() {
         return Err(GeolocError::Io {
@@ -399,6 +413,26 @@ mod tests {
         let file = dir.join("plain");
         fs::write(&file, b"12345").expect("writes");
         assert_eq!(open_regular(&file, "the file").expect("a regular file opens").1, 5);
+        assert_eq!(open_checked(&file, "the file").expect("opens").1, 5);
+        fs::remove_dir_all(&dir).expect("cleanup");
+    }
+
+    /// A path swapped for a FIFO after the check (here: opened with no check at all) is
+    /// opened without blocking and refused; a blocking open would wait for a writer forever.
+    #[test]
+    fn a_fifo_swapped_in_after_the_check_does_not_block() {
+        let dir = temp_dir("swapped");
+        let fifo = dir.join("pipe");
+        if Command::new("mkfifo").arg(&fifo).status().is_ok_and(|s| s.success()) {
+            let (sender, receiver) = std::sync::mpsc::channel();
+            let path = fifo.clone();
+            std::thread::spawn(move || {
+                sender.send(open_checked(&path, "the map").map(|_| ()).map_err(|e| e.to_string()))
+            });
+            let result = receiver.recv_timeout(std::time::Duration::from_secs(10)).expect("the open returned");
+            let err = result.expect_err("a FIFO is refused");
+            assert!(err.contains("not a regular file (a FIFO)") && err.contains("pipe"), "{err}");
+        }
         fs::remove_dir_all(&dir).expect("cleanup");
     }
 }
