@@ -93,8 +93,8 @@ def run_fold(
     t0 = time.perf_counter()
     the_map = Map.from_features(
         seq.camera, poses[train], [kps[i] for i in train], [descs[i] for i in train],
-        refine_intrinsics=refine, model=True,
-    , estimate_noise=False, adjust_labels=False)
+        refine_intrinsics=refine, model=True, estimate_noise=False, adjust_labels=False,
+    )
     map_build_s = time.perf_counter() - t0
     localizers = {locator: Localizer(the_map, locator=locator) for locator in ("paper", "model")}
     out: dict[str, Any] = {
