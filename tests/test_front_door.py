@@ -97,6 +97,11 @@ def test_a_localizer_reports_the_options_it_runs_with(room: tuple[datasets.Seque
     assert set_ == {"pixel_sigma": 0.5, "max_residual": 4.0, "gate_sigma": 2.0, "history": 6, "locator": "model", "top_k": 3}
     with pytest.raises(geoloc.InvalidInputError, match=r"^gate_sigma: "):
         geoloc.Localizer(m, gate_sigma=-1.0)
+    # the binding refuses an option the core does not have, naming it and listing the known ones
+    with pytest.raises(geoloc.InvalidInputError, match=r"^pixel_sigmaa: not an option; expected one of pixel_sigma, "):
+        _core.FeatureLocalizer(m._core, options={"pixel_sigmaa": 1.0})
+    with pytest.raises(geoloc.InvalidInputError, match=r"^models: not an option; expected one of retrieval, "):
+        _core.FeatureMap(train.camera.intrinsics, train.poses[:1].reshape(1, 16), [np.zeros((0, 2))], [np.zeros((0, 32), np.uint8)], options={"models": True})
     with pytest.raises(geoloc.InvalidInputError, match=r"^depth: "):
         geoloc.Map.from_features(train.camera, train.poses[:1], [np.zeros((0, 2))], [np.zeros((0, 32), np.uint8)], depth=-1)
 

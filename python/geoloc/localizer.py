@@ -154,8 +154,6 @@ class Localizer:
             raise InvalidInputError(
                 "image: this map was built from features (Map.from_features); localize it with localize_features"
             )
-        if self.map._core.retrieval == "global" and self._global is None:
-            raise InvalidInputError("global_descriptor: this map retrieves by a network; pass the same network to Localizer")
         start = time.perf_counter()
         pixels = self._decode(image)
         decoded = time.perf_counter()

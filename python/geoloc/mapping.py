@@ -418,11 +418,9 @@ class Map:
             raise FileAccessError(f"{shown(source)}: cannot read the map: it is {kind}, not a regular file")
         core, text = _core.FeatureMap.load(os.fspath(source))
         frontend = json.loads(text)
-        if not isinstance(frontend, dict) or (frontend and frontend.get("version") != FRONTEND_VERSION):
-            if not isinstance(frontend, dict) or "version" in frontend:
-                raise InvalidInputError(f"path: {str(path)!r} was not written by this version of geoloc's Python package")
-            frontend = {}  # a FeatureMap file: the caller's own settings, no frontend record
-        if not frontend:
+        if not isinstance(frontend, dict) or frontend.get("version", FRONTEND_VERSION) != FRONTEND_VERSION:
+            raise InvalidInputError(f"path: {str(path)!r} was not written by this version of geoloc's Python package")
+        if "version" not in frontend:  # a FeatureMap file: the caller's own settings, no frontend record
             warnings.warn(
                 f"{shown(source)}: a map saved by the deprecated geoloc.localizer.FeatureMap; "
                 "it loads as a map built from features (save it again to upgrade it)",

@@ -40,25 +40,21 @@ fn text(name: &str, value: &Bound<'_, PyAny>) -> PyResult<String> {
     value.extract::<String>().map_err(|_| invalid(name, "expected a string"))
 }
 
-/// The keys of `given`, each checked to be one of `known`.
-fn given_items<'py>(given: Option<&Bound<'py, PyDict>>, known: &[&str]) -> PyResult<Vec<(String, Bound<'py, PyAny>)>> {
+/// The (key, value) pairs of `given` (keys must be strings; the callers refuse unknown ones).
+fn given_items<'py>(given: Option<&Bound<'py, PyDict>>) -> PyResult<Vec<(String, Bound<'py, PyAny>)>> {
     let Some(given) = given else { return Ok(Vec::new()) };
-    given
-        .iter()
-        .map(|(key, value)| {
-            let key = text("options", &key)?;
-            if !known.contains(&key.as_str()) {
-                return Err(invalid(&key, format!("not an option; expected one of {}", known.join(", "))));
-            }
-            Ok((key, value))
-        })
-        .collect()
+    given.iter().map(|(key, value)| Ok((text("options", &key)?, value))).collect()
+}
+
+/// The error for a key that is none of `known`.
+fn unknown(name: &str, known: &[&str]) -> PyErr {
+    invalid(name, format!("not an option; expected one of {}", known.join(", ")))
 }
 
 /// The core's defaults with the options in `given` applied (each checked, errors naming it).
 pub fn build_options(given: Option<&Bound<'_, PyDict>>) -> PyResult<BuildOptions> {
     let mut o = BuildOptions::default();
-    for (key, value) in given_items(given, &BUILD_KEYS)? {
+    for (key, value) in given_items(given)? {
         let name = key.as_str();
         match name {
             "retrieval" => o.retrieval = text(name, &value)?.parse::<RetrievalMethod>().map_err(to_py_err)?,
@@ -72,7 +68,7 @@ pub fn build_options(given: Option<&Bound<'_, PyDict>>) -> PyResult<BuildOptions
                 o.intrinsics_model = text(name, &value)?.parse::<IntrinsicsModel>().map_err(to_py_err)?
             }
             "adjust_labels" => o.adjust_labels = flag(name, &value)?,
-            _ => return Err(invalid(name, "not a build option")),
+            _ => return Err(unknown(name, &BUILD_KEYS)),
         }
     }
     Ok(o)
@@ -82,7 +78,7 @@ pub fn build_options(given: Option<&Bound<'_, PyDict>>) -> PyResult<BuildOptions
 /// values when the localizer is created).
 pub fn localizer_options(given: Option<&Bound<'_, PyDict>>) -> PyResult<LocalizerOptions> {
     let mut o = LocalizerOptions::default();
-    for (key, value) in given_items(given, &LOCALIZER_KEYS)? {
+    for (key, value) in given_items(given)? {
         let name = key.as_str();
         match name {
             "pixel_sigma" => o = o.with_pixel_noise(real(name, &value)?, o.max_residual_px()),
@@ -91,7 +87,7 @@ pub fn localizer_options(given: Option<&Bound<'_, PyDict>>) -> PyResult<Localize
             "history" => o.history = count_usize(name, &value)?,
             "locator" => o.locator = text(name, &value)?.parse::<Locator>().map_err(to_py_err)?,
             "top_k" => o.top_k = count_usize(name, &value)?,
-            _ => return Err(invalid(name, "not a localizer option")),
+            _ => return Err(unknown(name, &LOCALIZER_KEYS)),
         }
     }
     Ok(o)
