@@ -35,8 +35,8 @@ def test_the_core_reports_its_defaults_once() -> None:
     assert geoloc.Map.default_options() == _core.build_defaults()
     assert geoloc.Localizer.default_options() == _core.localizer_defaults()
     build, local = _core.build_defaults(), _core.localizer_defaults()
-    assert build["estimate_noise"] and build["refine_intrinsics"] and build["adjust_labels"] and not build["model"]
-    assert local["locator"] == "paper" and local["history"] >= 2 and local["pixel_sigma"] > 0
+    assert build["estimate_noise"] and build["refine_intrinsics"] and build["adjust_labels"] and build["model"]
+    assert local["locator"] == "model" and local["history"] >= 2 and local["pixel_sigma"] > 0
 
 
 @pytest.mark.parametrize(

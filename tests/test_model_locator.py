@@ -52,18 +52,17 @@ def test_the_model_is_saved_and_old_maps_build_it_on_demand(room: tuple[Any, geo
     a, _ = single(m, test, "model")
     b, _ = single(back, test, "model")
     assert a["median_translation_m"] == b["median_translation_m"]
-    # a map without a model (as written before it existed): the localizer builds the same one
-    fm = m
+    # a map without a model (model=False, or written before it existed): the localizer builds the same one
     seq = geoloc.datasets.synthetic_room(n_frames=120, seed=0)[:80]
     ex = geoloc.features.FeatureExtractor("orb", 1000)
     feats = [ex(seq.gray(i), seq.camera) for i in range(len(seq))]
     args = (seq.camera, seq.poses, [f.keypoints for f in feats], [f.descriptors for f in feats])
-    plain = Map.from_features(*args, estimate_noise=False, refine_intrinsics=False, adjust_labels=False)
+    plain = Map.from_features(*args, model=False, estimate_noise=False, refine_intrinsics=False, adjust_labels=False)
     assert plain.model_points is None
     f = ex(test.gray(0), test.camera)
     got = Localizer(plain, locator="model").localize_features(0.0, f.keypoints, f.descriptors)
     want = Localizer(Map.from_features(*args, model=True, estimate_noise=False, refine_intrinsics=False, adjust_labels=False), locator="model").localize_features(0.0, f.keypoints, f.descriptors)
-    assert got.pose is not None and want.pose is not None and fm is not None
+    assert got.pose is not None and want.pose is not None
     np.testing.assert_array_equal(got.pose, want.pose)
 
 
@@ -88,9 +87,13 @@ def test_cli_build_map_with_model_then_localize_with_the_model_locator(tmp_path:
 
     path, out = tmp_path / "room.geoloc", tmp_path / "poses.txt"
     room = ("--format", "synthetic", "--synthetic-frames", "60")
-    built = run("build-map", *room, "--frames", "0:30", "--model", "--out", str(path))
+    built = run("build-map", *room, "--frames", "0:30", "--out", str(path))
     assert built.returncode == 0, built.stdout + built.stderr
-    assert geoloc.Map.load(path).model_points
+    assert geoloc.Map.load(path).model_points  # stored by default
+    bare = tmp_path / "bare.geoloc"
+    built = run("build-map", *room, "--frames", "0:30", "--no-model", "--out", str(bare))
+    assert built.returncode == 0, built.stdout + built.stderr
+    assert not geoloc.Map.load(bare).model_points
     done = run("localize", "--map", str(path), *room, "--frames", "30:60:3", "--mode", "single", "--locator", "model", "--out", str(out))
     assert done.returncode == 0, done.stdout + done.stderr
     rows = [line.split() for line in out.read_text().splitlines() if not line.startswith("#")]

@@ -138,8 +138,9 @@ def _add_build_map(commands: argparse._SubParsersAction[argparse.ArgumentParser]
     _feature_options(build)
     _calibration_option(build)
     build.add_argument(
-        "--model", action="store_const", const=True, default=None,
-        help="also build and store the map-level 3D model of `localize --locator model` (else built when such a localizer starts)",
+        "--model", action=argparse.BooleanOptionalAction, default=None,
+        help="store the map-level 3D model of the model locator (default: the core's, geoloc.Map.default_options(); "
+        "--no-model: a model localizer builds it when it starts, the paper's locator does not need it)",
     )
     build.add_argument("--out", type=output_file, required=True, metavar="scene.geoloc", help="map file to write (its folder must exist)")
 

@@ -188,21 +188,26 @@ fn localize_matches_the_core_in_process_bit_for_bit_from_a_file_and_from_stdin()
     assert!(stderr.contains("median ms per stage: retrieval"), "{stderr}");
 }
 
-/// `--locator model` on a map saved without a 3D model: the binary builds the model as the
-/// core does and gives the core's model-locator poses and covariances bit for bit, which
-/// differ from the paper locator's (so the flag reaches the localizer).
+/// The locator flag on a map saved without a 3D model: `--locator model` (the default) makes
+/// the binary build the model as the core does and give the core's model-locator poses and
+/// covariances bit for bit; `--locator paper` gives the paper locator's, which differ (so the
+/// flag reaches the localizer).
 #[test]
-fn model_locator_matches_the_core_in_process_bit_for_bit() {
+fn locator_flag_matches_the_core_in_process_bit_for_bit() {
     let d = dir("e2e-model");
     let (map, records) = scene(&d, 8);
-    let options = LocalizerOptions { locator: Locator::Model, ..LocalizerOptions::default() };
-    let want = expected_with(&map, &records, options);
-    assert_ne!(want, expected(&map, &records));
     let map_s = map.to_str().expect("utf-8");
-    let (out, hung) = run(&["localize", "--map", map_s, "--input", "-", "--locator", "model"], &stream(&records));
-    assert!(!hung && out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    let got = lines(&out);
-    assert_eq!(got[1..].iter().map(|l| parsed_bits(l)).collect::<Vec<_>>(), want);
+    let paper =
+        expected_with(&map, &records, LocalizerOptions { locator: Locator::Paper, ..LocalizerOptions::default() });
+    let model =
+        expected_with(&map, &records, LocalizerOptions { locator: Locator::Model, ..LocalizerOptions::default() });
+    assert_ne!(paper, model);
+    for (flag, want) in [("model", &model), ("paper", &paper)] {
+        let (out, hung) = run(&["localize", "--map", map_s, "--input", "-", "--locator", flag], &stream(&records));
+        assert!(!hung && out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        let got = lines(&out);
+        assert_eq!(&got[1..].iter().map(|l| parsed_bits(l)).collect::<Vec<_>>(), want, "--locator {flag}");
+    }
     let (out, _) = run(&["localize", "--map", map_s, "--input", "-", "--locator", "nearest"], &stream(&records));
     assert!(!out.status.success() && String::from_utf8_lossy(&out.stderr).contains("locator"));
 }

@@ -181,6 +181,7 @@ def evaluate_split(
         n_features=n_features,
         refine_intrinsics=refine_intrinsics,
         adjust_labels=adjust_labels,
+        model=False if locator == "paper" else None,
         progress=Progress("map", then=MAP_DONE),
     )
     build_s = time.perf_counter() - start

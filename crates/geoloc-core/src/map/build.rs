@@ -31,8 +31,8 @@ pub struct BuildOptions {
     /// Estimate the map's own noise once built: C_map from held-out keyframes and, with
     /// timestamps, the motion model's process noise (default true).
     pub estimate_noise: bool,
-    /// Build and store the map-level 3D model of the model locator (default false: a model
-    /// localizer builds it when it starts).
+    /// Build and store the map-level 3D model of the default (model) locator (default true;
+    /// false: a model localizer builds it when it starts, the paper's does not need it).
     pub model: bool,
     /// Estimate the camera (focal lengths, principal point, distortion) from the keyframes'
     /// tracks and correct the keypoints with it (default true).
@@ -51,7 +51,7 @@ impl Default for BuildOptions {
             depth: 3,
             seed: 0,
             estimate_noise: true,
-            model: false,
+            model: true,
             refine_intrinsics: true,
             intrinsics_model: SelfCalibrationOptions::default().model,
             adjust_labels: true,
