@@ -21,76 +21,14 @@ Not a test: a full run takes several minutes (7 map builds of ~600 frames). ``--
 records the held-out samples of each map and every frame's error, covariance and source, so
 C_map models can be compared offline on one run.
 
-Measured (2026-11-25, GEOLOC_NUM_THREADS=2, query keypoints weighted by their detector-scale σ,
-each map's camera estimated from its own keyframes as ``Map.build`` does; NEES = fraction inside
-χ²₆ 95 %; axis min = the lowest per-axis 1.96σ coverage; "median, lost=∞" is over all 100
-frames, a lost frame an infinite error, as the recall counts it — "median" is over the
-localized frames only, so two modes that lose different frames are not compared on the same
-frames there; in sequence the paper's locator also tries the last frame's keyframe group
-when the retrieved one's support collapses, the "tracking" of ``geoloc.Localizer``, and the
-motion model has the map's velocity prior):
-
-    fold       mode                   median     median, lost=∞  5cm/5°   NEES axis min med NEES  σ_p med  sources
-    0-99       single         5.0 cm / 1.21°     7.1 cm / 1.56°     41%    92%      91%      0.9   7.3 cm  geo80 los20
-    0-99       sequential     4.5 cm / 1.10°     4.5 cm / 1.13°     56%   100%     100%      0.8   7.3 cm  fus78 geo4 los2 mot16
-    100-199    single         4.1 cm / 1.13°     4.2 cm / 1.16°     62%   100%      99%      1.3   6.6 cm  geo97 los3
-    100-199    sequential     4.0 cm / 1.06°     4.0 cm / 1.06°     67%   100%     100%      1.3   6.6 cm  fus98 geo2
-    200-299    single         2.3 cm / 0.84°     2.4 cm / 0.85°     92%   100%      99%      0.4   7.6 cm  geo95 los5
-    200-299    sequential     2.3 cm / 0.82°     2.3 cm / 0.85°     94%   100%      99%      0.4   7.6 cm  fus95 geo2 los3
-    300-399    single         3.7 cm / 1.44°     3.8 cm / 1.49°     54%    71%      68%      2.6   4.6 cm  geo98 los2
-    300-399    sequential     3.4 cm / 1.61°     3.4 cm / 1.61°     57%    71%      69%      2.8   4.6 cm  fus78 geo5 mot17
-    400-499    single         4.8 cm / 1.24°     4.8 cm / 1.24°     54%    81%      79%      1.5   6.1 cm  geo100
-    400-499    sequential     4.7 cm / 1.16°     4.7 cm / 1.16°     53%    90%      87%      1.3   6.1 cm  fus87 geo3 mot10
-    500-599    single         2.3 cm / 0.84°     2.3 cm / 0.84°     89%   100%     100%      0.3   8.1 cm  geo100
-    500-599    sequential     2.0 cm / 0.83°     2.0 cm / 0.83°     94%   100%     100%      0.3   8.1 cm  fus98 geo2
-    600-699    single         7.4 cm / 1.83°     7.4 cm / 1.83°     35%    91%      91%      2.2   6.9 cm  geo100
-    600-699    sequential     6.3 cm / 1.43°     6.3 cm / 1.43°     43%    97%      94%      1.8   6.8 cm  fus98 geo2
-
-NEES coverage of the single mode by PnP inlier count (the second line the script prints per
-fold; coverage (frames)) — the covariance is too large for well-supported frames, where
-C_map dominates, and too small for poorly supported ones (outliers that survive RANSAC, and
-on 300–499 the two visits' disagreeing labels, are not in C_G):
-
-    0-99       <20: 82% (28)  20-39: 94% (16)  40-79: 100% (9)  ≥80: 100% (27)
-    100-199    <20: 100% (2)  20-39: 100% (15)  40-79: 100% (33)  ≥80: 100% (47)
-    200-299    <20: —  20-39: —  40-79: 100% (8)  ≥80: 100% (87)
-    300-399    <20: 67% (6)  20-39: 56% (45)  40-79: 79% (28)  ≥80: 100% (19)
-    400-499    <20: 100% (2)  20-39: 57% (21)  40-79: 81% (54)  ≥80: 100% (23)
-    500-599    <20: —  20-39: 100% (1)  40-79: 100% (17)  ≥80: 100% (82)
-    600-699    <20: 58% (12)  20-39: 100% (9)  40-79: 87% (31)  ≥80: 100% (48)
-
-``--locator model``:
-
-    fold       mode                   median     median, lost=∞  5cm/5°   NEES axis min med NEES  σ_p med  sources
-    0-99       single         4.0 cm / 1.23°     4.1 cm / 1.28°     62%    87%      91%      1.4   6.2 cm  geo89 los11
-    0-99       sequential     4.0 cm / 1.25°     4.0 cm / 1.25°     66%    91%      95%      1.3   6.2 cm  fus80 geo2 mot18
-    100-199    single         4.1 cm / 0.96°     4.1 cm / 0.96°     62%    93%      75%      1.3   6.7 cm  geo100
-    100-199    sequential     4.1 cm / 0.95°     4.1 cm / 0.95°     63%    96%      77%      1.3   6.7 cm  fus97 geo2 mot1
-    200-299    single         2.9 cm / 0.95°     2.9 cm / 0.95°     99%   100%     100%      0.8   7.1 cm  geo100
-    200-299    sequential     2.9 cm / 0.94°     2.9 cm / 0.94°     99%   100%     100%      0.8   7.1 cm  fus98 geo2
-    300-399    single         4.8 cm / 1.81°     4.8 cm / 1.82°     54%    68%      69%      3.6   4.6 cm  geo98 los2
-    300-399    sequential     4.8 cm / 1.79°     4.8 cm / 1.79°     55%    67%      67%      3.4   4.6 cm  fus86 geo3 mot11
-    400-499    single         4.3 cm / 1.08°     4.3 cm / 1.08°     61%    69%      69%      2.5   5.1 cm  geo100
-    400-499    sequential     4.2 cm / 0.98°     4.2 cm / 0.98°     65%    75%      75%      2.5   5.1 cm  fus85 geo3 mot12
-    500-599    single         1.2 cm / 0.69°     1.2 cm / 0.69°     94%   100%     100%      0.3   7.6 cm  geo100
-    500-599    sequential     1.2 cm / 0.69°     1.2 cm / 0.69°     94%   100%     100%      0.3   7.6 cm  fus98 geo2
-    600-699    single         4.8 cm / 1.24°     4.8 cm / 1.24°     54%    99%      94%      1.2   7.2 cm  geo100
-    600-699    sequential     4.8 cm / 1.26°     4.8 cm / 1.26°     53%   100%      94%      1.2   7.2 cm  fus98 geo2
-
-With the nominal camera (fx = fy = 525, 2026-11-24) the paper's locator had 8.3 / 4.5 / 2.8 /
-5.4 / 4.7 / 3.0 / 6.4 cm and NEES coverage 89/86, 97/99, 100/100, 67/72, 82/89, 99/100,
-90/94 %; the model locator 5.9 / 4.8 / 3.2 / 6.2 / 3.8 / 2.8 / 4.3 cm and 88/86, 90/91,
-100/100, 70/76, 66/76, 100/100, 100/90 %.
-
-What keeps 300-399 and 400-499 below 88 %: runs of gross geometric failures (300-399: 37 of
-98 frames 12-47 cm / 3-10° off along the weakly constrained x/φy direction, 29 inliers
-median against 46, the retrieved keyframe 0.40 m away against 0.23 m) with a PnP covariance
-of 1-4 cm. Not only the locator's: ``label_consistency.py --probe`` localizes three of them
-against a map recorded ≈ 40 frames earlier (2.7 / 11.8 / 3.7 cm off their labels) and one
-recorded ≈ 150 frames later (9.9 / 11.0 / 24.6 cm) — the labels of the two visits disagree.
-No C_map model fixes it (offline on these
-runs: leave-one-block-out scaling, full 6×6 with shrinkage, position-kernel C_map all stay
-at 60-76 % there).
+Results: ``docs/reports/calibration-run.md`` (default locator) and
+``docs/reports/calibration-paper-run.md`` (``--locator paper``), generated with
+``benchmarks/report.py run``. NEES = fraction inside χ²₆ 95 %; axis min = the lowest per-axis
+1.96σ coverage; "median, lost=∞" is over all 100 frames, a lost frame an infinite error, as
+the recall counts it — "median" is over the localized frames only, so two modes that lose
+different frames are not compared on the same frames there. The second line per fold
+breaks the single mode's NEES coverage down by PnP inlier count: where the covariance is too
+small or too large.
 """
 
 from __future__ import annotations
@@ -116,14 +54,15 @@ MARGIN = 15
 
 
 def evaluate(
-    train: Any, test: Any, locator: str = "paper", adjust_labels: bool = True, reference: Any = None
+    train: Any, test: Any, locator: str | None = None, adjust_labels: bool = True, reference: Any = None
 ) -> dict[str, Any]:
     """Build the map on ``train``, localize ``test`` in both modes; the summaries, the map noise
     and (under ``"frames"``) the per-frame errors δ = log(T_gt⁻¹T_est), covariances and sources;
     with ``reference`` ((N, 4, 4) poses of every frame of the dataset) also the summaries against
     it (``"<mode> vs reference"``), aligned on the training frames to the map's keyframe poses."""
     t0 = time.perf_counter()
-    m = geoloc.Map.build(train, model=locator == "model", adjust_labels=adjust_labels)
+    # the paper's locator needs no 3D model; None: the core's default (the model locator)
+    m = geoloc.Map.build(train, model=False if locator == "paper" else None, adjust_labels=adjust_labels)
     build_s = time.perf_counter() - t0
     noise = m.map_noise
     h = noise["holdout"]
@@ -230,8 +169,9 @@ def main() -> int:
     ap.add_argument("--folds", default="0,1,2,3,4,5,6", help="comma-separated test blocks of 100 frames")
     ap.add_argument("--synthetic", action="store_true", help="also the synthetic room")
     ap.add_argument("--json", help="write the summaries here")
-    ap.add_argument("--locator", choices=("paper", "model"), default="paper",
-                    help="the geometric locator (model: the map is built with its 3D model, C_map measured with it)")
+    ap.add_argument("--locator", choices=("paper", "model"), default=None,
+                    help="the geometric locator (default: the core's; paper: the map is built without the 3D model, "
+                    "C_map measured with the paper's locator)")
     ap.add_argument("--keep-labels", dest="adjust_labels", action="store_false",
                     help="maps keep their labels as the truth (default: corrected by bundle adjustment)")
     ap.add_argument("--reference", type=Path, default=REFERENCE if REFERENCE.is_file() else None,
