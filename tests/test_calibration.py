@@ -37,11 +37,35 @@ def test_map_records_its_noise_and_keeps_it(room: tuple[Any, Any, geoloc.Map], t
     v = np.array([se3_log(se3_inverse(a) @ b) / d for a, b, d in zip(poses[:-1], poses[1:], dt)])
     np.testing.assert_allclose(noise["velocity_mean"], v.mean(0), rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(noise["velocity_variance"], v.var(0), rtol=1e-9, atol=1e-12)
+    assert np.all(np.diag(c) > 0), np.diag(c)
     m.save(tmp_path / "room.geoloc")
     back = geoloc.Map.load(tmp_path / "room.geoloc").map_noise
     np.testing.assert_array_equal(back["pose_covariance"], c)
     for key in ("acceleration_psd", "velocity_mean", "velocity_variance"):
         np.testing.assert_array_equal(back[key], noise[key])
+
+
+def test_noise_the_held_out_keyframes_cannot_resolve_is_floored_and_said(tmp_path: Path) -> None:
+    # exact labels: the held-out errors are all measurement error, no axis has map noise
+    # the samples can resolve — C_map is floored on every axis, never zero, and says so
+    seq = geoloc.datasets.synthetic_room(n_frames=300, seed=0)
+    exact = geoloc.Map.build(seq[:300:2], n_features=500)
+    noise = exact.map_noise
+    assert noise["holdout_samples"] >= geoloc._core.MIN_NOISE_SAMPLES
+    h = noise["holdout"]
+    second = h["delta"] ** 2
+    excess = second.mean(0) - np.einsum("nii->ni", h["covariance"]).mean(0)
+    standard_error = second.std(0, ddof=1) / np.sqrt(len(second))
+    # resolved ⇔ the excess second moment exceeds one standard error, written out in numpy
+    np.testing.assert_array_equal(noise["resolved"], excess > standard_error)
+    assert not noise["resolved"].any()
+    c = np.diag(noise["pose_covariance"])
+    n = len(second)
+    assert np.all(c > 0) and np.all(c >= standard_error * n / (n - 7) * (1 - 1e-12)), (c, standard_error)
+    assert "on tx, ty, tz, φx, φy, φz they do not resolve it" in noise["pose_covariance_source"]
+    path = tmp_path / "exact.geoloc"
+    exact.save(path)
+    assert geoloc.Map.load(path).map_noise["resolved"] is None  # the samples are build-time diagnostics
 
 
 def test_sequential_is_never_worse_than_single(room: tuple[Any, Any, geoloc.Map]) -> None:

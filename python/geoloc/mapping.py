@@ -65,7 +65,11 @@ def _increasing(timestamps: NDArray[np.float64]) -> NDArray[np.float64] | None:
     return timestamps if len(timestamps) >= 3 and bool(np.all(np.diff(timestamps) > 0)) else None
 
 
-def _noise_source(cov: NDArray[np.float64], samples: int) -> str:
+#: The six axes of a pose perturbation, translation first (right perturbation).
+_AXES = ("tx", "ty", "tz", "φx", "φy", "φz")
+
+
+def _noise_source(cov: NDArray[np.float64], samples: int, resolved: list[bool] | None = None) -> str:
     """Where C_map came from, in words (the core picks; this only describes)."""
     if not np.any(cov):
         return "none (the map's noise was not estimated)"
@@ -74,6 +78,12 @@ def _noise_source(cov: NDArray[np.float64], samples: int) -> str:
         return (
             f"default: {samples} held-out keyframes < {_core.MIN_NOISE_SAMPLES} cannot estimate it "
             f"(σ {100 * sigma[0]:.0f} cm / {np.degrees(sigma[3]):.0f}° per axis)"
+        )
+    unresolved = [axis for axis, ok in zip(_AXES, resolved or [True] * 6) if not ok]
+    if unresolved:
+        return (
+            f"estimated from {samples} held-out keyframes; on {', '.join(unresolved)} they do not resolve it "
+            "(floored at one standard error or the keyframe poses' variance, never zero)"
         )
     return f"estimated from {samples} held-out keyframes"
 
@@ -371,9 +381,12 @@ class Map:
         ``pose_covariance_source`` (which of the two, in words) and, for a map built in this
         process (not stored in the file), ``holdout``: the held-out re-localizations
         (``keyframe`` (n,), ``delta`` (n, 6) = log(T_label⁻¹T_est), ``covariance`` (n, 6, 6) C_G,
-        ``used`` (n,) bool)."""
+        ``used`` (n,) bool), and ``resolved`` (6,) bool: per axis, whether those samples resolve
+        C_map (an axis they do not is floored, never zero; None for a loaded map or too few
+        samples)."""
         cov, psd, velocity_mean, velocity_variance, samples = self._core.map_noise
         keyframes, deltas, covs, used = self._core.map_noise_holdout
+        resolved = self._core.map_noise_resolved
         holdout = {
             "keyframe": np.asarray(keyframes, dtype=np.int64),
             "delta": deltas,
@@ -386,8 +399,9 @@ class Map:
             "velocity_mean": np.asarray(velocity_mean),
             "velocity_variance": np.asarray(velocity_variance),
             "holdout_samples": samples,
-            "pose_covariance_source": _noise_source(cov, samples),
+            "pose_covariance_source": _noise_source(cov, samples, resolved),
             "holdout": holdout,
+            "resolved": None if resolved is None else np.asarray(resolved, dtype=bool),
         }
 
     def __len__(self) -> int:

@@ -128,6 +128,14 @@ pub struct MapNoise {
     pub holdout: Vec<HoldoutSample>,
 }
 
+impl MapNoise {
+    /// Per axis, whether the held-out samples resolve C_map ([`noise::resolved_axes`]);
+    /// None when they cannot estimate it or were not kept (a loaded map).
+    pub fn resolved_axes(&self) -> Option<[bool; 6]> {
+        noise::resolved_axes(&self.holdout)
+    }
+}
+
 /// One held-out keyframe re-localized against the rest of the map ([`Map::with_estimated_noise`]).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct HoldoutSample {

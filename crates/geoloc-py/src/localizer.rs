@@ -210,6 +210,12 @@ impl FeatureMap {
         (keyframes, matrices_to_array(py, &deltas), matrices_to_array3(py, &covs), h.iter().map(|s| s.used).collect())
     }
 
+    /// Per axis, whether the build's held-out samples resolve C_map (None: too few, or a loaded map).
+    #[getter]
+    fn map_noise_resolved(&self) -> Option<Vec<bool>> {
+        self.inner.noise.resolved_axes().map(|r| r.to_vec())
+    }
+
     /// Writes the map to `path` atomically; `frontend` is the caller's settings (JSON object text).
     fn save(&self, py: Python<'_>, path: PathBuf, frontend: &str) -> PyResult<()> {
         py.detach(|| self.inner.save(&path, frontend)).map_err(to_py_err)

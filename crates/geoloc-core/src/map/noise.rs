@@ -12,9 +12,12 @@
 //! sum of the measurement error (covariance C_G) and an independent map-frame error
 //! (covariance C_map), E[δδᵀ] = E[C_G] + C_map, so
 //!
-//!   C_map = diag( max(0, mean δ_a² − mean C_G,aa) ) · n/(n − 7),
+//!   C_map = diag( max(mean δ_a² − mean C_G,aa, f_a) ) · n/(n − 7),
 //!
-//! per axis a. The second moment, not the centred covariance: a bias with respect to the
+//! per axis a, with the floor f_a of [`excess_second_moment`]: an axis whose held-out errors the
+//! measurement covariance already explains has a noise the samples cannot resolve — not a
+//! zero one (clipping at zero gave maps with exactly zero noise on some axes, whose queries
+//! were then covered far below 95 %). The second moment, not the centred covariance: a bias with respect to the
 //! labels is error a query sees too. Diagonal, not the full 6×6: the held-out errors are
 //! correlated within a block (the same drift), so ~50 samples carry the information of a
 //! handful of blocks, far too few for 15 correlations; on 7-Scenes the full estimate had
@@ -39,6 +42,7 @@ use super::{HoldoutSample, Map, MapNoise};
 use crate::error::{GeolocError, Result};
 use crate::localizer::{Localizer, LocalizerOptions, Locator};
 use crate::motion::{VelocityPrior, estimate_acceleration_psd, estimate_velocity_prior};
+use crate::stats::{EvenMedian, median};
 
 /// Fewest held-out samples for a C_map estimate (below: [`default_map_covariance`];
 /// `holdout_samples` says how many there were).
@@ -131,7 +135,8 @@ impl Map {
         };
         let mut map = Arc::try_unwrap(map).map_err(|_| GeolocError::invalid("map", "is shared"))?;
         let mut holdout = samples;
-        let (pose_covariance, used) = map_covariance(&holdout);
+        let keyframe_variance = median_variance(map.pose_covariances.as_deref());
+        let (pose_covariance, used) = map_covariance(&holdout, &keyframe_variance);
         for (sample, used) in holdout.iter_mut().zip(used) {
             sample.used = used;
         }
@@ -162,23 +167,66 @@ fn holdout_residuals(map: &Map, loc: &mut Localizer, options: &NoiseOptions) -> 
     Ok(samples)
 }
 
-/// C_map = diag(Π₊(mean δδᵀ − mean C_G))·n/(n − 7) over every held-out sample; with which
+/// C_map = diag(max(m_a − c_a, f_a))·n/(n − 7) over every held-out sample, per axis a, with
+/// m_a = mean δ_a², c_a = mean C_G,aa and the floor f_a of [`excess_second_moment`]; with which
 /// samples were used (all, or none when there are fewer than 12: C_map is then
 /// [`default_map_covariance`]). The
 /// factor n/(n − p − 1), p = 6, is the finite-sample inflation of a covariance estimated
 /// from n samples when it is used to test a new one (Hotelling's T²: a new sample's
 /// E[δᵀŜ⁻¹δ] ≈ p·n/(n − p − 1), so Ŝ scaled by it keeps the χ²₆ mean).
-fn map_covariance(samples: &[HoldoutSample]) -> (Matrix6<f64>, Vec<bool>) {
+fn map_covariance(samples: &[HoldoutSample], keyframe_variance: &Vector6<f64>) -> (Matrix6<f64>, Vec<bool>) {
     if samples.len() < MIN_NOISE_SAMPLES {
         return (default_map_covariance(), vec![false; samples.len()]);
     }
     let n = samples.len() as f64;
-    let (second, measured) = samples
-        .iter()
-        .fold((Matrix6::zeros(), Matrix6::zeros()), |(a, b), s| (a + s.delta * s.delta.transpose(), b + s.covariance));
-    let excess = (second - measured) / n;
-    let diagonal = Matrix6::from_diagonal(&excess.diagonal().map(|v| v.max(0.0)));
-    (diagonal * (n / (n - 7.0)), vec![true; samples.len()])
+    let (excess, standard_error) = excess_second_moment(samples);
+    let diagonal = Vector6::from_fn(|a, _| excess[a].max(standard_error[a]).max(keyframe_variance[a]));
+    (Matrix6::from_diagonal(&diagonal) * (n / (n - 7.0)), vec![true; samples.len()])
+}
+
+/// Per axis a, the excess second moment m_a − c_a (m_a = mean δ_a², c_a = mean C_G,aa) and
+/// the standard error of m_a, s_a / √n with s_a² = Σ (δ_a² − m_a)² / (n − 1) (0 for n < 2).
+///
+/// The floor of C_map is the larger of that standard error — an axis whose held-out errors
+/// the measurement covariance already explains (m_a ≤ c_a) has a map noise the samples cannot
+/// resolve, not a zero one, and one standard error is the smallest noise they cannot rule
+/// out — and the median variance of the keyframe poses (the bundle adjustment's marginal
+/// covariances; zero when the map has none): the map's poses are known no better than that,
+/// so its points are not either.
+fn excess_second_moment(samples: &[HoldoutSample]) -> (Vector6<f64>, Vector6<f64>) {
+    let n = samples.len() as f64;
+    let mut excess = Vector6::zeros();
+    let mut standard_error = Vector6::zeros();
+    for a in 0..6 {
+        let second: Vec<f64> = samples.iter().map(|s| s.delta[a] * s.delta[a]).collect();
+        let mean = second.iter().sum::<f64>() / n;
+        let measured = samples.iter().map(|s| s.covariance[(a, a)]).sum::<f64>() / n;
+        let spread = if n > 1.0 { second.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1.0) } else { 0.0 };
+        excess[a] = mean - measured;
+        standard_error[a] = (spread / n).sqrt();
+    }
+    (excess, standard_error)
+}
+
+/// Per axis (translation first), whether the held-out samples resolve C_map: its excess
+/// second moment exceeds one standard error ([`excess_second_moment`]); an unresolved axis
+/// is floored, never zero. None with fewer than [`MIN_NOISE_SAMPLES`] samples (C_map is then
+/// [`default_map_covariance`]) — and for a loaded map, which keeps no samples.
+pub fn resolved_axes(samples: &[HoldoutSample]) -> Option<[bool; 6]> {
+    (samples.len() >= MIN_NOISE_SAMPLES).then(|| {
+        let (excess, standard_error) = excess_second_moment(samples);
+        std::array::from_fn(|a| excess[a] > standard_error[a])
+    })
+}
+
+/// Per axis, the median over `covariances` of the diagonal entry (zero for none): the typical
+/// variance of a keyframe pose.
+fn median_variance(covariances: Option<&[Matrix6<f64>]>) -> Vector6<f64> {
+    let Some(c) = covariances.filter(|c| !c.is_empty()) else { return Vector6::zeros() };
+    Vector6::from_fn(|a, _| {
+        let mut v: Vec<f64> = c.iter().map(|m| m[(a, a)].max(0.0)).collect();
+        median(&mut v, EvenMedian::Mean).unwrap_or(0.0)
+    })
 }
 
 #[cfg(test)]
@@ -201,7 +249,7 @@ mod tests {
                 });
             }
         }
-        let (c, used) = map_covariance(&samples);
+        let (c, used) = map_covariance(&samples, &Vector6::zeros());
         assert!(used.iter().all(|u| *u));
         let want = (0.09 / 6.0 - 0.001) * 12.0 / 5.0;
         assert!((c - Matrix6::identity() * want).amax() < 1e-12, "{c}");
@@ -211,12 +259,78 @@ mod tests {
     fn too_few_samples_give_the_conservative_default_never_zero() {
         let sample = HoldoutSample { keyframe: 0, delta: Vector6::zeros(), covariance: Matrix6::zeros(), used: false };
         for n in [0, 1, MIN_NOISE_SAMPLES - 1] {
-            let (c, used) = map_covariance(&vec![sample; n]);
+            let (c, used) = map_covariance(&vec![sample; n], &Vector6::from_element(1.0));
             assert!(used.iter().all(|u| !*u));
             // 5 cm and 2° per axis, written out
             let deg2 = (2.0 * std::f64::consts::PI / 180.0f64).powi(2);
             let want = Matrix6::from_diagonal(&Vector6::new(0.0025, 0.0025, 0.0025, deg2, deg2, deg2));
             assert!((c - want).amax() < 1e-15, "{n}: {c}");
         }
+    }
+
+    /// Held-out samples whose errors the measurement covariance over-explains on axis 1
+    /// (δ₁ small, C_G,11 large): the classic estimate clips that axis to zero.
+    fn over_explained() -> Vec<HoldoutSample> {
+        (0..20)
+            .map(|i| {
+                let x = i as f64;
+                let delta = Vector6::new(0.02 * (x - 9.5) / 9.5, 0.001 * (x % 3.0 - 1.0), 0.01, 0.0, 0.0, 0.002);
+                let covariance = Matrix6::from_diagonal(&Vector6::new(1e-5, 1e-3, 1e-5, 1e-6, 1e-6, 1e-6));
+                HoldoutSample { keyframe: i, delta, covariance, used: false }
+            })
+            .collect()
+    }
+
+    #[test]
+    fn an_axis_the_samples_cannot_resolve_gets_the_standard_error_never_zero() {
+        let samples = over_explained();
+        let n = samples.len() as f64;
+        let (c, _) = map_covariance(&samples, &Vector6::zeros());
+        for a in 0..6 {
+            // written out: mean of δ_a², its sample variance, the standard error of the mean
+            let mut sum = 0.0;
+            for s in &samples {
+                sum += s.delta[a] * s.delta[a];
+            }
+            let mean = sum / n;
+            let mut ss = 0.0;
+            for s in &samples {
+                ss += (s.delta[a] * s.delta[a] - mean) * (s.delta[a] * s.delta[a] - mean);
+            }
+            let standard_error = (ss / (n - 1.0) / n).sqrt();
+            let measured = samples.iter().map(|s| s.covariance[(a, a)]).sum::<f64>() / n;
+            let want = (mean - measured).max(standard_error) * n / (n - 7.0);
+            assert!((c[(a, a)] - want).abs() <= 1e-15 * want.max(1e-12), "axis {a}: {} vs {want}", c[(a, a)]);
+        }
+        // axis 1 is over-explained (mean δ² 6.7e-7 < mean C_G 1e-3) and still not zero
+        assert!(c[(1, 1)] > 0.0 && c[(1, 1)] < 1e-5, "{}", c[(1, 1)]);
+        // constant δ on axes 3 (zero) and 5: the standard error is zero, and so is the
+        // floor without keyframe covariances — the keyframes' variance then floors them
+        let kf = Vector6::from_element(4e-6);
+        let (floored, _) = map_covariance(&samples, &kf);
+        assert!((floored[(3, 3)] - 4e-6 * n / (n - 7.0)).abs() < 1e-18, "{}", floored[(3, 3)]);
+        assert!(floored.diagonal().iter().all(|v| *v >= 4e-6 * n / (n - 7.0) - 1e-18));
+    }
+
+    #[test]
+    fn resolved_axes_are_those_above_one_standard_error() {
+        let samples = over_explained();
+        // axis 0: δ spread over ±2 cm against C_G 1e-5 — resolved; 1: over-explained; 2: constant
+        // 1 cm against C_G 1e-5 (excess 9e-5, no spread) — resolved; 3: zero; 4: zero;
+        // 5: constant 2 mrad against C_G 1e-6 (excess 3e-6) — resolved
+        assert_eq!(resolved_axes(&samples), Some([true, false, true, false, false, true]));
+        assert_eq!(resolved_axes(&samples[..MIN_NOISE_SAMPLES - 1]), None);
+    }
+
+    #[test]
+    fn the_keyframe_variance_is_the_median_of_the_diagonals() {
+        assert_eq!(median_variance(None), Vector6::zeros());
+        assert_eq!(median_variance(Some(&[])), Vector6::zeros());
+        let c: Vec<Matrix6<f64>> = [1.0, 5.0, 2.0, 9.0]
+            .iter()
+            .map(|v| Matrix6::from_diagonal(&Vector6::from_fn(|a, _| v * (a + 1) as f64)))
+            .collect();
+        // sorted 1, 2, 5, 9: the mean of the middle two is 3.5, times the axis number
+        assert_eq!(median_variance(Some(&c)), Vector6::from_fn(|a, _| 3.5 * (a + 1) as f64));
     }
 }
