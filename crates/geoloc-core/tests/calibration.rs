@@ -6,7 +6,7 @@
 use std::sync::Arc;
 
 use geoloc_core::lie::SE3;
-use geoloc_core::localizer::{Frame, Localizer, LocalizerOptions, NoiseOptions, Source};
+use geoloc_core::localizer::{Frame, Localizer, LocalizerOptions, Locator, NoiseOptions, Source};
 use geoloc_core::map::{DescriptorSet, Keyframe, Map, RetrievalKind};
 use geoloc_core::matching::Descriptors;
 use geoloc_core::stats::chi2::CHI2_6_95;
@@ -66,8 +66,10 @@ fn map_noise_covers_injected_label_noise() {
     // C_map holds the held-out label's own noise plus what the neighbours' labels do to
     // the estimate: at least the injected σ (minus the sampling error of ~50 samples).
     assert!(ratios.iter().all(|r| *r > 0.75 && *r < 3.0), "{ratios:?}");
-    // the independent check: new queries beside the path, against labels with the same noise
-    let mut loc = Localizer::new(Arc::new(map), LocalizerOptions::default()).expect("valid");
+    // the independent check: new queries beside the path, against labels with the same noise,
+    // with the locator C_map was measured with (the paper's: the map has no 3D model)
+    let options = LocalizerOptions { locator: Locator::Paper, ..LocalizerOptions::default() };
+    let mut loc = Localizer::new(Arc::new(map), options).expect("valid");
     let (mut inside, mut total) = (0, 0);
     for f in 0..120 {
         let t = 0.2 + f as f64 * 0.045;

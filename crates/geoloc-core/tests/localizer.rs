@@ -10,7 +10,7 @@ use std::sync::Arc;
 
 use geoloc_core::GeolocError;
 use geoloc_core::lie::SE3;
-use geoloc_core::localizer::{Frame, Localizer, LocalizerOptions, Source, Timings};
+use geoloc_core::localizer::{Frame, Localizer, LocalizerOptions, Locator, Source, Timings};
 use geoloc_core::map::{DescriptorSet, Keyframe, Map, RetrievalKind};
 use geoloc_core::matching::Descriptors;
 use geoloc_core::testing::{self, LandmarkScene, SplitMix64};
@@ -223,7 +223,7 @@ fn bad_maps_and_frames_are_refused_by_name() {
     assert_eq!(name_of(Localizer::new(map, history)), "history");
 }
 
-/// Tracking in the sequential mode: every 7th frame retrieves a keyframe from the far end of
+/// Tracking in the sequential mode (the paper's locator): every 7th frame retrieves a keyframe from the far end of
 /// the walk (global descriptors are keyframe positions, the query's is replaced by the far
 /// keyframe's), 3 m away, whose group sees only a corner of the view. Alone, the frame gets
 /// its pose from that group's few points; in sequence the last frame's group is tried too
@@ -240,8 +240,10 @@ fn a_wrong_retrieval_is_tracked_through_the_last_frames_group() {
     }
     let far = position(&kfs[59].world_from_cam);
     let map = Arc::new(Map::build(world.camera, kfs, None, RetrievalKind::Global, 0).expect("valid map"));
-    let mut sequential = Localizer::new(Arc::clone(&map), LocalizerOptions::default()).expect("valid options");
-    let mut single = Localizer::new(map, LocalizerOptions::default()).expect("valid options");
+    // tracking is the paper locator's
+    let paper = LocalizerOptions { locator: Locator::Paper, ..LocalizerOptions::default() };
+    let mut sequential = Localizer::new(Arc::clone(&map), paper).expect("valid options");
+    let mut single = Localizer::new(map, paper).expect("valid options");
     let (mut wrong, mut good) = (Vec::new(), Vec::new());
     for f in 0..40 {
         let t = 0.3 + f as f64 / 30.0;

@@ -101,11 +101,11 @@ mod tests {
     use super::*;
 
     #[test]
-    fn default_steps_adjust_calibrate_and_prepare_but_do_not_model() {
+    fn default_steps_adjust_calibrate_model_and_prepare() {
         let steps = BuildOptions::default().steps();
         assert_eq!(steps.adjustment, Some(AdjustmentOptions::default()));
         assert_eq!(steps.calibration, Some(SelfCalibrationOptions::default()));
-        assert_eq!(steps.model, None);
+        assert_eq!(steps.model, Some(ModelOptions::default()));
         assert!(steps.group_matches);
     }
 
