@@ -122,7 +122,9 @@ def add_train_command(commands: argparse._SubParsersAction[argparse.ArgumentPars
     p.add_argument("--hard-negatives", action="store_true", help="mine each negative among 32 candidates with the current network")
     p.add_argument("--checkpoint", type=output_file, metavar="FILE", help="save a checkpoint every 10 epochs and at the end")
     p.add_argument("--resume", action="store_true", help="continue from --checkpoint")
-    p.add_argument("--init", type=existing_file, metavar="FILE", help="start from the weights of a local checkpoint")
+    p.add_argument("--init", type=existing_file, metavar="FILE", help="start from these weights: a geoloc checkpoint or state dict, or torchvision's GoogLeNet "
+        "state dict (e.g. ImageNet or Places weights; mapped onto the network, first convolution summed to grayscale, "
+        "classifier heads dropped); read without running code from the file")
     p.add_argument("--device", type=device_name, default="auto", metavar="DEV", help="auto (CUDA when present), cpu, cuda, cuda:N (default: auto)")
     p.add_argument("--threads", type=bounded_int(1, 1024), metavar="N", help="torch CPU threads (default: torch's)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -137,13 +139,16 @@ def add_train_command(commands: argparse._SubParsersAction[argparse.ArgumentPars
         refuse_alias(args.checkpoint, "--checkpoint", [("--init", args.init)])
         require_torch()
         from .export import export_onnx
-        from .train import TrainConfig, load_checkpoint, train
+        from .network import build_network
+        from .pretrained import init_weights
+        from .train import TrainConfig, train
 
-        if args.init is not None:  # refuse a foreign --init before loading frames or printing anything
+        if args.init is not None:  # refuse a foreign --init before loading frames; say what it loads
             try:
-                load_checkpoint(args.init)
+                init = init_weights(build_network("tiny" if args.tiny else "googlenet", args.dim), args.init)
             except InvalidInputError as e:
-                raise InvalidInputError(f"--init: {str(e).removeprefix('checkpoint: ')}") from None
+                raise InvalidInputError(f"--init: {str(e).removeprefix('checkpoint: ').removeprefix('init_from: ')}") from None
+            print(init.summary(), file=sys.stderr)
         dataset, frames = load_frames(args)
         refuse_alias(args.out, "--out", dataset_inputs(dataset, "--dataset"))
         refuse_alias(args.checkpoint, "--checkpoint", dataset_inputs(dataset, "--dataset"))

@@ -33,17 +33,17 @@ import numpy as np
 import torch
 from numpy.typing import NDArray
 
-from .._io import special_kind, write_bytes_atomic
+from .._io import write_bytes_atomic
 from ..descriptor import normalize
 from ..exceptions import InvalidInputError
 from .frames import PosedFrames, gray_images, poses_of
 from .loss import DEFAULT_MARGIN, contrastive_loss
 from .network import BACKBONES, DEFAULT_DIM, DescriptorNet, build_network
 from .pairs import PairSampler, PairThresholds
+from .pretrained import CHECKPOINT_FORMAT, init_weights, load_checkpoint, load_weights
 
 __all__ = ["CHECKPOINT_FORMAT", "TrainConfig", "TrainResult", "embed", "load_checkpoint", "load_network", "train"]
 
-CHECKPOINT_FORMAT = "geoloc-descriptor-checkpoint"
 CHECKPOINT_VERSION = 1
 #: Images per forward pass when computing descriptors without gradients.
 EMBED_BATCH = 64
@@ -166,45 +166,13 @@ def _augment(x: torch.Tensor) -> torch.Tensor:
     return x * gain + offset
 
 
-def load_checkpoint(path: str | os.PathLike[str]) -> dict[str, Any]:
-    """A checkpoint written by :func:`train` (or a bare state_dict, as ``{"model": …}``);
-    loaded with ``weights_only=True`` (never runs code from the file)."""
-    p = Path(path)
-    kind = special_kind(p)
-    if kind is not None:  # never opened: torch.load would block on a FIFO
-        raise InvalidInputError(f"checkpoint: {str(p)!r} is {kind}, not a regular file")
-    try:
-        data = torch.load(p, map_location="cpu", weights_only=True)
-    except FileNotFoundError:
-        raise InvalidInputError(f"checkpoint: no file {str(p)!r}") from None
-    except Exception as e:  # torch raises assorted errors for foreign or truncated files
-        raise InvalidInputError(f"checkpoint: {str(p)!r} is not a readable torch checkpoint ({type(e).__name__})") from None
-    if not isinstance(data, dict):
-        raise InvalidInputError(f"checkpoint: {str(p)!r} holds a {type(data).__name__}, not a checkpoint or state_dict")
-    if data.get("format") == CHECKPOINT_FORMAT:
-        return data
-    if all(isinstance(v, torch.Tensor) for v in data.values()):
-        return {"model": data}
-    raise InvalidInputError(f"checkpoint: {str(p)!r} is neither a geoloc checkpoint nor a state_dict")
-
-
-def _load_weights(model: DescriptorNet, state: dict[str, torch.Tensor], source: str) -> None:
-    try:
-        model.load_state_dict(state, strict=True)
-    except RuntimeError as e:
-        first = str(e).strip().splitlines()[0]
-        raise InvalidInputError(
-            f"init_from: the weights in {source!r} do not fit a {model.backbone_name} network with dim {model.dim} ({first})"
-        ) from None
-
-
 def load_network(path: str | os.PathLike[str]) -> DescriptorNet:
     """The network stored in a checkpoint written by :func:`train` (eval mode, CPU)."""
     ckpt = load_checkpoint(path)
     if "config" not in ckpt:
         raise InvalidInputError(f"checkpoint: {str(path)!r} is a bare state_dict; build the network and load it instead")
     net = DescriptorNet(ckpt["config"]["backbone"], int(ckpt["config"]["dim"]))
-    _load_weights(net, ckpt["model"], str(path))
+    load_weights(net, ckpt["model"], str(path))
     return net.eval()
 
 
@@ -294,7 +262,7 @@ def _run(
     torch.manual_seed(cfg.seed)
     model = build_network(cfg.backbone, cfg.dim)  # type: ignore[arg-type]
     if cfg.init_from:
-        _load_weights(model, load_checkpoint(cfg.init_from)["model"], cfg.init_from)
+        init_weights(model, cfg.init_from)
     model.to(device)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     losses: list[float] = []
@@ -307,7 +275,7 @@ def _run(
         for key in ("backbone", "dim"):
             if ckpt["config"][key] != getattr(cfg, key):
                 raise InvalidInputError(f"resume: the checkpoint has {key} {ckpt['config'][key]!r}, this run {getattr(cfg, key)!r}")
-        _load_weights(model, ckpt["model"], str(ckpt_path))
+        load_weights(model, ckpt["model"], str(ckpt_path))
         opt.load_state_dict(ckpt["optimizer"])
         start, losses = int(ckpt["epoch"]), [float(x) for x in ckpt["losses"]]
 
