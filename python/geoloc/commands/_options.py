@@ -64,6 +64,22 @@ def positive_float(text: str) -> float:
     return value
 
 
+def bounded_float(lo: float, hi: float) -> Callable[[str], float]:
+    """An argparse ``type`` for a finite number within [lo, hi]."""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+        if not (lo <= value <= hi):
+            raise argparse.ArgumentTypeError(f"must be a number within [{lo:g}, {hi:g}], got {text}")
+        return value
+
+    parse.__name__ = "number"
+    return parse
+
+
 def output_file(text: str) -> str:
     """An argparse ``type`` for a file to write: its folder must exist and be writable."""
     from .._io import check_output_path

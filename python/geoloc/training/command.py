@@ -11,6 +11,7 @@ line when torch is missing.
                  [--trajectory FILE] [--synthetic-frames N] [--frames A:B[:K]] [--tiny] [--epochs N]
                  [--dim D] [--pairs N] [--batch-size N] [--lr X] [--seed S]
                  [--hard-negatives] [--checkpoint FILE [--resume]] [--init FILE]
+                 [--validation F] [--eval-every N] [--weight-decay X]
                  [--device auto|cpu|cuda] [--threads N] [--no-progress] --out model.onnx
 
 ``--format`` defaults to ``7scenes`` (``synthetic`` when ``--dataset synthetic``). The
@@ -29,11 +30,13 @@ import argparse
 import re
 import sys
 import time
+from pathlib import Path
 from typing import Any, Callable
 
 from ..commands._common import SYNTHETIC_FRAMES, FrameRange, dataset_inputs, load_dataset, select
 from ..commands._options import (
     MAX_SEED,
+    bounded_float,
     bounded_int,
     dataset_options,
     existing_file,
@@ -41,8 +44,10 @@ from ..commands._options import (
     output_file,
     positive_float,
 )
+from .._io import write_json_atomic
 from ..exceptions import InvalidInputError
 from . import INSTALL_HINT
+from .evaluate import EVAL_EVERY, VALIDATION_FRACTION, VALIDATION_MARGIN
 
 __all__ = ["TINY_EPOCHS", "add_train_command", "load_frames"]
 
@@ -125,6 +130,15 @@ def add_train_command(commands: argparse._SubParsersAction[argparse.ArgumentPars
     p.add_argument("--init", type=existing_file, metavar="FILE", help="start from these weights: a geoloc checkpoint or state dict, or torchvision's GoogLeNet "
         "state dict (e.g. ImageNet or Places weights; mapped onto the network, first convolution summed to grayscale, "
         "classifier heads dropped); read without running code from the file")
+    p.add_argument(
+        "--validation", type=bounded_float(0.0, 0.5), default=VALIDATION_FRACTION, metavar="F",
+        help=f"hold out the last fraction F of the frames ({VALIDATION_MARGIN} more before them left out) and keep the epoch "
+        f"of the best recall@1 on them; 0: keep the last epoch (default: {VALIDATION_FRACTION})",
+    )
+    p.add_argument("--eval-every", type=bounded_int(1, MAX_EPOCHS), default=EVAL_EVERY, metavar="N",
+                   help=f"epochs between two recall@1 measurements on the held-out frames (default: {EVAL_EVERY})")
+    p.add_argument("--weight-decay", type=bounded_float(0.0, 1.0), default=0.0, metavar="X",
+                   help="AdamW with this decoupled weight decay (default: 0, the paper's Adam)")
     p.add_argument("--device", type=device_name, default="auto", metavar="DEV", help="auto (CUDA when present), cpu, cuda, cuda:N (default: auto)")
     p.add_argument("--threads", type=bounded_int(1, 1024), metavar="N", help="torch CPU threads (default: torch's)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -151,6 +165,7 @@ def add_train_command(commands: argparse._SubParsersAction[argparse.ArgumentPars
             print(init.summary(), file=sys.stderr)
         dataset, frames = load_frames(args)
         refuse_alias(args.out, "--out", dataset_inputs(dataset, "--dataset"))
+        refuse_alias(curve_path(args.out), "--out (its .curve.json)", dataset_inputs(dataset, "--dataset") + [("--init", args.init)])
         refuse_alias(args.checkpoint, "--checkpoint", dataset_inputs(dataset, "--dataset"))
         epochs = args.epochs or (TINY_EPOCHS if args.tiny else PAPER_EPOCHS)
         config = TrainConfig(
@@ -168,6 +183,9 @@ def add_train_command(commands: argparse._SubParsersAction[argparse.ArgumentPars
             checkpoint=args.checkpoint,
             resume=args.resume,
             init_from=args.init,
+            validation=args.validation,
+            eval_every=args.eval_every,
+            weight_decay=args.weight_decay,
             progress=not args.no_progress,
         )
         if args.train is not None or args.stride is not None:
@@ -183,7 +201,29 @@ def add_train_command(commands: argparse._SubParsersAction[argparse.ArgumentPars
             f"({elapsed / max(len(result.epoch_seconds), 1):.2f} s/epoch incl. reading), final loss {result.losses[-1]:.4f}; "
             f"{stats['anchors_with_positive']}/{stats['images']} images have a positive partner"
         )
+        print(selection_summary(result.selection))
         print(f"wrote {shown(report.path)} ({report.size_bytes / 1e6:.1f} MB, D = {report.dim}, sha256 {report.sha256[:16]}…)")
+        if result.selection.get("curve"):
+            curve = curve_path(args.out)
+            write_json_atomic(curve, {"config": config.as_dict(), **result.selection}, "--out")
+            print(f"wrote {shown(curve)} (the validation curve)")
         return 0
 
     return run
+
+
+def curve_path(out: Any) -> Path:
+    """Where the validation curve of a model written to ``out`` goes: ``MODEL.curve.json``."""
+    p = Path(out)
+    return p.with_name(p.stem + ".curve.json")
+
+
+def selection_summary(selection: dict[str, Any]) -> str:
+    """The validation curve and the chosen epoch, or why there was none, in a few lines."""
+    if not selection.get("curve"):
+        return f"model selection: off ({selection.get('why', 'no validation block')}); the last epoch is kept"
+    points = "  ".join(f"{e}: {100 * r:.1f} %" for e, r in selection["curve"])
+    return (
+        f"validation recall@1 ({selection['validation_frames']} held-out frames, {selection['training_frames']} trained on) "
+        f"by epoch: {points}\nkept epoch {selection['best_epoch']}"
+    )

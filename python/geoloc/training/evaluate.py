@@ -22,6 +22,12 @@ __all__ = ["RecallReport", "correct_matrix", "rank_by_descriptors", "recall_at_k
 
 DEFAULT_MAX_M = 0.3
 DEFAULT_MAX_DEG = 15.0
+#: Model selection (:mod:`.selection`): the last fraction of the training frames held out ...
+VALIDATION_FRACTION = 0.15
+#: ... with this many frames before the block left out of training too (the folds' margin) ...
+VALIDATION_MARGIN = 15
+#: ... and recall@1 on it measured every this many epochs.
+EVAL_EVERY = 10
 
 
 def correct_matrix(

@@ -14,6 +14,10 @@ atomically every ``checkpoint_every`` epochs and at the end; ``init_from`` start
 weights of a local checkpoint file (nothing is ever downloaded). CUDA is used when present
 (``device="auto"``).
 
+A validation block — the last ``validation`` fraction of the frames, ``validation_margin``
+frames before it left out too — is held out of training; recall@1 on it every
+``eval_every`` epochs picks the epoch whose network is returned (:mod:`.selection`).
+
 Images are read once through ``geoloc.descriptor.to_gray`` (uint8, 224×224, 50 kB each) and
 normalized per mini-batch by ``geoloc.descriptor.normalize``: the same preprocessing that
 :class:`geoloc.descriptor.OnnxDescriptor` applies at run time.
@@ -36,11 +40,13 @@ from numpy.typing import NDArray
 from .._io import write_bytes_atomic
 from ..descriptor import normalize
 from ..exceptions import InvalidInputError
+from .evaluate import EVAL_EVERY, VALIDATION_FRACTION, VALIDATION_MARGIN
 from .frames import PosedFrames, gray_images, poses_of
 from .loss import DEFAULT_MARGIN, contrastive_loss
 from .network import BACKBONES, DEFAULT_DIM, DescriptorNet, build_network
 from .pairs import PairSampler, PairThresholds
 from .pretrained import CHECKPOINT_FORMAT, init_weights, load_checkpoint, load_weights
+from .selection import Selector, split_validation
 
 __all__ = ["CHECKPOINT_FORMAT", "TrainConfig", "TrainResult", "embed", "load_checkpoint", "load_network", "train"]
 
@@ -77,17 +83,21 @@ class TrainConfig:
     checkpoint_every: int = 10
     resume: bool = False
     init_from: str | None = None  # a local checkpoint or state_dict file to start from
+    validation: float = VALIDATION_FRACTION  # the last fraction of the frames held out to select the epoch on (0: keep the last)
+    validation_margin: int = VALIDATION_MARGIN  # frames before the validation block left out of training as well
+    eval_every: int = EVAL_EVERY  # epochs between two recall@1 measurements on the validation block
+    weight_decay: float = 0.0  # > 0: AdamW with this decoupled weight decay (the paper: Adam, none)
     progress: bool = True
 
     def __post_init__(self) -> None:
         if self.backbone not in BACKBONES:
             raise InvalidInputError(f"backbone: expected one of {', '.join(BACKBONES)}, got {self.backbone!r}")
-        positive = ("dim", "epochs", "batch_size", "hard_candidates", "mining_every", "checkpoint_every")
+        positive = ("dim", "epochs", "batch_size", "hard_candidates", "mining_every", "checkpoint_every", "eval_every")
         for name in positive:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise InvalidInputError(f"{name}: expected a positive integer, got {v!r}")
-        for name in ("n_pos", "n_neg", "seed"):
+        for name in ("n_pos", "n_neg", "seed", "validation_margin"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 0:
                 raise InvalidInputError(f"{name}: expected an integer ≥ 0, got {v!r}")
@@ -97,6 +107,10 @@ class TrainConfig:
             v = getattr(self, name)
             if not np.isfinite(v) or v <= 0:
                 raise InvalidInputError(f"{name}: expected a finite number > 0, got {v!r}")
+        if not (np.isfinite(self.validation) and 0.0 <= self.validation <= 0.5):
+            raise InvalidInputError(f"validation: expected a fraction within [0, 0.5], got {self.validation!r}")
+        if not (np.isfinite(self.weight_decay) and self.weight_decay >= 0.0):
+            raise InvalidInputError(f"weight_decay: expected a finite number ≥ 0, got {self.weight_decay!r}")
         if self.resume and not self.checkpoint:
             raise InvalidInputError("resume: needs a checkpoint file to resume from")
         if self.threads is not None and (not isinstance(self.threads, int) or self.threads < 1):
@@ -110,14 +124,18 @@ class TrainConfig:
 
 @dataclass
 class TrainResult:
-    """The trained network (eval mode, on the CPU), the mean loss of every epoch, the
-    seconds each epoch took (this run's epochs only), and the pair statistics."""
+    """The trained network (eval mode, on the CPU: the selected epoch's when a validation
+    block was measured, else the last), the mean loss of every epoch, the seconds each epoch
+    took (this run's epochs only), the pair statistics, and the selection: the validation
+    curve [(epoch, recall@1)] and the chosen epoch, or why there was none
+    (:mod:`.selection`)."""
 
     model: DescriptorNet
     losses: list[float]
     epoch_seconds: list[float]
     pair_stats: dict[str, Any]
     config: TrainConfig
+    selection: dict[str, Any] = field(default_factory=dict)
 
 
 class ProgressBar:
@@ -167,16 +185,21 @@ def _augment(x: torch.Tensor) -> torch.Tensor:
 
 
 def load_network(path: str | os.PathLike[str]) -> DescriptorNet:
-    """The network stored in a checkpoint written by :func:`train` (eval mode, CPU)."""
+    """The network a checkpoint written by :func:`train` holds as its result (the selected
+    epoch's, or the last; eval mode, CPU)."""
     ckpt = load_checkpoint(path)
     if "config" not in ckpt:
         raise InvalidInputError(f"checkpoint: {str(path)!r} is a bare state_dict; build the network and load it instead")
     net = DescriptorNet(ckpt["config"]["backbone"], int(ckpt["config"]["dim"]))
-    load_weights(net, ckpt["model"], str(path))
+    # the run's result: the selected epoch's weights when it measured a validation block
+    load_weights(net, ckpt.get("selected_model") or ckpt["model"], str(path))
     return net.eval()
 
 
-def _save_checkpoint(path: Path, model: DescriptorNet, opt: torch.optim.Optimizer, epoch: int, config: TrainConfig, losses: list[float]) -> None:
+def _save_checkpoint(
+    path: Path, model: DescriptorNet, opt: torch.optim.Optimizer, epoch: int, config: TrainConfig, losses: list[float],
+    selector: Selector | None,
+) -> None:
     payload = {
         "format": CHECKPOINT_FORMAT,
         "version": CHECKPOINT_VERSION,
@@ -185,6 +208,8 @@ def _save_checkpoint(path: Path, model: DescriptorNet, opt: torch.optim.Optimize
         "model": {k: v.detach().cpu() for k, v in model.state_dict().items()},
         "optimizer": opt.state_dict(),
         "losses": list(losses),
+        "selection": None if selector is None else selector.as_dict(),
+        "selected_model": None if selector is None else selector.best_state,
     }
     buffer = io.BytesIO()
     torch.save(payload, buffer)
@@ -230,7 +255,9 @@ def train(
         gray = gray_images(frames)
     elif gray.shape != (len(frames), 224, 224) or gray.dtype != np.uint8:
         raise InvalidInputError(f"gray: expected ({len(frames)}, 224, 224) uint8, got {gray.dtype} {gray.shape}")
-    sampler = PairSampler(poses, cfg.thresholds, cfg.seed)
+    split = split_validation(len(frames), cfg.validation, cfg.validation_margin)
+    sampler = PairSampler(poses[split.train], cfg.thresholds, cfg.seed)
+    selector = Selector(split, poses, gray) if split.active else None
 
     device = _device(cfg.device)
     if device.type == "cuda":
@@ -245,7 +272,9 @@ def train(
     # of a CPU step here); results do not depend on it
     torch.utils.deterministic.fill_uninitialized_memory = False  # type: ignore[attr-defined]
     try:
-        return _run(cfg, gray, sampler, device, on_epoch)
+        result = _run(cfg, gray[split.train], sampler, device, on_epoch, selector)
+        result.selection = {"why": split.why} if selector is None else selector.as_dict()
+        return result
     finally:
         torch.utils.deterministic.fill_uninitialized_memory = previous_fill  # type: ignore[attr-defined]
         torch.use_deterministic_algorithms(previous_deterministic)
@@ -258,13 +287,18 @@ def _run(
     sampler: PairSampler,
     device: torch.device,
     on_epoch: Callable[[int, float], None] | None,
+    selector: Selector | None,
 ) -> TrainResult:
     torch.manual_seed(cfg.seed)
     model = build_network(cfg.backbone, cfg.dim)  # type: ignore[arg-type]
     if cfg.init_from:
         init_weights(model, cfg.init_from)
     model.to(device)
-    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    opt: torch.optim.Optimizer = (
+        torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+        if cfg.weight_decay > 0
+        else torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    )
     losses: list[float] = []
     start = 0
     ckpt_path = Path(cfg.checkpoint) if cfg.checkpoint else None
@@ -278,6 +312,8 @@ def _run(
         load_weights(model, ckpt["model"], str(ckpt_path))
         opt.load_state_dict(ckpt["optimizer"])
         start, losses = int(ckpt["epoch"]), [float(x) for x in ckpt["losses"]]
+        if selector is not None and ckpt.get("selection"):
+            selector.restore(ckpt["selection"], ckpt.get("selected_model"))
 
     bar = ProgressBar(cfg.epochs, start) if cfg.progress else None
     epoch_seconds = []
@@ -311,13 +347,20 @@ def _run(
         losses.append(mean)
         epoch_seconds.append(time.perf_counter() - t0)
         done = epoch + 1
+        text = f"loss {mean:.4f}"
+        if selector is not None and (done % cfg.eval_every == 0 or done == cfg.epochs):
+            recall = selector.recall_at_1(embed(model, selector.gray, device))
+            selector.record(done, recall, model)
+            text += f" val recall@1 {100 * recall:.1f} %"
         if ckpt_path is not None and (done % cfg.checkpoint_every == 0 or done == cfg.epochs):
-            _save_checkpoint(ckpt_path, model, opt, done, cfg, losses)
+            _save_checkpoint(ckpt_path, model, opt, done, cfg, losses, selector)
         if bar is not None:
-            bar.update(done, f"loss {mean:.4f}")
+            bar.update(done, text)
         if on_epoch is not None:
             on_epoch(done, mean)
     if bar is not None:
         bar.close()
     model.eval().cpu()
+    if selector is not None and selector.best_state is not None:
+        model.load_state_dict(selector.best_state)
     return TrainResult(model, losses, epoch_seconds, sampler.stats(), cfg)
