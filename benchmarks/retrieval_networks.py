@@ -1,9 +1,21 @@
 """Image retrieval on the shared 7-Scenes frames: the CNN descriptor against BoW and tiny images.
 
+    python benchmarks/retrieval_networks.py --folds [--train-tiny EPOCHS] [--json out.json]
     python benchmarks/retrieval_networks.py [--model m.onnx ...] [--train-tiny EPOCHS]
                                             [--data ../shared/data/7scenes-redkitchen]
 
-Training images: frames 0–599; queries: 600–699 (the paper's "last 100 frames"). A query is
+``--folds``: every contiguous block of 100 frames of 0–699 is the query set in turn, the
+training images the rest less 15 frames on either side (the project's protocol); per fold
+recall@1 of tiny images, BoW (its vocabulary trained on the fold's training frames) and, with
+``--train-tiny N``, a tiny CNN trained on the fold's training frames for N epochs (geoloc
+train's defaults: its epoch selected on the last 15 % of those frames) — and the two ways of
+combining it with BoW that a map could store: *re-rank* (BoW's top ``--candidates``
+re-ordered by the network's distance) and *rank fusion* (reciprocal rank fusion,
+score Σ 1/(60 + rank) over the two rankings). Prints the table, the mean over the folds and
+each method's gain over BoW on its worst fold. ``--model`` files are not used with
+``--folds``: a network trained on the queries would be scored on its own training images.
+
+Otherwise one split: training images: frames 0–599; queries: 600–699 (the paper's "last 100 frames"). A query is
 answered correctly when the retrieved training image lies within 0.3 m and 15° of it;
 recall@1 / recall@5 are fractions of all 100 queries, and the ceiling is the fraction that
 has any correct training image at all. Methods:
@@ -22,6 +34,7 @@ without preprocessing a 640×480 BGR frame, and the file size. Not a test.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 import tempfile
@@ -99,6 +112,71 @@ def train_tiny(frames: SevenScenesFrames, gray: np.ndarray, epochs: int, out: Pa
     return out
 
 
+def rerank(bow: np.ndarray, train: np.ndarray, queries: np.ndarray, candidates: int) -> np.ndarray:
+    """BoW's first ``candidates`` per query re-ordered by the network's L2 distance (rows of
+    ``bow`` hold training indices, best first)."""
+    out = bow[:, :candidates].copy()
+    for q in range(len(out)):
+        d = ((train[out[q]] - queries[q]) ** 2).sum(1)
+        out[q] = out[q][np.argsort(d, kind="stable")]
+    return out
+
+
+def rank_fusion(rankings: list[np.ndarray], n: int, k: int, c: float = 60.0) -> np.ndarray:
+    """Reciprocal rank fusion of full rankings ((Q, ≥1) training indices each): score
+    Σ_r 1 / (c + rank_r), the top ``k`` (ties by index)."""
+    out = np.zeros((rankings[0].shape[0], k), dtype=np.int64)
+    for q in range(len(out)):
+        score = np.zeros(n)
+        for r in rankings:
+            score[r[q]] += 1.0 / (c + np.arange(1, r.shape[1] + 1))
+        out[q] = np.lexsort((np.arange(n), -score))[:k]
+    return out
+
+
+def folds(args: argparse.Namespace) -> None:
+    frames = SevenScenesFrames(args.data)
+    n = min(len(frames), 700)
+    images = [frames[i].image for i in range(n)]
+    poses = poses_of(frames)[:n]
+    tiny = tiny_image_descriptors(images)
+    gray = gray_images(frames, range(n)) if args.train_tiny else None
+    table: dict[str, dict[str, float]] = {}
+    methods = ["tiny image", "BoW"] + (["CNN", "re-rank", "rank fusion"] if args.train_tiny else [])
+    print(f"{'fold':<9} " + " ".join(f"{m:>12}" for m in methods) + f" {'ceiling':>8}", flush=True)
+    for lo in range(0, n, 100):
+        hi = min(lo + 100, n)
+        train_idx = np.array([i for i in range(n) if i < lo - 15 or i >= hi + 15])
+        test_idx = np.arange(lo, hi)
+        correct = correct_matrix(poses[train_idx], poses[test_idx])
+        full = len(train_idx)
+        row = {"tiny image": recall_at_k(correct, rank_by_descriptors(tiny[train_idx], tiny[test_idx], 1), 1).recall_at_1}
+        bow, _ = bow_ranking([images[i] for i in train_idx], [images[i] for i in test_idx], full)
+        row["BoW"] = recall_at_k(correct, bow, 1).recall_at_1
+        if args.train_tiny:
+            from geoloc.training.frames import PosedImage
+            from geoloc.training.train import embed, train
+
+            posed = [PosedImage(np.zeros((8, 8, 3), np.uint8), poses[i]) for i in train_idx]
+            result = train(posed, gray=gray[train_idx], backbone="tiny", epochs=args.train_tiny, threads=args.threads, progress=False)
+            d = embed(result.model, gray)
+            cnn = rank_by_descriptors(d[train_idx], d[test_idx], full)
+            row["CNN"] = recall_at_k(correct, cnn, 1).recall_at_1
+            row["re-rank"] = recall_at_k(correct, rerank(bow, d[train_idx], d[test_idx], args.candidates), 1).recall_at_1
+            row["rank fusion"] = recall_at_k(correct, rank_fusion([bow, cnn], full, 1), 1).recall_at_1
+            row["selected epoch"] = float(result.selection.get("best_epoch") or args.train_tiny)
+        row["ceiling"] = float(correct.any(axis=1).mean())
+        name = f"{lo}-{hi - 1}"
+        table[name] = row
+        print(f"{name:<9} " + " ".join(f"{100 * row[m]:>11.0f}%" for m in methods) + f" {100 * row['ceiling']:>7.0f}%", flush=True)
+    mean = {m: float(np.mean([r[m] for r in table.values()])) for m in methods}
+    print(f"{'mean':<9} " + " ".join(f"{100 * mean[m]:>11.1f}%" for m in methods))
+    worst = {m: float(min(r[m] - r["BoW"] for r in table.values())) for m in methods if m != "BoW"}
+    print("gain over BoW on the worst fold (recall@1 points): " + ", ".join(f"{m} {100 * g:+.0f}" for m, g in worst.items()))
+    if args.json:
+        Path(args.json).write_text(json.dumps({"folds": table, "mean": mean, "worst_gain_over_bow": worst}, indent=1))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, default=DATA)
@@ -106,9 +184,15 @@ def main() -> None:
     parser.add_argument("--train-tiny", type=int, default=0, metavar="EPOCHS", help="also train a tiny CNN here (needs torch)")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--k", type=int, default=5)
+    parser.add_argument("--folds", action="store_true", help="every 100-frame block of 0-699 in turn (see above)")
+    parser.add_argument("--candidates", type=int, default=10, help="--folds: BoW candidates the network re-ranks (default 10)")
+    parser.add_argument("--json", help="--folds: write the table here")
     args = parser.parse_args()
     if not args.data.is_dir():
         sys.exit(f"no 7-Scenes frames at {args.data}")
+    if args.folds:
+        folds(args)
+        return
 
     frames = SevenScenesFrames(args.data)
     images = [frames[i].image for i in range(len(TRAIN) + len(TEST))]
