@@ -29,6 +29,13 @@
 //!    elsewhere finds fewer (7-Scenes 0–599 map, test frames 672–698: 157 retrieval inliers,
 //!    73 guided, 1.0 m / 26° off — where correct neighbours go from 94 to 295).
 //!
+//! 6. **A second hypothesis** when the union's pose is refused or barely confirmed (guided
+//!    inliers under [`CLEAR_CONFIRMATION`] times the retrieval inliers they could find
+//!    again): steps 2–5 on the best-ranked keyframe's matches alone, and the accepted pose
+//!    with more inliers is kept. Look-alike structure seen by the other retrieved keyframes
+//!    can outvote the right matches in the union; the best-ranked keyframe alone is not
+//!    outvoted by them.
+//!
 //! Held-out keyframes (`excluded`, for the map's noise estimate): retrieval and guided
 //! matching skip the excluded keyframes, and a point observed by any excluded keyframe is
 //! not used at all (its position carries the held-out keyframe's own observation).
