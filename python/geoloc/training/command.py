@@ -47,7 +47,7 @@ from ..commands._options import (
 from .._io import write_json_atomic
 from ..exceptions import InvalidInputError
 from . import INSTALL_HINT
-from .evaluate import EVAL_EVERY, VALIDATION_FRACTION, VALIDATION_MARGIN
+from .evaluate import MEASUREMENTS, VALIDATION_FRACTION, VALIDATION_MARGIN
 
 __all__ = ["TINY_EPOCHS", "add_train_command", "load_frames"]
 
@@ -135,8 +135,8 @@ def add_train_command(commands: argparse._SubParsersAction[argparse.ArgumentPars
         help=f"hold out the last fraction F of the frames ({VALIDATION_MARGIN} more before them left out) and keep the epoch "
         f"of the best recall@1 on them; 0: keep the last epoch (default: {VALIDATION_FRACTION})",
     )
-    p.add_argument("--eval-every", type=bounded_int(1, MAX_EPOCHS), default=EVAL_EVERY, metavar="N",
-                   help=f"epochs between two recall@1 measurements on the held-out frames (default: {EVAL_EVERY})")
+    p.add_argument("--eval-every", type=bounded_int(1, MAX_EPOCHS), default=None, metavar="N",
+                   help=f"epochs between two recall@1 measurements on the held-out frames (default: {MEASUREMENTS} over the run)")
     p.add_argument("--weight-decay", type=bounded_float(0.0, 1.0), default=0.0, metavar="X",
                    help="AdamW with this decoupled weight decay (default: 0, the paper's Adam)")
     p.add_argument("--device", type=device_name, default="auto", metavar="DEV", help="auto (CUDA when present), cpu, cuda, cuda:N (default: auto)")

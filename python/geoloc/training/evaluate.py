@@ -26,8 +26,8 @@ DEFAULT_MAX_DEG = 15.0
 VALIDATION_FRACTION = 0.15
 #: ... with this many frames before the block left out of training too (the folds' margin) ...
 VALIDATION_MARGIN = 15
-#: ... and recall@1 on it measured every this many epochs.
-EVAL_EVERY = 10
+#: ... and recall@1 on it measured this many times over a run (every epochs // 10 epochs).
+MEASUREMENTS = 10
 
 
 def correct_matrix(

@@ -40,7 +40,7 @@ from numpy.typing import NDArray
 from .._io import write_bytes_atomic
 from ..descriptor import normalize
 from ..exceptions import InvalidInputError
-from .evaluate import EVAL_EVERY, VALIDATION_FRACTION, VALIDATION_MARGIN
+from .evaluate import MEASUREMENTS, VALIDATION_FRACTION, VALIDATION_MARGIN
 from .frames import PosedFrames, gray_images, poses_of
 from .loss import DEFAULT_MARGIN, contrastive_loss
 from .network import BACKBONES, DEFAULT_DIM, DescriptorNet, build_network
@@ -85,14 +85,14 @@ class TrainConfig:
     init_from: str | None = None  # a local checkpoint or state_dict file to start from
     validation: float = VALIDATION_FRACTION  # the last fraction of the frames held out to select the epoch on (0: keep the last)
     validation_margin: int = VALIDATION_MARGIN  # frames before the validation block left out of training as well
-    eval_every: int = EVAL_EVERY  # epochs between two recall@1 measurements on the validation block
+    eval_every: int | None = None  # epochs between two recall@1 measurements on the validation block (None: epochs // 10, ≥ 1)
     weight_decay: float = 0.0  # > 0: AdamW with this decoupled weight decay (the paper: Adam, none)
     progress: bool = True
 
     def __post_init__(self) -> None:
         if self.backbone not in BACKBONES:
             raise InvalidInputError(f"backbone: expected one of {', '.join(BACKBONES)}, got {self.backbone!r}")
-        positive = ("dim", "epochs", "batch_size", "hard_candidates", "mining_every", "checkpoint_every", "eval_every")
+        positive = ("dim", "epochs", "batch_size", "hard_candidates", "mining_every", "checkpoint_every")
         for name in positive:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
@@ -107,6 +107,8 @@ class TrainConfig:
             v = getattr(self, name)
             if not np.isfinite(v) or v <= 0:
                 raise InvalidInputError(f"{name}: expected a finite number > 0, got {v!r}")
+        if self.eval_every is not None and (isinstance(self.eval_every, bool) or not isinstance(self.eval_every, int) or self.eval_every < 1):
+            raise InvalidInputError(f"eval_every: expected a positive integer or None, got {self.eval_every!r}")
         if not (np.isfinite(self.validation) and 0.0 <= self.validation <= 0.5):
             raise InvalidInputError(f"validation: expected a fraction within [0, 0.5], got {self.validation!r}")
         if not (np.isfinite(self.weight_decay) and self.weight_decay >= 0.0):
@@ -316,6 +318,7 @@ def _run(
             selector.restore(ckpt["selection"], ckpt.get("selected_model"))
 
     bar = ProgressBar(cfg.epochs, start) if cfg.progress else None
+    every = cfg.eval_every or max(1, cfg.epochs // MEASUREMENTS)
     epoch_seconds = []
     descriptors = None
     model.train()
@@ -348,7 +351,7 @@ def _run(
         epoch_seconds.append(time.perf_counter() - t0)
         done = epoch + 1
         text = f"loss {mean:.4f}"
-        if selector is not None and (done % cfg.eval_every == 0 or done == cfg.epochs):
+        if selector is not None and (done % every == 0 or done == cfg.epochs):
             recall = selector.recall_at_1(embed(model, selector.gray, device))
             selector.record(done, recall, model)
             text += f" val recall@1 {100 * recall:.1f} %"
