@@ -30,9 +30,9 @@ from __future__ import annotations
 
 import os
 import re
-from typing import Any
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import torch
 

@@ -94,13 +94,15 @@ impl Localizer {
         let usable = usable_points(model, &excluded);
         let t = Instant::now();
         let grid = KeypointGrid::new(frame.keypoints, self.options.guided_radius_px);
+        let per_keyframe = self.retrieved_matches(frame, model, &top, usable.as_deref())?;
         timings.matching_ms = ms(t);
+        let union = one_to_one(per_keyframe.concat());
         let (mut pose, mut inliers, margin) =
-            self.hypothesis(frame, model, &top, usable.as_deref(), &excluded, &grid, timings)?;
+            self.hypothesis(frame, model, union, usable.as_deref(), &excluded, &grid, timings)?;
         if top.len() > 1 && margin < CLEAR_CONFIRMATION {
             // the best-ranked keyframe alone: its matches can be outvoted in the union
-            let (alone, n, _) =
-                self.hypothesis(frame, model, &top[..1], usable.as_deref(), &excluded, &grid, timings)?;
+            let first = one_to_one(per_keyframe[0].clone());
+            let (alone, n, _) = self.hypothesis(frame, model, first, usable.as_deref(), &excluded, &grid, timings)?;
             if alone.is_ok() && (pose.is_err() || n > inliers) {
                 (pose, inliers) = (alone, n);
             }
@@ -108,23 +110,20 @@ impl Localizer {
         Ok((top[0], pose, inliers))
     }
 
-    /// Steps 2–5 on the matches of `keyframes` (best-ranked first): T_G and C_G or why not,
-    /// the inlier count, and the confirmation margin: the most inliers a guided round found
-    /// over the retrieval inliers it could find again (0 when no round succeeded).
+    /// Steps 3–5 on the one-to-one retrieval matches `first`: T_G and C_G or why not, the
+    /// inlier count, and the confirmation margin: the most inliers a guided round found over
+    /// the retrieval inliers it could find again (0 when no round succeeded).
     #[allow(clippy::too_many_arguments)]
     fn hypothesis(
         &self,
         frame: &Frame<'_>,
         model: &SceneModel,
-        keyframes: &[usize],
+        first: Vec<Correspondence>,
         usable: Option<&[bool]>,
         excluded: &Range<usize>,
         grid: &KeypointGrid<'_>,
         timings: &mut Timings,
     ) -> Result<(std::result::Result<Estimate, String>, usize, f64)> {
-        let t = Instant::now();
-        let first = self.retrieved_matches(frame, model, keyframes, usable)?;
-        timings.matching_ms += ms(t);
         if first.len() < self.options.min_correspondences {
             let why = format!("{} query-model matches < {}", first.len(), self.options.min_correspondences);
             return Ok((Err(why), 0, 0.0));
@@ -221,31 +220,35 @@ impl Localizer {
         super::acceptance::rejection(&center, &res.covariance, &points, &observers, &self.options.acceptance)
     }
 
-    /// Step 2: the query matched against the model points of each retrieved keyframe, made
-    /// one-to-one (see the module doc).
+    /// Step 2: the query matched against the model points of each retrieved keyframe, one
+    /// list per keyframe of `top` (empty when it observes no usable point); [`one_to_one`]
+    /// makes a set of them a correspondence set (see the module doc).
     fn retrieved_matches(
         &self,
         frame: &Frame<'_>,
         model: &SceneModel,
         top: &[usize],
         usable: Option<&[bool]>,
-    ) -> Result<Vec<Correspondence>> {
+    ) -> Result<Vec<Vec<Correspondence>>> {
         let options = MatchOptions { mutual: false, ..self.options.matching };
-        let mut all = Vec::new();
-        for &k in top {
-            let (rows, ids): (Vec<usize>, Vec<usize>) = model.point_ids[k]
-                .iter()
-                .enumerate()
-                .filter_map(|(i, id)| id.filter(|&p| usable.is_none_or(|u| u[p])).map(|p| (i, p)))
-                .unzip();
-            if rows.is_empty() {
-                continue;
-            }
-            let descriptors = self.map.keyframes[k].descriptors.select(&rows);
-            let matches = match_descriptors(&frame.descriptors, &descriptors.view(), &options)?;
-            all.extend(matches.iter().map(|m| Correspondence { query: m.a, point: ids[m.b], distance: m.distance }));
-        }
-        Ok(one_to_one(all))
+        top.iter()
+            .map(|&k| {
+                let (rows, ids): (Vec<usize>, Vec<usize>) = model.point_ids[k]
+                    .iter()
+                    .enumerate()
+                    .filter_map(|(i, id)| id.filter(|&p| usable.is_none_or(|u| u[p])).map(|p| (i, p)))
+                    .unzip();
+                if rows.is_empty() {
+                    return Ok(Vec::new());
+                }
+                let descriptors = self.map.keyframes[k].descriptors.select(&rows);
+                let matches = match_descriptors(&frame.descriptors, &descriptors.view(), &options)?;
+                Ok(matches
+                    .iter()
+                    .map(|m| Correspondence { query: m.a, point: ids[m.b], distance: m.distance })
+                    .collect())
+            })
+            .collect()
     }
 
     /// Step 4: the guided correspondences of the `candidates` points at `pose` (see the
@@ -453,7 +456,7 @@ mod scene_tests {
         assert!(usable.iter().any(|u| !u) && usable.iter().any(|u| *u));
         let top = map.retrieve_top(&frame.descriptors, None, 5, excluded.clone()).expect("retrieves");
         assert!(top.iter().all(|t| !excluded.contains(t)));
-        let first = loc.retrieved_matches(&frame, model, &top, Some(&usable)).expect("matches");
+        let first = one_to_one(loc.retrieved_matches(&frame, model, &top, Some(&usable)).expect("matches").concat());
         let grid = KeypointGrid::new(frame.keypoints, loc.options.guided_radius_px);
         let nearby = points_seen_by(model, &near_keyframes(&loc, &kf.world_from_cam, &excluded), Some(&usable));
         let guided = loc.guided_matches(&frame, &grid, model, &kf.world_from_cam, 64.0, &nearby);
