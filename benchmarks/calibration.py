@@ -9,13 +9,18 @@ model + gated fusion) — and the synthetic room. Per fold × mode: median error
 NEES, sources; and the map's estimated noise (√diag C_map, acceleration PSD).
 
     PYTHONPATH=python python benchmarks/calibration.py [--folds 0,6] [--synthetic] [--json out.json]
-        [--keep-labels] [--reference FILE]
+        [--keep-labels] [--reference FILE] [--network DIR/NAME]
 
 ``--keep-labels`` builds every map on the labels as they are (by default ``Map.build``
 corrects them by bundle adjustment); with the
 SfM reference (``--reference``, default the shared one when present) every fold × mode is
 scored a second time, against the reference aligned on the fold's training frames to the
 map's keyframe poses (``vs ref`` rows), beside the labels (``vs labels``).
+
+``--network DIR/NAME`` builds every fold's map with a descriptor network too (``Map.build``
+then fuses it with BoW): the network trained on that fold's training frames, given as the
+descriptors of every frame that ``benchmarks/train_folds.py`` wrote (``DIR/NAME-fold<LO>.npz``),
+looked up by image.
 
 Not a test: a full run takes several minutes (7 map builds of ~600 frames). ``--json`` also
 records the held-out samples of each map and every frame's error, covariance and source, so
@@ -53,8 +58,26 @@ BLOCK = 100
 MARGIN = 15
 
 
+class FrameDescriptors:
+    """A "network" that answers the descriptors saved for each frame of ``seq`` (rows of
+    ``descriptors``), recognizing a frame by its gray image's bytes."""
+
+    def __init__(self, seq: Any, descriptors: Any, name: str) -> None:
+        import hashlib
+
+        self._digest = lambda img: hashlib.sha256(np.ascontiguousarray(img).tobytes()).digest()
+        self._rows = {self._digest(seq.gray(i)): i for i in range(len(seq))}
+        self._d = np.asarray(descriptors, dtype=np.float32)
+        self.name, self.dim = name, self._d.shape[1]
+        self.sha256 = hashlib.sha256(self._d.tobytes()).hexdigest()
+
+    def __call__(self, images: list[Any]) -> Any:
+        return self._d[[self._rows[self._digest(img)] for img in images]]
+
+
 def evaluate(
-    train: Any, test: Any, locator: str | None = None, adjust_labels: bool = True, reference: Any = None
+    train: Any, test: Any, locator: str | None = None, adjust_labels: bool = True, reference: Any = None,
+    network: Any = None,
 ) -> dict[str, Any]:
     """Build the map on ``train``, localize ``test`` in both modes; the summaries, the map noise
     and (under ``"frames"``) the per-frame errors δ = log(T_gt⁻¹T_est), covariances and sources;
@@ -62,7 +85,7 @@ def evaluate(
     it (``"<mode> vs reference"``), aligned on the training frames to the map's keyframe poses."""
     t0 = time.perf_counter()
     # the paper's locator needs no 3D model; None: the core's default (the model locator)
-    m = geoloc.Map.build(train, model=False if locator == "paper" else None, adjust_labels=adjust_labels)
+    m = geoloc.Map.build(train, network or "bow", model=False if locator == "paper" else None, adjust_labels=adjust_labels)
     build_s = time.perf_counter() - t0
     noise = m.map_noise
     h = noise["holdout"]
@@ -91,7 +114,7 @@ def evaluate(
         alignment = align_reference(reference[train.indices], m.keyframe_poses)
         out["alignment"] = alignment.statistics()
     for mode in ("single", "sequential"):
-        results = geoloc.Localizer(m, locator=locator).localize_sequence(test, mode)
+        results = geoloc.Localizer(m, locator=locator, global_descriptor=network).localize_sequence(test, mode)
         if alignment is not None:
             ref = summarize_results(results, alignment.apply(reference[test.indices]))
             ref.pop("per_frame", None)
@@ -176,6 +199,8 @@ def main() -> int:
                     help="maps keep their labels as the truth (default: corrected by bundle adjustment)")
     ap.add_argument("--reference", type=Path, default=REFERENCE if REFERENCE.is_file() else None,
                     help="SfM reference poses to score against as well (default: the shared one, when present)")
+    ap.add_argument("--network", type=Path, metavar="DIR/NAME",
+                    help="fuse each fold's map with the network whose descriptors DIR/NAME-fold<LO>.npz holds")
     args = ap.parse_args()
     reference = None
     if args.reference is not None:
@@ -191,7 +216,11 @@ def main() -> int:
         seq = geoloc.datasets.load_7scenes(DATA)[:700]
         for b in (int(x) for x in args.folds.split(",")):
             train, test = fold(seq, b)
-            r = evaluate(train, test, args.locator, args.adjust_labels, reference)
+            network = None
+            if args.network is not None:
+                saved = args.network.parent / f"{args.network.name}-fold{b * BLOCK}.npz"
+                network = FrameDescriptors(seq, np.load(saved)["descriptors"], args.network.name)
+            r = evaluate(train, test, args.locator, args.adjust_labels, reference, network)
             name = f"{b * BLOCK}-{b * BLOCK + len(test) - 1}"
             report[name] = r
             for mode in ("single", "sequential"):

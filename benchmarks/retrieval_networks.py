@@ -112,67 +112,70 @@ def train_tiny(frames: SevenScenesFrames, gray: np.ndarray, epochs: int, out: Pa
     return out
 
 
-def rerank(bow: np.ndarray, train: np.ndarray, queries: np.ndarray, candidates: int) -> np.ndarray:
-    """BoW's first ``candidates`` per query re-ordered by the network's L2 distance (rows of
-    ``bow`` hold training indices, best first)."""
-    out = bow[:, :candidates].copy()
-    for q in range(len(out)):
-        d = ((train[out[q]] - queries[q]) ** 2).sum(1)
-        out[q] = out[q][np.argsort(d, kind="stable")]
-    return out
-
-
-def rank_fusion(rankings: list[np.ndarray], n: int, k: int, c: float = 60.0) -> np.ndarray:
-    """Reciprocal rank fusion of full rankings ((Q, ≥1) training indices each): score
-    Σ_r 1 / (c + rank_r), the top ``k`` (ties by index)."""
-    out = np.zeros((rankings[0].shape[0], k), dtype=np.int64)
-    for q in range(len(out)):
-        score = np.zeros(n)
-        for r in rankings:
-            score[r[q]] += 1.0 / (c + np.arange(1, r.shape[1] + 1))
-        out[q] = np.lexsort((np.arange(n), -score))[:k]
-    return out
+def network_descriptors(folder: Path) -> dict[str, dict[int, Path]]:
+    """``folder``'s ``<network>-fold<LO>.npz`` files (``benchmarks/train_folds.py``) by
+    network and fold."""
+    found: dict[str, dict[int, Path]] = {}
+    for f in sorted(folder.glob("*-fold*.npz")):
+        name, _, lo = f.stem.rpartition("-fold")
+        if lo.isdigit():
+            found.setdefault(name, {})[int(lo)] = f
+    return found
 
 
 def folds(args: argparse.Namespace) -> None:
-    frames = SevenScenesFrames(args.data)
-    n = min(len(frames), 700)
-    images = [frames[i].image for i in range(n)]
-    poses = poses_of(frames)[:n]
-    tiny = tiny_image_descriptors(images)
-    gray = gray_images(frames, range(n)) if args.train_tiny else None
+    import geoloc
+    from geoloc.features import FeatureExtractor
+
+    seq = geoloc.datasets.load_7scenes(args.data)
+    n = min(len(seq), 700)
+    poses = np.stack([seq.poses[i] for i in range(n)])
+    extractor = FeatureExtractor()
+    features = [extractor(seq.gray(i), seq.camera) for i in range(n)]
+    tiny = tiny_image_descriptors([seq[i].image for i in range(n)])
+    networks = network_descriptors(args.descriptors) if args.descriptors else {}
+    common = dict(estimate_noise=False, refine_intrinsics=False, adjust_labels=False, model=False)
     table: dict[str, dict[str, float]] = {}
-    methods = ["tiny image", "BoW"] + (["CNN", "re-rank", "rank fusion"] if args.train_tiny else [])
-    print(f"{'fold':<9} " + " ".join(f"{m:>12}" for m in methods) + f" {'ceiling':>8}", flush=True)
+    seconds: dict[str, list[float]] = {}
+    methods = ["tiny image", "BoW"] + [f"{net} {m}" for net in networks for m in ("alone", "fused k=1", "fused k=5")]
+    print("recall@1 (%) per fold; 'fused k=1': the paper locator's retrieval (BoW's best and the network's, "
+          "verified), 'fused k=5': the model locator's first keyframe (BoW's 5 and the network's 5, verified)", flush=True)
+    print(f"{'fold':<9} " + " ".join(f"{m:>{max(10, len(m))}}" for m in methods) + f" {'ceiling':>8}", flush=True)
     for lo in range(0, n, 100):
         hi = min(lo + 100, n)
         train_idx = np.array([i for i in range(n) if i < lo - 15 or i >= hi + 15])
         test_idx = np.arange(lo, hi)
         correct = correct_matrix(poses[train_idx], poses[test_idx])
-        full = len(train_idx)
-        row = {"tiny image": recall_at_k(correct, rank_by_descriptors(tiny[train_idx], tiny[test_idx], 1), 1).recall_at_1}
-        bow, _ = bow_ranking([images[i] for i in train_idx], [images[i] for i in test_idx], full)
-        row["BoW"] = recall_at_k(correct, bow, 1).recall_at_1
-        if args.train_tiny:
-            from geoloc.training.frames import PosedImage
-            from geoloc.training.train import embed, train
 
-            posed = [PosedImage(np.zeros((8, 8, 3), np.uint8), poses[i]) for i in train_idx]
-            result = train(posed, gray=gray[train_idx], backbone="tiny", epochs=args.train_tiny, threads=args.threads, progress=False)
-            d = embed(result.model, gray)
-            cnn = rank_by_descriptors(d[train_idx], d[test_idx], full)
-            row["CNN"] = recall_at_k(correct, cnn, 1).recall_at_1
-            row["re-rank"] = recall_at_k(correct, rerank(bow, d[train_idx], d[test_idx], args.candidates), 1).recall_at_1
-            row["rank fusion"] = recall_at_k(correct, rank_fusion([bow, cnn], full, 1), 1).recall_at_1
-            row["selected epoch"] = float(result.selection.get("best_epoch") or args.train_tiny)
+        def recall(top: list[int]) -> float:
+            return float(correct[np.arange(len(top)), top].mean())
+
+        row = {"tiny image": recall_at_k(correct, rank_by_descriptors(tiny[train_idx], tiny[test_idx], 1), 1).recall_at_1}
+        kps, descs = [features[i].keypoints for i in train_idx], [features[i].descriptors for i in train_idx]
+        bow = geoloc.Map.from_features(seq.camera, poses[train_idx], kps, descs, **common)
+        row["BoW"] = recall([bow.retrieve_features(features[q].keypoints, features[q].descriptors, k=1)[0] for q in test_idx])
+        for net, files in networks.items():
+            if lo not in files:
+                continue
+            d = np.load(files[lo])["descriptors"].astype(np.float32)
+            row[f"{net} alone"] = recall_at_k(correct, rank_by_descriptors(d[train_idx], d[test_idx], 1), 1).recall_at_1
+            fused = geoloc.Map.from_features(seq.camera, poses[train_idx], kps, descs, global_descriptors=d[train_idx], retrieval="fused", **common)
+            for k in (1, 5):
+                start = time.perf_counter()
+                top = [fused.retrieve_features(features[q].keypoints, features[q].descriptors, d[q], k=k)[0] for q in test_idx]
+                seconds.setdefault(f"fused k={k}", []).append((time.perf_counter() - start) / len(test_idx))
+                row[f"{net} fused k={k}"] = recall(top)
         row["ceiling"] = float(correct.any(axis=1).mean())
         name = f"{lo}-{hi - 1}"
         table[name] = row
-        print(f"{name:<9} " + " ".join(f"{100 * row[m]:>11.0f}%" for m in methods) + f" {100 * row['ceiling']:>7.0f}%", flush=True)
-    mean = {m: float(np.mean([r[m] for r in table.values()])) for m in methods}
-    print(f"{'mean':<9} " + " ".join(f"{100 * mean[m]:>11.1f}%" for m in methods))
-    worst = {m: float(min(r[m] - r["BoW"] for r in table.values())) for m in methods if m != "BoW"}
+        cells = [f"{100 * row[m]:>{max(10, len(m)) - 1}.0f}%" if m in row else f"{'-':>{max(10, len(m))}}" for m in methods]
+        print(f"{name:<9} " + " ".join(cells) + f" {100 * row['ceiling']:>7.0f}%", flush=True)
+    mean = {m: float(np.mean([r[m] for r in table.values() if m in r])) for m in methods}
+    print(f"{'mean':<9} " + " ".join(f"{100 * mean[m]:>{max(10, len(m)) - 1}.1f}%" for m in methods))
+    worst = {m: float(min(r[m] - r["BoW"] for r in table.values() if m in r)) for m in methods if m != "BoW"}
     print("gain over BoW on the worst fold (recall@1 points): " + ", ".join(f"{m} {100 * g:+.0f}" for m, g in worst.items()))
+    for k, v in seconds.items():
+        print(f"{k}: {1e3 * float(np.median(v)):.1f} ms per query (median over folds; 2 threads)")
     if args.json:
         Path(args.json).write_text(json.dumps({"folds": table, "mean": mean, "worst_gain_over_bow": worst}, indent=1))
 
@@ -185,7 +188,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--k", type=int, default=5)
     parser.add_argument("--folds", action="store_true", help="every 100-frame block of 0-699 in turn (see above)")
-    parser.add_argument("--candidates", type=int, default=10, help="--folds: BoW candidates the network re-ranks (default 10)")
+    parser.add_argument("--descriptors", type=Path, help="--folds: a folder of benchmarks/train_folds.py outputs")
     parser.add_argument("--json", help="--folds: write the table here")
     args = parser.parse_args()
     if not args.data.is_dir():

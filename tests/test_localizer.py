@@ -255,3 +255,42 @@ def test_refine_intrinsics_options_are_checked_and_a_weak_map_says_why(
     path = tmp_path / "weak.geoloc"  # type: ignore[operator]
     weak.save(path)
     assert Map.load(path).self_calibration == sc
+
+
+def test_fused_retrieval_keeps_bow_against_a_misleading_network_and_round_trips(tmp_path) -> None:
+    """A map built with global descriptors and ``retrieval="fused"``: a network that points
+    at a far keyframe cannot displace the keyframe BoW finds (two-view verification of the
+    query's matches decides); an honest one agrees; the map saves and loads as fused; a query
+    without its global descriptor, or with keypoints and descriptors that disagree, is
+    refused by name."""
+    rng = np.random.default_rng(0)
+    pts = rng.uniform([-4, -1.5, 3], [4, 1.5, 7], (800, 3))
+    desc = rng.integers(0, 256, (800, 32), dtype=np.uint8)
+    poses = np.stack([_walk(0.25 * i, 0.0) for i in range(20)])
+    obs = [_observe(rng, p, pts, desc) for p in poses]
+    g = np.stack([[p[0, 3] / 10, 0.0] for p in poses]).astype(np.float32)  # a "network": position along the walk
+    common = dict(branching=8, depth=3, estimate_noise=False, refine_intrinsics=False, adjust_labels=False, model=False)
+    fused = Map.from_features(CAM, poses, [o[0] for o in obs], [o[1] for o in obs], global_descriptors=g, retrieval="fused", **common)
+    bow = Map.from_features(CAM, poses, [o[0] for o in obs], [o[1] for o in obs], **common)
+    net = Map.from_features(CAM, poses, [o[0] for o in obs], [o[1] for o in obs], global_descriptors=g, retrieval="global", **common)
+    truth = _walk(2.4, 0.15)
+    kp, d = _observe(rng, truth, pts, desc)
+    distance = np.linalg.norm(poses[:, :3, 3] - truth[:3, 3], axis=1)
+    far = g[int(np.argmax(distance))]
+    assert net.retrieve_features(kp, d, far, k=1) == [int(np.argmax(distance))]
+    found = bow.retrieve_features(kp, d, k=1)[0]
+    assert distance[found] < 0.3
+    assert fused.retrieve_features(kp, d, far, k=1) == [found]
+    honest = np.array([truth[0, 3] / 10, 0.0], np.float32)
+    assert distance[fused.retrieve_features(kp, d, honest, k=3)[0]] < 0.3
+    assert fused.settings["retrieval"] == "fused"
+    fused.save(tmp_path / "fused.geoloc")
+    back = Map.load(tmp_path / "fused.geoloc")
+    assert back.settings["retrieval"] == "fused"
+    assert back.retrieve_features(kp, d, far, k=5) == fused.retrieve_features(kp, d, far, k=5)
+    with pytest.raises(geoloc.InvalidInputError, match=r"^global_descriptor: this map retrieves by global descriptor"):
+        fused.retrieve_features(kp, d)
+    with pytest.raises(geoloc.InvalidInputError, match=r"^keypoints: expected shape"):
+        fused.retrieve_features(kp[:-1], d, far)
+    with pytest.raises(geoloc.InvalidInputError, match=r"^k: "):
+        fused.retrieve_features(kp, d, far, k=0)

@@ -52,7 +52,7 @@ def frontend_parts(
     is a FileFormatError naming the field."""
     cam = _record(frontend, "camera", {"width": int, "height": int, "dist": list}, path)
     retrieval = frontend.get("retrieval")
-    if retrieval not in ("bow", "global") and not isinstance(retrieval, dict):
+    if retrieval not in ("bow", "global", "fused") and not isinstance(retrieval, dict):
         raise FileFormatError(f"path: {path!r}: the map's frontend field retrieval is missing or malformed ({retrieval!r:.40})")
     if "features" not in frontend:
         raise FileFormatError(f"path: {path!r}: the map's frontend header has no 'features' record")

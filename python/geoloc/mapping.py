@@ -193,7 +193,10 @@ class Map:
         """Build a map from ``sequence`` (every ``keyframe_step``-th frame becomes a keyframe).
 
         ``retrieval`` is ``"bow"`` (a ``branching``^``depth``-word vocabulary trained on the
-        keyframes' descriptors, seeded by ``seed``) or a global-descriptor network;
+        keyframes' descriptors, seeded by ``seed``) or a global-descriptor network, which the
+        map combines with that vocabulary (``"fused"``: BoW and the network each propose
+        keyframes and two-view verification of the query's matches orders them, so the
+        network adds candidates and never removes BoW's; see ``docs/design.md``);
         ``features`` is ``"orb"`` or ``"sift"`` with ``n_features`` per image.
         ``progress(done, total)`` is called after each keyframe.
 
@@ -241,7 +244,7 @@ class Map:
             if progress is not None:
                 progress(done, len(indices))
         global_descriptors = None if isinstance(retrieval, str) else np.asarray(retrieval(images), dtype=np.float32)
-        options["retrieval"] = "bow" if isinstance(retrieval, str) else "global"
+        options["retrieval"] = "bow" if isinstance(retrieval, str) else "fused"
         core = _core_map(
             camera, sequence.poses[indices], keypoints, descriptors, global_descriptors, None,
             _increasing(sequence.timestamps[indices]), options,
@@ -266,7 +269,7 @@ class Map:
         global_descriptors: ArrayLike | None = None,
         pose_covariances: ArrayLike | None = None,
         timestamps: ArrayLike | None = None,
-        retrieval: Literal["bow", "global"] | None = None,
+        retrieval: Literal["bow", "global", "fused"] | None = None,
         branching: int | None = None,
         depth: int | None = None,
         seed: int | None = None,
@@ -279,7 +282,8 @@ class Map:
         """Build a map from features you computed: ``poses`` (K, 4, 4) world_from_cam, per
         keyframe ``keypoints`` (N, 2) undistorted pixels and local ``descriptors`` (N, W)
         (uint8 rows: binary/ORB; float rows: SIFT), optional ``global_descriptors`` (K, D)
-        (``retrieval="global"`` retrieves by them; the default is bag of words),
+        (``retrieval="global"`` retrieves by them alone, ``"fused"`` combines them with bag of
+        words as :meth:`build` does with a network; the default is bag of words),
         ``pose_covariances`` (K, 6, 6) of the labels and ``timestamps`` (K,) in seconds.
 
         The build options and their defaults are those of :meth:`build`. Everything is
@@ -288,7 +292,7 @@ class Map:
         ``branching**depth`` ≤ 2**24), so a map that builds localizes. Such a map localizes
         features (:meth:`geoloc.Localizer.localize_features`), not images."""
         if retrieval is not None:
-            choice(retrieval, "retrieval", ("bow", "global"))
+            choice(retrieval, "retrieval", ("bow", "global", "fused"))
         options = _build_options(branching, depth, seed, estimate_noise, model, refine_intrinsics, intrinsics_model, adjust_labels)
         options.update(given_options(retrieval=retrieval))
         core = _core_map(camera, poses, keypoints, descriptors, global_descriptors, pose_covariances, timestamps, options)
@@ -403,6 +407,22 @@ class Map:
             "holdout": holdout,
             "resolved": None if resolved is None else np.asarray(resolved, dtype=bool),
         }
+
+    def retrieve_features(
+        self,
+        keypoints: ArrayLike,
+        descriptors: ArrayLike,
+        global_descriptor: ArrayLike | None = None,
+        k: int = 5,
+    ) -> list[int]:
+        """The ``k`` keyframes most similar to a query, best first — the localizer's retrieval
+        (bag of words, the network's global descriptor, or both verified, as the map was
+        built): ``keypoints`` (N, 2) undistorted pixels, ``descriptors`` (N, W) as the
+        keyframes', ``global_descriptor`` (D,) for a map built with a network."""
+        descs = _local_descriptors(descriptors, "descriptors")
+        kps = keypoint_rows(keypoints, "keypoints", len(descs))
+        g = None if global_descriptor is None else _f32_rows(np.asarray(global_descriptor)[None], "global_descriptor")[0]
+        return [int(i) for i in self._core.retrieve(kps, descs, g, _as_int(k, "k", 1))]
 
     def __len__(self) -> int:
         return len(self._core)

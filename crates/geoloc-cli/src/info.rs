@@ -97,12 +97,21 @@ fn retrieval(h: &MapHeader) -> String {
     match &h.retrieval {
         RetrievalHeader::Bow { words } => format!("bag of words, {words} words (no network needed)"),
         RetrievalHeader::Global { dim } => {
-            let net = h.frontend.get("retrieval");
-            let name = net.and_then(|n| n.get("name")).and_then(Value::as_str).unwrap_or("?");
-            let sha = net.and_then(|n| n.get("sha256")).and_then(Value::as_str).map_or("?", |s| &s[..s.len().min(12)]);
-            format!("global descriptor, {dim} values (network {name:?}, sha256 {sha}…): frames must carry one")
+            format!("global descriptor, {dim} values ({}): frames must carry one", network(h))
         }
+        RetrievalHeader::Fused { words, dim } => format!(
+            "bag of words ({words} words) and a {dim}-value global descriptor ({}), verified two-view: frames must carry one",
+            network(h)
+        ),
     }
+}
+
+/// The network the front end recorded: name and the start of its sha256.
+fn network(h: &MapHeader) -> String {
+    let net = h.frontend.get("retrieval");
+    let name = net.and_then(|n| n.get("name")).and_then(Value::as_str).unwrap_or("?");
+    let sha = net.and_then(|n| n.get("sha256")).and_then(Value::as_str).map_or("?", |s| &s[..s.len().min(12)]);
+    format!("network {name:?}, sha256 {sha}…")
 }
 
 /// "no", or "yes" with the median position σ (m) and rotation σ (°) of the keyframes: the

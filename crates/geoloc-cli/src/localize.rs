@@ -204,7 +204,7 @@ fn check_record(record: &FrameRecord, header: &MapHeader, previous: Option<f64>,
             header.descriptor_kind, header.descriptor_width
         ));
     }
-    if let RetrievalHeader::Global { dim } = header.retrieval {
+    if let RetrievalHeader::Global { dim } | RetrievalHeader::Fused { dim, .. } = header.retrieval {
         match &record.global {
             None => {
                 return Err(format!(

@@ -26,7 +26,7 @@ use crate::fusion::{FusionSource, Gate, fuse_gated_with};
 use crate::keyframes::KeyframeOptions;
 use crate::lie::SE3;
 use crate::map::group_matches::fingerprint;
-use crate::map::{Map, ModelOptions, SceneModel};
+use crate::map::{Map, ModelOptions, RetrievalQuery, SceneModel};
 use crate::matching::{Descriptors, MatchOptions};
 use crate::motion::{motion_predict_with_noise, motion_predict_with_prior};
 use crate::optim::covariance::{isometric_sigmas, spd_inverse};
@@ -226,6 +226,13 @@ pub struct Frame<'a> {
     /// [`crate::frames::FrameRecord::pixel_sigmas`]): keypoint i's pixel noise in PnP is
     /// `pnp.pixel_sigma` × `pixel_sigmas[i]`. None: `pnp.pixel_sigma` for every keypoint.
     pub pixel_sigmas: Option<&'a [f64]>,
+}
+
+impl<'a> Frame<'a> {
+    /// What the map's retrieval compares: keypoints, local and global descriptors.
+    pub fn retrieval_query(&self) -> RetrievalQuery<'a> {
+        RetrievalQuery { keypoints: self.keypoints, descriptors: self.descriptors, global: self.global }
+    }
 }
 
 /// Which path produced a result.

@@ -9,6 +9,7 @@
 
 mod build;
 pub mod file;
+pub mod fused_retrieval;
 pub mod group_matches;
 pub mod labels;
 pub mod model;
@@ -61,6 +62,17 @@ pub enum Retrieval {
         vocabulary: Vocabulary,
         /// The keyframes' TF-IDF database.
         database: BowDatabase,
+    },
+    /// Bag of words and the nearest global descriptors each propose keyframes, and two-view
+    /// verification orders them ([`fused_retrieval`]): a network can add candidates, never
+    /// remove BoW's.
+    Fused {
+        /// The vocabulary.
+        vocabulary: Vocabulary,
+        /// The keyframes' TF-IDF database.
+        database: BowDatabase,
+        /// The keyframes' global descriptors.
+        index: DescriptorIndex,
     },
 }
 
@@ -161,26 +173,37 @@ pub enum RetrievalKind {
         /// Levels.
         depth: usize,
     },
+    /// Both: the BoW vocabulary and the keyframes' global descriptors, combined by
+    /// verification ([`fused_retrieval`]).
+    Fused {
+        /// Children per node.
+        branching: usize,
+        /// Levels.
+        depth: usize,
+    },
 }
 
-/// The retrieval methods by name (`"bow"`, `"global"`), without their parameters.
+/// The retrieval methods by name (`"bow"`, `"global"`, `"fused"`), without their parameters.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum RetrievalMethod {
     /// Bag of words ([`RetrievalKind::Bow`]).
     Bow,
     /// Global descriptors ([`RetrievalKind::Global`]).
     Global,
+    /// Both, combined by verification ([`RetrievalKind::Fused`]).
+    Fused,
 }
 
 impl RetrievalMethod {
     /// Every method, in declaration order.
-    pub const ALL: [Self; 2] = [Self::Bow, Self::Global];
+    pub const ALL: [Self; 3] = [Self::Bow, Self::Global, Self::Fused];
 
-    /// The name: `"bow"` or `"global"` (the one place that spells it).
+    /// The name: `"bow"`, `"global"` or `"fused"` (the one place that spells it).
     pub fn as_str(self) -> &'static str {
         match self {
             Self::Bow => "bow",
             Self::Global => "global",
+            Self::Fused => "fused",
         }
     }
 
@@ -189,6 +212,7 @@ impl RetrievalMethod {
         match self {
             Self::Bow => RetrievalKind::Bow { branching, depth },
             Self::Global => RetrievalKind::Global,
+            Self::Fused => RetrievalKind::Fused { branching, depth },
         }
     }
 }
@@ -197,10 +221,9 @@ impl std::str::FromStr for RetrievalMethod {
     type Err = GeolocError;
 
     fn from_str(s: &str) -> Result<Self> {
-        Self::ALL
-            .into_iter()
-            .find(|m| m.as_str() == s)
-            .ok_or_else(|| GeolocError::invalid("retrieval", format!("expected \"bow\" or \"global\", got {s:?}")))
+        Self::ALL.into_iter().find(|m| m.as_str() == s).ok_or_else(|| {
+            GeolocError::invalid("retrieval", format!("expected \"bow\", \"global\" or \"fused\", got {s:?}"))
+        })
     }
 }
 
@@ -209,6 +232,9 @@ impl std::fmt::Debug for Map {
         let retrieval = match &self.retrieval {
             Retrieval::Global(index) => format!("global ({}-D)", index.dim()),
             Retrieval::Bow { vocabulary, .. } => format!("bow ({} words)", vocabulary.len()),
+            Retrieval::Fused { vocabulary, index, .. } => {
+                format!("fused (bow {} words, global {}-D)", vocabulary.len(), index.dim())
+            }
         };
         f.debug_struct("Map")
             .field("camera", &self.camera)
@@ -245,7 +271,15 @@ impl Map {
         }
         let retrieval = match kind {
             RetrievalKind::Global => Retrieval::Global(global_index(&keyframes)?),
-            RetrievalKind::Bow { branching, depth } => bow_retrieval(&keyframes, branching, depth, seed)?,
+            RetrievalKind::Bow { branching, depth } => {
+                let (vocabulary, database) = bow_retrieval(&keyframes, branching, depth, seed)?;
+                Retrieval::Bow { vocabulary, database }
+            }
+            RetrievalKind::Fused { branching, depth } => {
+                let index = global_index(&keyframes)?;
+                let (vocabulary, database) = bow_retrieval(&keyframes, branching, depth, seed)?;
+                Retrieval::Fused { vocabulary, database, index }
+            }
         };
         Ok(Self {
             camera,
@@ -506,14 +540,14 @@ impl Map {
         self.keyframes.iter().map(|k| k.world_from_cam).collect()
     }
 
-    /// The keyframe most similar to a query (by its global descriptor, or by its local
-    /// descriptors through BoW; ties go to the lower index).
+    /// The keyframe most similar to a query (by its global descriptor, by its local
+    /// descriptors through BoW, or both verified by its keypoints; ties go to the lower index).
     ///
     /// # Errors
     /// A query without what the map's retrieval needs, or of the wrong size
     /// (`global_descriptor`, `descriptors`).
-    pub fn retrieve(&self, descriptors: &Descriptors<'_>, global: Option<&[f32]>) -> Result<usize> {
-        self.retrieve_excluding(descriptors, global, 0..0)
+    pub fn retrieve(&self, query: &RetrievalQuery<'_>) -> Result<usize> {
+        self.retrieve_excluding(query, 0..0)
     }
 
     /// [`Map::retrieve`] skipping the keyframes in `excluded` (for held-out re-localization);
@@ -521,27 +555,22 @@ impl Map {
     ///
     /// # Errors
     /// As [`Map::retrieve`]; `InvalidInput` when every keyframe is excluded.
-    pub fn retrieve_excluding(
-        &self,
-        descriptors: &Descriptors<'_>,
-        global: Option<&[f32]>,
-        excluded: std::ops::Range<usize>,
-    ) -> Result<usize> {
+    pub fn retrieve_excluding(&self, query: &RetrievalQuery<'_>, excluded: std::ops::Range<usize>) -> Result<usize> {
         // retrieve_top returns at least one keyframe or an error
-        Ok(self.retrieve_top(descriptors, global, 1, excluded)?[0])
+        Ok(self.retrieve_top(query, 1, excluded)?[0])
     }
 
     /// The `k` keyframes most similar to a query, best first, skipping those in `excluded`
-    /// (the ranking of [`Map::retrieve`]; fewer when the map has fewer).
+    /// (the ranking of [`Map::retrieve`]; fewer when the map has fewer). A fused map
+    /// verifies up to 2k candidates ([`fused_retrieval`]).
     ///
     /// # Errors
     /// A query without what the map's retrieval needs, or of the wrong size
-    /// (`global_descriptor`, `descriptors`); every keyframe excluded (`descriptors`); `k` 0
-    /// (`top_k`).
+    /// (`global_descriptor`, `descriptors`, `keypoints`); every keyframe excluded
+    /// (`descriptors`); `k` 0 (`top_k`).
     pub fn retrieve_top(
         &self,
-        descriptors: &Descriptors<'_>,
-        global: Option<&[f32]>,
+        query: &RetrievalQuery<'_>,
         k: usize,
         excluded: std::ops::Range<usize>,
     ) -> Result<Vec<usize>> {
@@ -550,33 +579,113 @@ impl Map {
         }
         let n = self.keyframes.len();
         let want = (excluded.end.min(n).saturating_sub(excluded.start) + k).min(n);
-        let ranked: Vec<usize> = match &self.retrieval {
-            Retrieval::Global(index) => {
-                let g = global.ok_or_else(|| {
-                    GeolocError::invalid("global_descriptor", "this map retrieves by global descriptor; give one")
-                })?;
-                if g.len() != index.dim() {
-                    return Err(GeolocError::invalid(
-                        "global_descriptor",
-                        format!("expected {} values, got {}", index.dim(), g.len()),
-                    ));
-                }
-                if let Some(i) = g.iter().position(|v| !v.is_finite()) {
-                    return Err(GeolocError::NonFinite { name: "global_descriptor".into(), index: i });
-                }
-                index.query(g, want)?.1
-            }
+        let kept =
+            |ranked: Vec<usize>| -> Vec<usize> { ranked.into_iter().filter(|i| !excluded.contains(i)).collect() };
+        let top: Vec<usize> = match &self.retrieval {
+            Retrieval::Global(index) => kept(global_ranking(index, query.global, want)?).into_iter().take(k).collect(),
             Retrieval::Bow { vocabulary, database } => {
-                let words = vocabulary.words_of(descriptors)?;
-                database.query(&words, want).into_iter().map(|(i, _)| i).collect()
+                kept(bow_ranking(vocabulary, database, &query.descriptors, want)?).into_iter().take(k).collect()
+            }
+            Retrieval::Fused { vocabulary, database, index } => {
+                let bow = kept(bow_ranking(vocabulary, database, &query.descriptors, want)?);
+                let network = kept(global_ranking(index, query.global, want)?);
+                self.fused(query, &bow, &fused_retrieval::network_candidates(&bow, &network, k), k)?
             }
         };
-        let top: Vec<usize> = ranked.into_iter().filter(|i| !excluded.contains(i)).take(k).collect();
         if top.is_empty() {
             return Err(GeolocError::invalid("descriptors", "the map has no keyframes outside the excluded ones"));
         }
         Ok(top)
     }
+
+    /// [`Map::retrieve_top`] for a query whose keypoints are in the caller's pixels: corrected
+    /// by the map's camera estimate first, as the localizer corrects a frame's
+    /// (u_c = K d⁻¹(K′⁻¹u)), then the `k` best keyframes.
+    ///
+    /// # Errors
+    /// As [`Map::retrieve_top`]; a keypoint the lens correction does not invert (`keypoints`).
+    pub fn retrieve_frame(&self, query: &RetrievalQuery<'_>, k: usize) -> Result<Vec<usize>> {
+        let corrected = match self.intrinsics_correction() {
+            Some(c) => Some(c.correct_all(&self.camera, "keypoints", query.keypoints)?),
+            None => None,
+        };
+        self.retrieve_top(
+            &RetrievalQuery { keypoints: corrected.as_deref().unwrap_or(query.keypoints), ..*query },
+            k,
+            0..0,
+        )
+    }
+
+    /// The first `k` of the fused ranking of BoW's `bow` and the `network` candidates
+    /// ([`fused_retrieval`]).
+    fn fused(&self, query: &RetrievalQuery<'_>, bow: &[usize], network: &[usize], k: usize) -> Result<Vec<usize>> {
+        if query.keypoints.len() != query.descriptors.len() {
+            return Err(GeolocError::invalid(
+                "keypoints",
+                format!("{} keypoints for {} descriptors", query.keypoints.len(), query.descriptors.len()),
+            ));
+        }
+        if network.is_empty() {
+            return Ok(bow.iter().copied().take(k).collect());
+        }
+        // BoW's first keyframe and the network candidates, verified in parallel (in order)
+        let verified: Vec<usize> = bow.iter().copied().take(1).chain(network.iter().copied()).collect();
+        let scores = crate::parallel::map_slice(&verified, 2, |&c| {
+            let kf = &self.keyframes[c];
+            fused_retrieval::verified_inliers(
+                &self.camera,
+                query.keypoints,
+                &query.descriptors,
+                &kf.keypoints,
+                &kf.descriptors.view(),
+            )
+        })
+        .into_iter()
+        .collect::<Result<Vec<_>>>()?;
+        let (bow_score, scores) = if bow.is_empty() { (0, &scores[..]) } else { (scores[0], &scores[1..]) };
+        Ok(fused_retrieval::fused_order(bow, bow_score, network, scores, k))
+    }
+}
+
+/// What retrieval compares a query by: its undistorted keypoints and their local descriptors
+/// (BoW, and the verification of a fused map), and its global descriptor (maps that retrieve
+/// by global descriptors, or fused).
+#[derive(Clone, Copy, Debug)]
+pub struct RetrievalQuery<'a> {
+    /// Undistorted keypoints (px), one per descriptor.
+    pub keypoints: &'a [Vector2<f64>],
+    /// Local descriptors.
+    pub descriptors: Descriptors<'a>,
+    /// The global descriptor, if any.
+    pub global: Option<&'a [f32]>,
+}
+
+/// The keyframes by global-descriptor distance, nearest first (`want` of them).
+fn global_ranking(index: &DescriptorIndex, global: Option<&[f32]>, want: usize) -> Result<Vec<usize>> {
+    let g = global.ok_or_else(|| {
+        GeolocError::invalid("global_descriptor", "this map retrieves by global descriptor; give one")
+    })?;
+    if g.len() != index.dim() {
+        return Err(GeolocError::invalid(
+            "global_descriptor",
+            format!("expected {} values, got {}", index.dim(), g.len()),
+        ));
+    }
+    if let Some(i) = g.iter().position(|v| !v.is_finite()) {
+        return Err(GeolocError::NonFinite { name: "global_descriptor".into(), index: i });
+    }
+    Ok(index.query(g, want)?.1)
+}
+
+/// The keyframes by BoW score, best first (`want` of them at most).
+fn bow_ranking(
+    vocabulary: &Vocabulary,
+    database: &BowDatabase,
+    descriptors: &Descriptors<'_>,
+    want: usize,
+) -> Result<Vec<usize>> {
+    let words = vocabulary.words_of(descriptors)?;
+    Ok(database.query(&words, want).into_iter().map(|(i, _)| i).collect())
 }
 
 /// The tracks [`Map::with_refined_intrinsics`] fits the camera to: the 3D model's, with the
@@ -693,11 +802,16 @@ fn global_index(keyframes: &[Keyframe]) -> Result<DescriptorIndex> {
 
 /// (a) by bag of words: a vocabulary trained on every keyframe's descriptors, and the
 /// TF-IDF database of the keyframes' words.
-fn bow_retrieval(keyframes: &[Keyframe], branching: usize, depth: usize, seed: u64) -> Result<Retrieval> {
+fn bow_retrieval(
+    keyframes: &[Keyframe],
+    branching: usize,
+    depth: usize,
+    seed: u64,
+) -> Result<(Vocabulary, BowDatabase)> {
     let all = DescriptorSet::stack(keyframes.iter().map(|k| &k.descriptors));
     let vocabulary = Vocabulary::train(&all.view(), branching, depth, seed)?;
     let words: Vec<Vec<u32>> =
         keyframes.iter().map(|k| vocabulary.words_of(&k.descriptors.view())).collect::<Result<_>>()?;
     let database = BowDatabase::with_weighting(vocabulary.len(), &words, vocabulary.term_weighting())?;
-    Ok(Retrieval::Bow { vocabulary, database })
+    Ok((vocabulary, database))
 }

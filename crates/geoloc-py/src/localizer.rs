@@ -6,7 +6,7 @@ use std::sync::{Arc, Mutex};
 
 use geoloc_core::camera::Camera;
 use geoloc_core::localizer::{Frame, Localization as CoreLocalization, Localizer as CoreLocalizer, LocalizerOptions};
-use geoloc_core::map::{Keyframe, Map as CoreMap, RetrievalMethod, SelfCalibrationHeader};
+use geoloc_core::map::{Keyframe, Map as CoreMap, RetrievalMethod, RetrievalQuery, SelfCalibrationHeader};
 use nalgebra::Vector2;
 use numpy::{PyArray2, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2, PyUntypedArrayMethods};
 use pyo3::prelude::*;
@@ -128,13 +128,34 @@ impl FeatureMap {
         (c.fx, c.fy, c.cx, c.cy)
     }
 
-    /// How the map retrieves keyframes: "bow" or "global".
+    /// How the map retrieves keyframes: "bow", "global" or "fused".
     #[getter]
     fn retrieval(&self) -> &'static str {
         match self.inner.retrieval {
             geoloc_core::map::Retrieval::Global(_) => RetrievalMethod::Global.as_str(),
             geoloc_core::map::Retrieval::Bow { .. } => RetrievalMethod::Bow.as_str(),
+            geoloc_core::map::Retrieval::Fused { .. } => RetrievalMethod::Fused.as_str(),
         }
+    }
+
+    /// The `k` keyframes most similar to a query, best first: the localizers' retrieval
+    /// (keypoints (N, 2) in the caller's undistorted pixels, descriptors (N, W), the global
+    /// descriptor (D,) for maps that retrieve by one).
+    #[pyo3(signature = (keypoints, descriptors, global_descriptor=None, k=5))]
+    fn retrieve(
+        &self,
+        py: Python<'_>,
+        keypoints: PyReadonlyArray2<'_, f64>,
+        descriptors: Bound<'_, PyAny>,
+        global_descriptor: Option<Bound<'_, PyAny>>,
+        k: usize,
+    ) -> PyResult<Vec<usize>> {
+        let kps = self::keypoints("keypoints", &keypoints)?;
+        let borrowed = BorrowedDescriptors::extract(&descriptors, "descriptors")?;
+        let global = optional_vector::<f32>(global_descriptor.as_ref(), "global_descriptor", "float32", "D")?;
+        let global = slice_of(global.as_ref(), "global_descriptor")?;
+        let query = RetrievalQuery { keypoints: &kps, descriptors: borrowed.view("descriptors")?, global };
+        py.detach(|| self.inner.retrieve_frame(&query, k)).map_err(to_py_err)
     }
 
     /// The camera the map estimated from its keyframes (JSON text of the map header's

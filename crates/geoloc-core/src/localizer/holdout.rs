@@ -28,7 +28,7 @@ impl Localizer {
             let (_, pose, _) = self.model_pose(&frame, excluded, &mut Timings::default())?;
             return Ok(pose.ok());
         }
-        let seed = map.retrieve_excluding(&descriptors, kf.global.as_deref(), excluded.clone())?;
+        let seed = map.retrieve_excluding(&frame.retrieval_query(), excluded.clone())?;
         let allowed: Vec<usize> = (0..map.keyframes.len()).filter(|i| !excluded.contains(i)).collect();
         let poses: Vec<SE3> = allowed.iter().map(|&i| map.keyframes[i].world_from_cam).collect();
         let local = allowed.iter().position(|&i| i == seed).expect("invariant: retrieval skips the excluded");

@@ -89,7 +89,7 @@ impl Localizer {
     ) -> Result<GeometricPose> {
         let model = self.model().ok_or_else(|| GeolocError::invalid("locator", "the map has no 3D model"))?;
         let t = Instant::now();
-        let top = self.map.retrieve_top(&frame.descriptors, frame.global, self.options.top_k, excluded.clone())?;
+        let top = self.map.retrieve_top(&frame.retrieval_query(), self.options.top_k, excluded.clone())?;
         timings.retrieval_ms = ms(t);
         let usable = usable_points(model, &excluded);
         let t = Instant::now();
@@ -454,7 +454,7 @@ mod scene_tests {
         };
         let usable = usable_points(model, &excluded).expect("some excluded");
         assert!(usable.iter().any(|u| !u) && usable.iter().any(|u| *u));
-        let top = map.retrieve_top(&frame.descriptors, None, 5, excluded.clone()).expect("retrieves");
+        let top = map.retrieve_top(&frame.retrieval_query(), 5, excluded.clone()).expect("retrieves");
         assert!(top.iter().all(|t| !excluded.contains(t)));
         let first = one_to_one(loc.retrieved_matches(&frame, model, &top, Some(&usable)).expect("matches").concat());
         let grid = KeypointGrid::new(frame.keypoints, loc.options.guided_radius_px);

@@ -57,7 +57,7 @@ impl Localizer {
         timings: &mut Timings,
     ) -> Result<(GeometricPose, Option<String>)> {
         let t = Instant::now();
-        let keyframe = self.map.retrieve(&frame.descriptors, frame.global)?;
+        let keyframe = self.map.retrieve(&frame.retrieval_query())?;
         timings.retrieval_ms = ms(t);
         let (geometric, inliers) = self.group_pose(frame, keyframe, timings)?;
         if let Some((last, support)) = self.last_support

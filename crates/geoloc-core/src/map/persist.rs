@@ -9,11 +9,11 @@
 //! | `keyframes.keypoint_offsets` | i64 (K + 1) | keyframe k's keypoints are rows `offsets[k]..offsets[k+1]` |
 //! | `keypoints` | f64 (N, 2) | undistorted pixels (corrected by the self-calibration, if any) |
 //! | `descriptors` | u8 (N, W) or f32 (N, W) | local descriptors (binary or float) |
-//! | `keyframes.global_descriptors` | f32 (K, D) | only for global-descriptor retrieval |
+//! | `keyframes.global_descriptors` | f32 (K, D) | only for global-descriptor or fused retrieval |
 //! | `keyframes.pose_covariances` | f64 (K, 6, 6) | optional; right perturbation, translation first |
-//! | `vocabulary.node_offsets` | i64 (nodes + 1) | BoW only: see [`crate::bow::VocabularyArrays`] |
-//! | `vocabulary.centres` | u8 or f32 (R, W) | BoW only: the tree's cluster centres |
-//! | `vocabulary.children` | i64 (R) | BoW only: child node index, or −word − 1 |
+//! | `vocabulary.node_offsets` | i64 (nodes + 1) | BoW or fused only: see [`crate::bow::VocabularyArrays`] |
+//! | `vocabulary.centres` | u8 or f32 (R, W) | BoW or fused only: the tree's cluster centres |
+//! | `vocabulary.children` | i64 (R) | BoW or fused only: child node index, or −word − 1 |
 //! | `keyframes.labels` | f64 (K, 4, 4) | with `labels` in the header: the pose labels as given (world_from_label); `keyframes.world_from_cam` then holds the adjusted camera poses |
 //! | `keyframes.label_corrections` | f64 (K, 7) | with `labels`: per keyframe log(L⁻¹B) (6, translation first) and its significance |
 //! | `model.points` | f64 (P, 3) | optional 3D model ([`super::SceneModel`]): world points |
@@ -84,6 +84,13 @@ pub enum RetrievalHeader {
     },
     /// Nearest global descriptor.
     Global {
+        /// Descriptor length.
+        dim: usize,
+    },
+    /// Both, combined by verification ([`super::fused_retrieval`]).
+    Fused {
+        /// Number of words.
+        words: usize,
         /// Descriptor length.
         dim: usize,
     },
@@ -431,6 +438,12 @@ impl Map {
                 tensors.extend(vocabulary_tensors(&vocabulary.to_arrays())?);
                 RetrievalHeader::Bow { words: vocabulary.len() }
             }
+            Retrieval::Fused { vocabulary, index, .. } => {
+                let data = self.keyframes.iter().flat_map(|kf| kf.global.clone().unwrap_or_default()).collect();
+                tensors.push(tensor("keyframes.global_descriptors", vec![k, index.dim()], TensorData::F32(data))?);
+                tensors.extend(vocabulary_tensors(&vocabulary.to_arrays())?);
+                RetrievalHeader::Fused { words: vocabulary.len(), dim: index.dim() }
+            }
         };
         let header = MapHeader {
             camera: CameraHeader::from_camera(&self.camera),
@@ -479,10 +492,12 @@ impl Map {
         let keypoints = f64_array(file, "keypoints", &[header.keypoints, 2])?;
         let descriptors = read_descriptors(file, &header)?;
         let globals = match header.retrieval {
-            RetrievalHeader::Global { dim } if dim > 0 => {
+            RetrievalHeader::Global { dim } | RetrievalHeader::Fused { dim, .. } if dim > 0 => {
                 Some((f32_array(file, "keyframes.global_descriptors", &[k, dim])?, dim))
             }
-            RetrievalHeader::Global { .. } => return Err(format_error("global descriptor length 0")),
+            RetrievalHeader::Global { .. } | RetrievalHeader::Fused { .. } => {
+                return Err(format_error("global descriptor length 0"));
+            }
             RetrievalHeader::Bow { .. } => None,
         };
         let mut keyframes = Vec::with_capacity(k);
@@ -506,15 +521,13 @@ impl Map {
                 Retrieval::Global(DescriptorIndex::new(data, dim).map_err(as_format)?)
             }
             RetrievalHeader::Bow { words } => {
-                let vocabulary = Vocabulary::from_arrays(read_vocabulary(file)?).map_err(as_format)?;
-                if vocabulary.len() != words {
-                    return Err(format_error(format!(
-                        "vocabulary has {} words, header says {words}",
-                        vocabulary.len()
-                    )));
-                }
-                let database = bow_database(&vocabulary, &keyframes)?;
+                let (vocabulary, database) = read_bow(file, words, &keyframes)?;
                 Retrieval::Bow { vocabulary, database }
+            }
+            RetrievalHeader::Fused { words, dim } => {
+                let (vocabulary, database) = read_bow(file, words, &keyframes)?;
+                let data = globals.map(|(g, _)| g).unwrap_or_default();
+                Retrieval::Fused { vocabulary, database, index: DescriptorIndex::new(data, dim).map_err(as_format)? }
             }
         };
         let noise = header.map_noise.as_ref().map(NoiseHeader::to_noise).transpose()?.unwrap_or_default();
@@ -571,6 +584,17 @@ impl Map {
         }
         offsets
     }
+}
+
+/// The stored vocabulary (`words` of them, as the header says) and the database rebuilt from
+/// the keyframes' descriptors.
+fn read_bow(file: &MapFile, words: usize, keyframes: &[Keyframe]) -> Result<(Vocabulary, BowDatabase)> {
+    let vocabulary = Vocabulary::from_arrays(read_vocabulary(file)?).map_err(as_format)?;
+    if vocabulary.len() != words {
+        return Err(format_error(format!("vocabulary has {} words, header says {words}", vocabulary.len())));
+    }
+    let database = bow_database(&vocabulary, keyframes)?;
+    Ok((vocabulary, database))
 }
 
 /// Errors of the core constructors, reported as a corrupt file.
@@ -850,7 +874,7 @@ fn read_vocabulary(file: &MapFile) -> Result<VocabularyArrays> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::map::RetrievalKind;
+    use crate::map::{RetrievalKind, RetrievalQuery};
     use crate::rng::SplitMix64;
     use crate::testing::isotropic_pose_covariance;
 
@@ -883,7 +907,7 @@ mod tests {
 
     fn map(binary: bool, kind: RetrievalKind, covariances: bool) -> Map {
         let mut rng = SplitMix64::new(21);
-        let kfs = keyframes(&mut rng, binary, kind == RetrievalKind::Global);
+        let kfs = keyframes(&mut rng, binary, !matches!(kind, RetrievalKind::Bow { .. }));
         let covs = covariances.then(|| vec![isotropic_pose_covariance(0.01, 0.005); kfs.len()]);
         let camera = Camera::new(525.0, 526.0, 320.5, 239.5).expect("valid camera");
         Map::build(camera, kfs, covs, kind, 3).expect("valid map")
@@ -894,11 +918,16 @@ mod tests {
         assert_eq!(a.keyframes, b.keyframes);
         assert_eq!(a.pose_covariances, b.pose_covariances);
         for kf in &a.keyframes {
-            let (ra, rb) = (
-                a.retrieve(&kf.descriptors.view(), kf.global.as_deref()),
-                b.retrieve(&kf.descriptors.view(), kf.global.as_deref()),
+            let query = RetrievalQuery {
+                keypoints: &kf.keypoints,
+                descriptors: kf.descriptors.view(),
+                global: kf.global.as_deref(),
+            };
+            let n = a.keyframes.len();
+            assert_eq!(
+                a.retrieve_top(&query, n, 0..0).expect("retrieves"),
+                b.retrieve_top(&query, n, 0..0).expect("retrieves")
             );
-            assert_eq!(ra.expect("retrieves"), rb.expect("retrieves"));
         }
     }
 
@@ -910,6 +939,8 @@ mod tests {
             (false, bow, true),
             (true, RetrievalKind::Global, true),
             (false, RetrievalKind::Global, false),
+            (true, RetrievalKind::Fused { branching: 4, depth: 2 }, false),
+            (false, RetrievalKind::Fused { branching: 3, depth: 2 }, true),
         ] {
             let original = map(binary, kind, covariances);
             let file = original.to_map_file(r#"{"features":"orb"}"#).expect("serializes");
@@ -919,10 +950,11 @@ mod tests {
             assert_eq!(header.frontend["features"], "orb");
             assert_eq!(header.keyframes, 6);
             // The stored vocabulary is used as stored (same words), not retrained.
-            if let (Retrieval::Bow { vocabulary: a, .. }, Retrieval::Bow { vocabulary: b, .. }) =
-                (&original.retrieval, &back.retrieval)
-            {
-                assert_eq!(a, b);
+            match (&original.retrieval, &back.retrieval) {
+                (Retrieval::Bow { vocabulary: a, .. }, Retrieval::Bow { vocabulary: b, .. })
+                | (Retrieval::Fused { vocabulary: a, .. }, Retrieval::Fused { vocabulary: b, .. }) => assert_eq!(a, b),
+                (Retrieval::Global(_), Retrieval::Global(_)) => {}
+                _ => panic!("the retrieval method changed on the way"),
             }
             assert_eq!(
                 back.to_map_file(r#"{"features":"orb"}"#).expect("serializes").to_bytes().expect("bytes"),
