@@ -1,19 +1,21 @@
 """Image retrieval on the shared 7-Scenes frames: the CNN descriptor against BoW and tiny images.
 
-    python benchmarks/retrieval_networks.py --folds [--train-tiny EPOCHS] [--json out.json]
+    python benchmarks/retrieval_networks.py --folds [--descriptors DIR] [--json out.json]
     python benchmarks/retrieval_networks.py [--model m.onnx ...] [--train-tiny EPOCHS]
                                             [--data ../shared/data/7scenes-redkitchen]
 
 ``--folds``: every contiguous block of 100 frames of 0–699 is the query set in turn, the
 training images the rest less 15 frames on either side (the project's protocol); per fold
-recall@1 of tiny images, BoW (its vocabulary trained on the fold's training frames) and, with
-``--train-tiny N``, a tiny CNN trained on the fold's training frames for N epochs (geoloc
-train's defaults: its epoch selected on the last 15 % of those frames) — and the two ways of
-combining it with BoW that a map could store: *re-rank* (BoW's top ``--candidates``
-re-ordered by the network's distance) and *rank fusion* (reciprocal rank fusion,
-score Σ 1/(60 + rank) over the two rankings). Prints the table, the mean over the folds and
-each method's gain over BoW on its worst fold. ``--model`` files are not used with
-``--folds``: a network trained on the queries would be scored on its own training images.
+recall@1 (correct within 0.3 m and 15°) of tiny images and of the maps geoloc builds — a map
+of the fold's training frames from the default features (``Map.from_features``, the core's
+bag of words) queried with ``Map.retrieve_features`` — and, for each network in
+``--descriptors DIR`` (the per-fold descriptors ``benchmarks/train_folds.py`` writes, each
+network trained on that fold's training frames), the network alone (exact L2 1-NN) and the
+map fused with it (``retrieval="fused"``): its first keyframe for k = 1 (what the paper's
+locator retrieves) and k = 5 (the model locator's first of five), with the time per query.
+Prints the table, the mean over the folds and each method's gain over BoW on its worst fold.
+``--model`` files are not used with ``--folds``: a network trained on the queries would be
+scored on its own training images.
 
 Otherwise one split: training images: frames 0–599; queries: 600–699 (the paper's "last 100 frames"). A query is
 answered correctly when the retrieved training image lies within 0.3 m and 15° of it;

@@ -126,3 +126,27 @@ def test_the_command_prints_and_saves_the_curve(tmp_path: Path) -> None:
     bad = subprocess.run([sys.executable, "-m", "geoloc", "train", "--dataset", "synthetic", "--validation", "0.9", "--out", str(out)],
                          capture_output=True, text=True)
     assert bad.returncode != 0 and "--validation" in bad.stderr
+
+
+@pytest.mark.parametrize("bad", [0, -2, 1.5, True, "3"])
+def test_a_bad_eval_every_is_refused_by_name(bad: object) -> None:
+    images, gray = frames(40)
+    with pytest.raises(geoloc.InvalidInputError, match=r"^eval_every: expected a positive integer or None"):
+        train(images, gray=gray, epochs=1, eval_every=bad, **TINY)
+
+
+def test_an_out_whose_curve_would_overwrite_the_init_weights_is_refused(tmp_path: Path) -> None:
+    """``--out m.onnx`` writes ``m.curve.json`` beside it: when that is the ``--init`` file the
+    command refuses before training, and the weights file is left as it was."""
+    from geoloc.training.network import build_network
+
+    init = tmp_path / "m.curve.json"
+    torch.save(build_network("tiny", 8).state_dict(), init)
+    before = init.read_bytes()
+    done = subprocess.run(
+        [sys.executable, "-m", "geoloc", "train", "--dataset", "synthetic", "--synthetic-frames", "60", "--tiny",
+         "--dim", "8", "--epochs", "1", "--no-progress", "--init", str(init), "--out", str(tmp_path / "m.onnx")],
+        capture_output=True, text=True,
+    )
+    assert done.returncode != 0 and "--out (its .curve.json)" in done.stderr and "--init" in done.stderr, done.stderr
+    assert init.read_bytes() == before and not (tmp_path / "m.onnx").exists()
