@@ -141,7 +141,7 @@ def folds(args: argparse.Namespace) -> None:
     seconds: dict[str, list[float]] = {}
     methods = ["tiny image", "BoW"] + [f"{net} {m}" for net in networks for m in ("alone", "fused k=1", "fused k=5")]
     print("recall@1 (%) per fold; 'fused k=1': the paper locator's retrieval (BoW's best and the network's, "
-          "verified), 'fused k=5': the model locator's first keyframe (BoW's 5 and the network's 5, verified)", flush=True)
+          "verified), 'fused k=5': the model locator's first keyframe (BoW's 5 and the network's first 2, verified)", flush=True)
     print(f"{'fold':<9} " + " ".join(f"{m:>{max(10, len(m))}}" for m in methods) + f" {'ceiling':>8}", flush=True)
     for lo in range(0, n, 100):
         hi = min(lo + 100, n)
