@@ -134,6 +134,49 @@ def test_geoloc_rs_gives_the_python_localizers_bits(
     assert sources & {"fused", "geometric"}, sources
 
 
+class TinyImageNetwork:
+    """A deterministic stand-in for a descriptor network: the tiny-image descriptor, with the
+    name and sha256 a map records."""
+
+    name, sha256, dim = "tiny-image", "0" * 64, 32 * 24
+
+    def __call__(self, images: list[np.ndarray]) -> np.ndarray:
+        return geoloc.descriptor.tiny_image_descriptors(images)
+
+
+def test_geoloc_rs_localizes_a_fused_map_as_python_does(geoloc_rs: Path, room: datasets.Sequence, tmp_path: Path) -> None:
+    """A map built with a network fuses it with BoW; geoloc-rs reads it, needs each frame's
+    global descriptor, and gives Python's bits."""
+    net = TinyImageNetwork()
+    path = tmp_path / "fused.geoloc"
+    geoloc.Map.build(room[MAP_FRAMES], retrieval=net).save(path)
+    m = geoloc.Map.load(path)
+    assert m.settings["retrieval"]["name"] == "tiny-image" and m._core.retrieval == "fused"
+    info = _run(geoloc_rs, "info", str(path))
+    assert "bag of words (" in info.stdout and "768-value global descriptor" in info.stdout, info.stdout
+    queries = room[QUERY_FRAMES]
+    frames = tmp_path / "frames.bin"
+    geoloc.export_frames(m, queries, frames, global_descriptor=net)
+    result = _localize(geoloc_rs, path, frames, "--threads", "1")
+    assert result.returncode == 0, result.stderr
+    loc = geoloc.Localizer(m, global_descriptor=net)
+    want = []
+    for i in range(len(queries)):
+        t = float(queries.timestamps[i])
+        r = loc.localize(queries.gray(i), t)
+        values = [t] + [math.nan] * 28 if r.pose is None else (
+            [float(v) for v in geoloc.format_tum_line(t, r.pose).split()] + [float(v) for v in np.asarray(r.covariance)[UPPER]])
+        want.append((values, r.source))
+    got = _parse(result.stdout)
+    _assert_bit_identical(got, want)
+    assert {s for _, s in got} & {"fused", "geometric"}
+    # frames without the global descriptor are refused, naming the frame
+    plain = tmp_path / "plain.bin"
+    geoloc.export_frames(geoloc.Map.build(room[MAP_FRAMES]), queries[:2], plain)
+    refused = _localize(geoloc_rs, path, plain)
+    assert refused.returncode != 0 and "frame 0: the map retrieves by a 768-value global descriptor" in refused.stderr, refused.stderr
+
+
 def test_stdin_threads_output_file_and_stats(geoloc_rs: Path, room: datasets.Sequence, room_map: Path, tmp_path: Path) -> None:
     queries = room[30:38]
     frames = tmp_path / "frames.bin"
