@@ -169,3 +169,34 @@ def test_the_command_reports_what_it_loaded(tmp_path: Path, tv_file: tuple[Path,
     assert "--init: torchvision GoogLeNet weights" in done.stderr, done.stderr
     assert "left as initialized (2): fc.weight, fc.bias" in done.stderr
     assert done.returncode != 0 and "dataset" in done.stderr
+
+
+def test_the_command_reads_the_init_file_once_and_trains_from_what_it_checked(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The weights reported before the frames are read are the ones training starts from: the
+    file is read once (a file replaced in between cannot slip in), and the trained network
+    equals one trained by the API from those weights."""
+    from geoloc.cli import main
+    from geoloc.training import pretrained
+    from geoloc.training.network import build_network
+    from geoloc.training.train import load_network, train
+
+    init = tmp_path / "start.pt"
+    torch.manual_seed(3)
+    torch.save(build_network("tiny", 8).state_dict(), init)
+    reads: list[str] = []
+    original = pretrained.load_checkpoint
+    monkeypatch.setattr(pretrained, "load_checkpoint", lambda p: reads.append(str(p)) or original(p))
+    ckpt = tmp_path / "run.ckpt"
+    args = ["train", "--dataset", "synthetic", "--synthetic-frames", "60", "--tiny", "--dim", "8", "--epochs", "1",
+            "--pairs", "8", "--batch-size", "8", "--threads", "1", "--no-progress", "--validation", "0",
+            "--init", str(init), "--checkpoint", str(ckpt), "--out", str(tmp_path / "m.onnx")]
+    assert main(args) == 0
+    assert reads == [str(init)]
+    seq = geoloc.datasets.synthetic_room(n_frames=60)
+    want = train(seq, backbone="tiny", dim=8, epochs=1, n_pos=8, n_neg=8, batch_size=8, threads=1, progress=False,
+                 validation=0.0, init_from=str(init))
+    got = load_network(ckpt)
+    for (name, a), b in zip(got.state_dict().items(), want.model.state_dict().values()):
+        assert torch.equal(a, b), name

@@ -154,12 +154,14 @@ def add_train_command(commands: argparse._SubParsersAction[argparse.ArgumentPars
         require_torch()
         from .export import export_onnx
         from .network import build_network
-        from .pretrained import init_weights
+        from .pretrained import init_weights, load_checkpoint
         from .train import TrainConfig, train
 
+        init_state = None
         if args.init is not None:  # refuse a foreign --init before loading frames; say what it loads
-            try:
-                init = init_weights(build_network("tiny" if args.tiny else "googlenet", args.dim), args.init)
+            try:  # read once: the weights checked here are the ones trained from
+                init_state = load_checkpoint(args.init)["model"]
+                init = init_weights(build_network("tiny" if args.tiny else "googlenet", args.dim), args.init, init_state)
             except InvalidInputError as e:
                 raise InvalidInputError(f"--init: {str(e).removeprefix('checkpoint: ').removeprefix('init_from: ')}") from None
             print(init.summary(), file=sys.stderr)
@@ -192,7 +194,7 @@ def add_train_command(commands: argparse._SubParsersAction[argparse.ArgumentPars
             print(DEPRECATED, file=sys.stderr)
         print(f"geoloc train: {len(frames)} frames, {config.backbone}, D = {config.dim}, {epochs} epochs", file=sys.stderr)
         start = time.perf_counter()
-        result = train(frames, config)
+        result = train(frames, config, init_state=init_state)
         elapsed = time.perf_counter() - start
         stats = result.pair_stats
         report = export_onnx(result.model, args.out)

@@ -191,13 +191,18 @@ def load_weights(model: DescriptorNet, state: dict[str, torch.Tensor], source: s
         ) from None
 
 
-def init_weights(model: DescriptorNet, path: str | os.PathLike[str]) -> InitReport:
+def init_weights(
+    model: DescriptorNet, path: str | os.PathLike[str], state: dict[str, torch.Tensor] | None = None
+) -> InitReport:
     """Loads the weights in ``path`` (geoloc's checkpoint or state dict, or torchvision's
-    GoogLeNet state dict: see the module doc) into ``model``; what was loaded.
+    GoogLeNet state dict: see the module doc) into ``model``; what was loaded. ``state``: the
+    file's weights as :func:`load_checkpoint` already read them (``["model"]``), so that one
+    read serves a check and the training (``path`` then only names them).
 
     Raises :class:`~geoloc.InvalidInputError` for a file that is not a safe torch checkpoint,
     or whose weights do not fit ``model``."""
-    state = load_checkpoint(path)["model"]
+    if state is None:
+        state = load_checkpoint(path)["model"]
     state = {k.removeprefix("module."): v for k, v in state.items()}
     source = str(Path(path))
     if is_torchvision_googlenet(state):

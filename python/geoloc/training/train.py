@@ -240,6 +240,7 @@ def train(
     config: TrainConfig | None = None,
     gray: NDArray[np.uint8] | None = None,
     on_epoch: Callable[[int, float], None] | None = None,
+    init_state: dict[str, torch.Tensor] | None = None,
     **overrides: Any,
 ) -> TrainResult:
     """Train a descriptor network on ``frames`` (posed images, see :mod:`.frames`).
@@ -247,7 +248,9 @@ def train(
     ``config`` (default: the paper's schedule) with keyword ``overrides`` applied, e.g.
     ``train(seq, backbone="tiny", epochs=20)``. ``gray`` may pass the frames' images already
     through ``to_gray`` ((N, 224, 224) uint8) to skip reading them. ``on_epoch(epoch, loss)``
-    is called after each epoch (1-based).
+    is called after each epoch (1-based). ``init_state``: the weights of ``init_from`` as
+    :func:`.pretrained.load_checkpoint` already read them (``["model"]``; the file is then not
+    read again).
     """
     cfg = replace(config or TrainConfig(), **overrides)
     if len(frames) < 2:
@@ -274,7 +277,7 @@ def train(
     # of a CPU step here); results do not depend on it
     torch.utils.deterministic.fill_uninitialized_memory = False  # type: ignore[attr-defined]
     try:
-        result = _run(cfg, gray[split.train], sampler, device, on_epoch, selector)
+        result = _run(cfg, gray[split.train], sampler, device, on_epoch, selector, init_state)
         result.selection = {"why": split.why} if selector is None else selector.as_dict()
         return result
     finally:
@@ -290,11 +293,12 @@ def _run(
     device: torch.device,
     on_epoch: Callable[[int, float], None] | None,
     selector: Selector | None,
+    init_state: dict[str, torch.Tensor] | None = None,
 ) -> TrainResult:
     torch.manual_seed(cfg.seed)
     model = build_network(cfg.backbone, cfg.dim)  # type: ignore[arg-type]
     if cfg.init_from:
-        init_weights(model, cfg.init_from)
+        init_weights(model, cfg.init_from, init_state)
     model.to(device)
     opt: torch.optim.Optimizer = (
         torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
