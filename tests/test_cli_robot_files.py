@@ -137,6 +137,7 @@ def test_a_network_with_a_fixed_batch_of_one_builds_and_localizes(tmp_path: Path
     syn = ["--format", "synthetic", "--synthetic-frames", "40"]
     result = run_geoloc("build-map", *syn, "--frames", "0:10", *SMALL, "--retrieval", str(model), "--out", str(out))
     assert result.returncode == 0, result.stderr
+    assert "bag-of-words fused with the network" in result.stdout, result.stdout
     result = run_geoloc("localize", "--map", str(out), *syn, "--frames", "2:4", "--retrieval", str(model), "--out", str(tmp_path / "p.txt"))
     assert result.returncode in (0, 2) and "internal error" not in result.stderr and "Traceback" not in result.stderr, result.stderr
 

@@ -47,9 +47,10 @@ def run(args: argparse.Namespace) -> int:
     built = time.perf_counter() - start
     the_map.save(args.out)
     cam = the_map.camera
+    retrieval = "bag-of-words" if args.retrieval == "bow" else f"bag-of-words fused with the network {shown(args.retrieval)}"
     print(
         f"wrote {shown(args.out)}: {len(the_map)} keyframes of {sequence.name!r} ({args.features}, {args.n_features} features, "
-        f"{args.retrieval} retrieval; camera {cam.width}×{cam.height}, fx={cam.intrinsics[0]:g}) in {built:.1f} s"
+        f"{retrieval} retrieval; camera {cam.width}×{cam.height}, fx={cam.intrinsics[0]:g}) in {built:.1f} s"
     )
     print(describe_self_calibration(the_map.self_calibration))
     print(describe_labels(the_map.labels))
