@@ -403,6 +403,17 @@ impl Localizer {
     /// model, the errors of building one ([`SceneModel::build`], which it then does here);
     /// those of triangulating the paper locator's groups.
     pub fn new(map: Arc<Map>, options: LocalizerOptions) -> Result<Self> {
+        let mut localizer = Self::unprepared(map, options)?;
+        if localizer.options.locator == Locator::Paper && localizer.prepared_matches {
+            localizer.prepare_groups()?;
+        }
+        Ok(localizer)
+    }
+
+    /// [`Localizer::new`] without triangulating the paper locator's groups ahead: for
+    /// held-out re-localization, whose groups leave keyframes out and so are never the full
+    /// ones.
+    pub(crate) fn unprepared(map: Arc<Map>, options: LocalizerOptions) -> Result<Self> {
         options.check()?;
         let built_model = match (options.locator, &map.model) {
             (Locator::Model, None) => {
@@ -415,7 +426,7 @@ impl Localizer {
             .group_matches
             .as_ref()
             .is_some_and(|m| m.options == fingerprint(&o.matching, o.epipolar_px, &o.keyframes));
-        let mut localizer = Self {
+        Ok(Self {
             built_model,
             prepared_matches,
             map,
@@ -426,11 +437,7 @@ impl Localizer {
             motion_only: 0,
             last_timestamp: None,
             cache: HashMap::new(),
-        };
-        if localizer.options.locator == Locator::Paper && localizer.prepared_matches {
-            localizer.prepare_groups()?;
-        }
-        Ok(localizer)
+        })
     }
 
     /// Forgets the motion history (e.g. after a jump), and with it the last timestamp and the

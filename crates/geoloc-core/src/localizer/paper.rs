@@ -286,8 +286,8 @@ mod tests {
         let mut prepared = Localizer::new(Arc::clone(&map), options).expect("localizer");
         assert!(prepared.prepared_matches);
         assert_eq!(prepared.cache.len(), map.keyframes.len());
-        let mut lazy = Localizer::new(map, options).expect("localizer");
-        lazy.cache.clear();
+        let mut lazy = Localizer::unprepared(map, options).expect("localizer");
+        assert!(lazy.cache.is_empty());
         let mut rng = SplitMix64::new(4);
         let bits = |l: &Localization| {
             l.estimate
