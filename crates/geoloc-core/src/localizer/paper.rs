@@ -159,29 +159,6 @@ impl Localizer {
         if let Some(hit) = self.cache.get(&key) {
             return Ok(Arc::clone(hit));
         }
-        let points = Arc::new(self.triangulated_group(seed, group)?);
-        self.cache.insert(key, Arc::clone(&points));
-        Ok(points)
-    }
-
-    /// Triangulates the group of every keyframe ahead, in parallel, into the cache
-    /// ([`Localizer::map_points`]): a frame then never pays for forward intersection (on the
-    /// paper's 7-Scenes split, triangulating a group on first use made the per-frame p99 2.3×
-    /// the median). The cached points are those [`Localizer::map_points`] would compute.
-    pub(super) fn prepare_groups(&mut self) -> Result<()> {
-        let poses = self.map.poses();
-        let groups: Vec<Vec<usize>> = (0..poses.len())
-            .map(|seed| select_keyframes(&poses, seed, &self.options.keyframes))
-            .collect::<Result<_>>()?;
-        let points = crate::parallel::map_indices(groups.len(), 2, |seed| self.triangulated_group(seed, &groups[seed]));
-        for (seed, (group, points)) in groups.into_iter().zip(points).enumerate() {
-            self.cache.insert((seed, group), Arc::new(points?));
-        }
-        Ok(())
-    }
-
-    /// (c) forward intersection of the group around `seed` (see [`Localizer::map_points`]).
-    fn triangulated_group(&self, seed: usize, group: &[usize]) -> Result<MapPoints> {
         let (observations, tracked) = self.group_tracks(seed, group)?;
         let kf = &self.map.keyframes;
         let poses: Vec<SE3> = group.iter().map(|&g| kf[g].world_from_cam).collect();
@@ -208,12 +185,14 @@ impl Localizer {
             }
             (jac, c)
         });
-        Ok(MapPoints {
+        let points = Arc::new(MapPoints {
             points: valid.iter().map(|&i| by_id(i).point).collect(),
             descriptors: kf[seed].descriptors.select(&valid),
             pixel_covariances: valid.iter().map(|&i| by_id(i).pixel_covariance).collect(),
             shared,
-        })
+        });
+        self.cache.insert(key, Arc::clone(&points));
+        Ok(points)
     }
 
     /// The observations of the group's tracks (a track is a keypoint of the seed, by index):
@@ -261,52 +240,5 @@ impl Observations {
         self.cam_ids.push(cam);
         self.track_ids.push(track);
         self.pixels.push(pixel);
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use std::sync::Arc;
-
-    use super::*;
-    use crate::localizer::{Frame, Localization, LocalizerOptions, Locator};
-    use crate::map::BuildSteps;
-    use crate::map::model::fixture;
-    use crate::testing::{SplitMix64, walk};
-
-    /// A paper localizer on a map with prepared pair matches triangulates every keyframe's
-    /// group when it starts: frames add nothing to the cache, and the results are bit for bit
-    /// those of a localizer that triangulates each group on first use.
-    #[test]
-    fn groups_prepared_at_start_give_the_results_of_first_use() {
-        let (world, map, _) = fixture::scene(30, false);
-        let steps = BuildSteps { group_matches: true, ..BuildSteps::default() };
-        let map = Arc::new(map.with_build_steps(&steps).expect("prepared"));
-        let options = LocalizerOptions { locator: Locator::Paper, ..LocalizerOptions::default() };
-        let mut prepared = Localizer::new(Arc::clone(&map), options).expect("localizer");
-        assert!(prepared.prepared_matches);
-        assert_eq!(prepared.cache.len(), map.keyframes.len());
-        let mut lazy = Localizer::unprepared(map, options).expect("localizer");
-        assert!(lazy.cache.is_empty());
-        let mut rng = SplitMix64::new(4);
-        let bits = |l: &Localization| {
-            l.estimate
-                .as_ref()
-                .map(|e| (e.world_from_cam.translation.map(f64::to_bits), e.covariance.map(f64::to_bits)))
-        };
-        for i in 0..8 {
-            let truth = walk(0.3 + i as f64 * 0.3, 0.15, -1.5);
-            let (keypoints, data) = world.observe(&mut rng, &truth, 5);
-            let descriptors = crate::matching::Descriptors::Binary { data: &data, width: 32 };
-            let frame =
-                Frame { timestamp: i as f64, keypoints: &keypoints, descriptors, global: None, pixel_sigmas: None };
-            let before = prepared.cache.len();
-            let (a, b) = (prepared.localize(&frame).expect("valid"), lazy.localize(&frame).expect("valid"));
-            assert_eq!(prepared.cache.len(), before, "frame {i} triangulated a group");
-            assert!(a.estimate.is_some(), "frame {i}: {}", a.reason);
-            assert_eq!(bits(&a), bits(&b), "frame {i}");
-            assert_eq!(a.source, b.source);
-        }
-        assert!(!lazy.cache.is_empty());
     }
 }
