@@ -6,8 +6,7 @@ alone — ``Localizer.localize_features`` with the keypoints and descriptors giv
 and feature extraction are not in the times — with both locators, single (``reset()``
 before every frame) and sequential. Each of ``--passes`` passes uses a fresh localizer (as on
 a robot that just started), so a tail that comes from work done on first use shows in every
-pass; the time to create it (``start``: the paper's locator triangulates its keyframe groups
-then) is printed beside. A robot at 30 Hz needs p99 ≤ 2× the median and ≤ 20 ms.
+pass; the time to create it (``start``: work done before the first frame) is printed beside. A robot at 30 Hz needs p99 ≤ 2× the median and ≤ 20 ms.
 
     GEOLOC_NUM_THREADS=2 PYTHONPATH=python python benchmarks/latency.py [--passes 3] [--json out.json]
 
