@@ -455,11 +455,8 @@ impl Localizer {
     pub fn localize(&mut self, frame: &Frame<'_>) -> Result<Localization> {
         let start = Instant::now();
         self.check_frame(frame)?;
-        let corrected = match self.map.intrinsics_correction() {
-            Some(c) => Some(c.correct_all(&self.map.camera, "keypoints", frame.keypoints)?),
-            None => None,
-        };
-        let frame = &Frame { keypoints: corrected.as_deref().unwrap_or(frame.keypoints), ..*frame };
+        let corrected = self.map.query_keypoints(frame.keypoints)?;
+        let frame = &Frame { keypoints: &corrected, ..*frame };
         let mut timings = Timings::default();
         let ((keyframe, geometric, inliers), tracked) = match self.options.locator {
             Locator::Paper => self.paper_pose(frame, &mut timings)?,

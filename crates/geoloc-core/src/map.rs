@@ -24,6 +24,8 @@ pub use persist::{
     CameraHeader, LabelsHeader, MapHeader, ModelHeader, NoiseHeader, RetrievalHeader, SelfCalibrationHeader,
 };
 
+use std::borrow::Cow;
+
 use nalgebra::{Matrix6, Vector2, Vector6};
 
 use crate::adjust::{AdjustmentOptions, Observation};
@@ -598,6 +600,19 @@ impl Map {
         Ok(top)
     }
 
+    /// A query's keypoints (the caller's undistorted pixels) as the keyframes' are stored:
+    /// corrected by the map's camera estimate when it has one (u_c = K d⁻¹(K′⁻¹u)), else as
+    /// given.
+    ///
+    /// # Errors
+    /// A keypoint the lens correction does not invert (`keypoints`).
+    pub fn query_keypoints<'k>(&self, keypoints: &'k [Vector2<f64>]) -> Result<Cow<'k, [Vector2<f64>]>> {
+        Ok(match self.intrinsics_correction() {
+            Some(c) => Cow::Owned(c.correct_all(&self.camera, "keypoints", keypoints)?),
+            None => Cow::Borrowed(keypoints),
+        })
+    }
+
     /// [`Map::retrieve_top`] for a query whose keypoints are in the caller's pixels: corrected
     /// by the map's camera estimate first, as the localizer corrects a frame's
     /// (u_c = K d⁻¹(K′⁻¹u)), then the `k` best keyframes.
@@ -605,15 +620,8 @@ impl Map {
     /// # Errors
     /// As [`Map::retrieve_top`]; a keypoint the lens correction does not invert (`keypoints`).
     pub fn retrieve_frame(&self, query: &RetrievalQuery<'_>, k: usize) -> Result<Vec<usize>> {
-        let corrected = match self.intrinsics_correction() {
-            Some(c) => Some(c.correct_all(&self.camera, "keypoints", query.keypoints)?),
-            None => None,
-        };
-        self.retrieve_top(
-            &RetrievalQuery { keypoints: corrected.as_deref().unwrap_or(query.keypoints), ..*query },
-            k,
-            0..0,
-        )
+        let corrected = self.query_keypoints(query.keypoints)?;
+        self.retrieve_top(&RetrievalQuery { keypoints: &corrected, ..*query }, k, 0..0)
     }
 
     /// The first `k` of the fused ranking of BoW's `bow` and the `network` candidates

@@ -103,6 +103,7 @@ mod tests {
         query: (Vec<nalgebra::Vector2<f64>>, Vec<u8>),
         distance_m: Vec<f64>,
         nearest: usize,
+        camera: Camera,
     }
 
     const NEAR_M: f64 = 0.45;
@@ -128,12 +129,11 @@ mod tests {
         let distance_m: Vec<f64> =
             keyframes.iter().map(|k| (k.world_from_cam.translation - truth.translation).norm()).collect();
         let nearest = (0..keyframes.len()).min_by(|&a, &b| distance_m[a].total_cmp(&distance_m[b])).expect("keyframes");
-        Scene { keyframes, query, distance_m, nearest }
+        Scene { keyframes, query, distance_m, nearest, camera: world.camera }
     }
 
     fn top1(keyframes: Vec<Keyframe>, kind: RetrievalKind, query: &Scene, global: f32) -> usize {
-        let camera = LandmarkScene::new(&mut SplitMix64::new(0), 0, 1.0).camera;
-        let map = Map::build(camera, keyframes, None, kind, 0).expect("valid map");
+        let map = Map::build(query.camera, keyframes, None, kind, 0).expect("valid map");
         let g = [global, 0.0];
         let descriptors =
             crate::matching::Descriptors::Binary { data: &query.query.1, width: LANDMARK_DESCRIPTOR_BYTES };
