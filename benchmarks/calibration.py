@@ -58,21 +58,33 @@ BLOCK = 100
 MARGIN = 15
 
 
-class FrameDescriptors:
-    """A "network" that answers the descriptors saved for each frame of ``seq`` (rows of
-    ``descriptors``), recognizing a frame by its gray image's bytes."""
+def _digest(image: Any) -> bytes:
+    import hashlib
 
-    def __init__(self, seq: Any, descriptors: Any, name: str) -> None:
+    return hashlib.sha256(np.ascontiguousarray(image).tobytes()).digest()
+
+
+def frame_rows(seq: Any) -> dict[bytes, int]:
+    """Each frame of ``seq`` by its gray image's bytes (what ``Map.build`` and the localizer
+    hand a network). Frames with identical images (the 7-Scenes sample repeats 68 frames
+    verbatim) share one entry; a network gives them one descriptor anyway."""
+    return {_digest(seq.gray(i)): i for i in range(len(seq))}
+
+
+class FrameDescriptors:
+    """A "network" that answers the descriptors saved for each frame (rows of
+    ``descriptors``), recognizing a frame by its gray image's bytes (``rows``: ``frame_rows``)."""
+
+    def __init__(self, rows: dict[bytes, int], descriptors: Any, name: str) -> None:
         import hashlib
 
-        self._digest = lambda img: hashlib.sha256(np.ascontiguousarray(img).tobytes()).digest()
-        self._rows = {self._digest(seq.gray(i)): i for i in range(len(seq))}
+        self._rows = rows
         self._d = np.asarray(descriptors, dtype=np.float32)
         self.name, self.dim = name, self._d.shape[1]
         self.sha256 = hashlib.sha256(self._d.tobytes()).hexdigest()
 
     def __call__(self, images: list[Any]) -> Any:
-        return self._d[[self._rows[self._digest(img)] for img in images]]
+        return self._d[[self._rows[_digest(img)] for img in images]]
 
 
 def evaluate(
@@ -214,12 +226,13 @@ def main() -> int:
     print(header, flush=True)
     if DATA.is_dir() and args.folds:
         seq = geoloc.datasets.load_7scenes(DATA)[:700]
+        rows = frame_rows(seq) if args.network is not None else {}
         for b in (int(x) for x in args.folds.split(",")):
             train, test = fold(seq, b)
             network = None
             if args.network is not None:
                 saved = args.network.parent / f"{args.network.name}-fold{b * BLOCK}.npz"
-                network = FrameDescriptors(seq, np.load(saved)["descriptors"], args.network.name)
+                network = FrameDescriptors(rows, np.load(saved)["descriptors"], args.network.name)
             r = evaluate(train, test, args.locator, args.adjust_labels, reference, network)
             name = f"{b * BLOCK}-{b * BLOCK + len(test) - 1}"
             report[name] = r
