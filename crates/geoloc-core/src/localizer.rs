@@ -392,14 +392,28 @@ fn ms(start: Instant) -> f64 {
 }
 
 impl Localizer {
-    /// A localizer with an empty history.
+    /// A localizer with an empty history. The paper's locator, on a map whose keyframe-pair
+    /// matches were prepared for these options, triangulates every keyframe's group here (in
+    /// parallel) so that no frame waits for it.
     ///
     /// # Errors
     /// Options out of range, named as the Python caller spells them: `history` < 2,
     /// `gate_sigma`, `pixel_sigma` (of PnP or triangulation), `max_residual` or
     /// `epipolar_px` not finite and > 0, `top_k` 0; with the model locator on a map without a
-    /// model, the errors of building one ([`SceneModel::build`], which it then does here).
+    /// model, the errors of building one ([`SceneModel::build`], which it then does here);
+    /// those of triangulating the paper locator's groups.
     pub fn new(map: Arc<Map>, options: LocalizerOptions) -> Result<Self> {
+        let mut localizer = Self::unprepared(map, options)?;
+        if localizer.options.locator == Locator::Paper && localizer.prepared_matches {
+            localizer.prepare_groups()?;
+        }
+        Ok(localizer)
+    }
+
+    /// [`Localizer::new`] without triangulating the paper locator's groups ahead: for
+    /// held-out re-localization, whose groups leave keyframes out and so are never the full
+    /// ones.
+    pub(crate) fn unprepared(map: Arc<Map>, options: LocalizerOptions) -> Result<Self> {
         options.check()?;
         let built_model = match (options.locator, &map.model) {
             (Locator::Model, None) => {

@@ -401,19 +401,12 @@ impl Track<'_> {
         };
     }
 
-    /// Wₖ = Sₖ⁻¹, Sₖ = σ²I + J_T,k C_k J_T,kᵀ: the covariance of view k's residual at X when
-    /// its keyframe pose has covariance C_k (σ²I alone without pose covariances).
+    /// Wₖ = Sₖ⁻¹ of every view at X ([`view_weight`]).
     fn weights(&self, x: &Vector3<f64>) -> Vec<Matrix2<f64>> {
-        let var = self.options.pixel_sigma * self.options.pixel_sigma;
+        let sigma = self.options.pixel_sigma;
         self.views
             .iter()
-            .map(|v| {
-                let Some(covs) = self.pose_covariances else { return Matrix2::identity() / var };
-                let p = project(self.camera, &self.poses[v.camera], x);
-                let j_t = j_uv_pose(self.camera, &p);
-                let s = Matrix2::identity() * var + j_t * covs[v.camera] * j_t.transpose();
-                s.try_inverse().unwrap_or_else(|| Matrix2::identity() / var)
-            })
+            .map(|v| view_weight(self.camera, self.poses, self.pose_covariances, sigma, v.camera, x))
             .collect()
     }
 
@@ -440,45 +433,95 @@ impl Track<'_> {
         levenberg_marquardt(&problem, x, &self.options.lm).0
     }
 
-    /// Σ_pix = H⁻¹(Σ J_XᵀW σ² W J_X)H⁻¹, D_k = −H⁻¹ J_XᵀW_k J_T,k, Σ_X = Σ_pix + Σ D_k C_k D_kᵀ
-    /// with H = Σ J_XᵀW J_X over the inliers (see the module doc).
+    /// Σ_X = Σ_pix + Σ D_k C_k D_kᵀ over the inliers ([`point_covariance_terms`]).
     fn propagate_covariance(&self, inliers: &[usize], weights: &[Matrix2<f64>], result: &mut TriangulatedPoint) {
-        let var = self.options.pixel_sigma * self.options.pixel_sigma;
-        let x = result.point;
-        let mut h = Matrix3::zeros();
-        let mut meat = Matrix3::zeros();
-        let mut terms = Vec::with_capacity(inliers.len());
-        for &i in inliers {
-            let v = &self.views[i];
-            let pose = &self.poses[v.camera];
-            let p = project(self.camera, pose, &x);
-            let j_x = j_uv_point(self.camera, pose, &p);
-            let jt_w = j_x.transpose() * weights[i];
-            h += jt_w * j_x;
-            meat += var * jt_w * jt_w.transpose();
-            terms.push((v.camera, jt_w, p));
-        }
-        let Some(h_inv) = h.try_inverse() else {
+        let views = inliers.iter().map(|&i| (self.views[i].camera, weights[i]));
+        let sigma = self.options.pixel_sigma;
+        let Some(terms) =
+            point_covariance_terms(self.camera, self.poses, self.pose_covariances, sigma, &result.point, views)
+        else {
             result.status = TrackStatus::Degenerate;
             return;
         };
-        result.pixel_covariance = h_inv * meat * h_inv;
-        result.covariance = result.pixel_covariance;
-        // D_k is only needed (and only returned) when the poses carry covariances
-        let Some(covs) = self.pose_covariances else { return };
-        let mut jacobians: Vec<(usize, Matrix3x6<f64>)> = Vec::new();
-        for (cam, jt_w, p) in terms {
-            let d = -(h_inv * jt_w) * j_uv_pose(self.camera, &p);
-            match jacobians.iter_mut().find(|(c, _)| *c == cam) {
-                Some((_, acc)) => *acc += d,
-                None => jacobians.push((cam, d)),
+        result.pixel_covariance = terms.pixel;
+        result.covariance = terms.pixel;
+        if let Some(covs) = self.pose_covariances {
+            for (cam, d) in &terms.pose_jacobians {
+                result.covariance += d * covs[*cam] * d.transpose();
             }
         }
-        for (cam, d) in &jacobians {
-            result.covariance += d * covs[*cam] * d.transpose();
-        }
-        result.pose_jacobians = jacobians;
+        result.pose_jacobians = terms.pose_jacobians;
     }
+}
+
+/// Wₖ = Sₖ⁻¹, Sₖ = σ²I + J_T,k C_k J_T,kᵀ: the covariance of the residual of a view from
+/// camera `cam` at X when its pose has covariance C_k (σ²I alone without pose covariances,
+/// or when Sₖ is singular).
+pub fn view_weight(
+    camera: &Camera,
+    poses: &[SE3],
+    pose_covariances: Option<&[Matrix6<f64>]>,
+    pixel_sigma: f64,
+    cam: usize,
+    x: &Vector3<f64>,
+) -> Matrix2<f64> {
+    let var = pixel_sigma * pixel_sigma;
+    let Some(covs) = pose_covariances else { return Matrix2::identity() / var };
+    let p = project(camera, &poses[cam], x);
+    let j_t = j_uv_pose(camera, &p);
+    let s = Matrix2::identity() * var + j_t * covs[cam] * j_t.transpose();
+    s.try_inverse().unwrap_or_else(|| Matrix2::identity() / var)
+}
+
+/// The two parts of a triangulated point's covariance that a later PnP needs apart.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PointCovarianceTerms {
+    /// Σ_pix = H⁻¹(Σ_k J_kᵀW_k σ² W_k J_k)H⁻¹: the pixel noise of the views alone (m²).
+    pub pixel: Matrix3<f64>,
+    /// (camera, D_k = −H⁻¹ Σ J_kᵀW_k J_T,k) per camera, in the order of first view; empty
+    /// without pose covariances.
+    pub pose_jacobians: Vec<(usize, Matrix3x6<f64>)>,
+}
+
+/// First-order covariance terms of the point X from its inlier views (camera, W_k) at X,
+/// H = Σ_k J_kᵀ W_k J_k (J_k = ∂π/∂X): see the module doc. The same numbers as the
+/// triangulation's, bit for bit, for the same views in the same order — so a map can keep a
+/// point and its views and compute the D_k only for the points a query matched. `None` when
+/// H is singular.
+pub fn point_covariance_terms(
+    camera: &Camera,
+    poses: &[SE3],
+    pose_covariances: Option<&[Matrix6<f64>]>,
+    pixel_sigma: f64,
+    x: &Vector3<f64>,
+    views: impl Iterator<Item = (usize, Matrix2<f64>)>,
+) -> Option<PointCovarianceTerms> {
+    let var = pixel_sigma * pixel_sigma;
+    let mut h = Matrix3::zeros();
+    let mut meat = Matrix3::zeros();
+    let mut terms = Vec::with_capacity(views.size_hint().0);
+    for (cam, w) in views {
+        let pose = &poses[cam];
+        let p = project(camera, pose, x);
+        let j_x = j_uv_point(camera, pose, &p);
+        let jt_w = j_x.transpose() * w;
+        h += jt_w * j_x;
+        meat += var * jt_w * jt_w.transpose();
+        terms.push((cam, jt_w, p));
+    }
+    let h_inv = h.try_inverse()?;
+    let pixel = h_inv * meat * h_inv;
+    let mut pose_jacobians: Vec<(usize, Matrix3x6<f64>)> = Vec::new();
+    if pose_covariances.is_some() {
+        for (cam, jt_w, p) in terms {
+            let d = -(h_inv * jt_w) * j_uv_pose(camera, &p);
+            match pose_jacobians.iter_mut().find(|(c, _)| *c == cam) {
+                Some((_, acc)) => *acc += d,
+                None => pose_jacobians.push((cam, d)),
+            }
+        }
+    }
+    Some(PointCovarianceTerms { pixel, pose_jacobians })
 }
 
 /// Camera centres closer than this are one centre: no baseline, no triangulation.

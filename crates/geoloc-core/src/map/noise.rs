@@ -130,7 +130,7 @@ impl Map {
             let default_locator = if map.model.is_some() { Locator::Model } else { Locator::Paper };
             let localizer =
                 LocalizerOptions { locator: options.locator.unwrap_or(default_locator), ..options.localizer };
-            let mut loc = Localizer::new(Arc::clone(&map), localizer)?;
+            let mut loc = Localizer::unprepared(Arc::clone(&map), localizer)?;
             holdout_residuals(&map, &mut loc, options)?
         };
         let mut map = Arc::try_unwrap(map).map_err(|_| GeolocError::invalid("map", "is shared"))?;
