@@ -295,8 +295,9 @@ def _add_montecarlo(commands: argparse._SubParsersAction[argparse.ArgumentParser
         help="covariance model(s) to test (default: both)",
     )
     mc.add_argument(
-        "--scene", choices=("paper", "short", "random"), default="paper",
-        help="fixed paper-like scene, fixed short-baseline scene (keyframes over 0.35 m, points 2.5–6 m) or a random one per trial",
+        "--scene", choices=("paper", "short", "ahead", "random"), default="paper",
+        help="fixed paper-like scene, fixed short-baseline scene (keyframes over 0.35 m, points 2.5–6 m), the short-baseline "
+        "scene with the target 0.25 m ahead of the keyframes and turned 6°, or a random one per trial",
     )
     mc.add_argument("--seed", type=bounded_int(0, MAX_SEED), default=0, metavar="S", help="random seed (default: 0)")
     mc.add_argument("--json", metavar="FILE", type=output_file, help="also write the columns as JSON")

@@ -48,8 +48,9 @@ PAPER_TABLE = {
     (2.0, 0.03, 1.0): (62.4, 80.6),
 }
 DEFAULT_LABEL_NOISE = ((0.0, 0.0), (0.01, 0.5), (0.03, 1.0))
-#: The scene kinds: the paper's fixed scene, a fixed short-baseline one, a random one per trial.
-SCENES = ("paper", "short", "random")
+#: The scene kinds: the paper's fixed scene, a fixed short-baseline one, the short-baseline one
+#: with the query ahead of the keyframes, a random one per trial.
+SCENES = ("paper", "short", "ahead", "random")
 N_POINTS = 119
 
 
@@ -108,6 +109,19 @@ def short_baseline_scene() -> tuple[Array, Array, Array]:
     target = look_at(np.array([0.03, -0.04, -0.15]), focus + np.array([0.1, 0.05, 0.0]))
     points = rng.uniform([-1.4, -1.0, 2.5], [1.4, 1.0, 6.0], size=(N_POINTS, 3))
     points[:, :2] *= points[:, 2:] / focus[2]  # inside the view frustum at every depth
+    return train, target, points
+
+
+def short_baseline_ahead_scene() -> tuple[Array, Array, Array]:
+    """The short-baseline scene's keyframes and points with the target 0.25 m in front of the
+    keyframes (towards the points) and turned 6° about its vertical axis: it sees the
+    poorly-triangulated depths from a place no keyframe saw them from, where a linearised
+    point covariance that is too small shows first.
+    Returns (training poses (4, 4, 4), target pose (4, 4), points (119, 3))."""
+    train, _, points = short_baseline_scene()
+    focus = np.array([0.0, 0.0, 4.25])
+    target = look_at(np.array([0.03, -0.04, 0.25]), focus + np.array([0.1, 0.05, 0.0]))
+    target[:3, :3] = target[:3, :3] @ lie.so3_exp(np.array([0.0, np.radians(6.0), 0.0]))
     return train, target, points
 
 
@@ -215,7 +229,8 @@ def montecarlo(
 
     ``label_noise`` entries are (metres, degrees) standard deviations per axis; ``scene`` is
     ``"paper"`` (one fixed scene), ``"short"`` (one fixed short-baseline scene: keyframes over
-    0.35 m, points 2.5–6 m away) or ``"random"`` (a new random scene every trial).
+    0.35 m, points 2.5–6 m away), ``"ahead"`` (the short-baseline scene with the target 0.25 m
+    in front of the keyframes, turned 6°) or ``"random"`` (a new random scene every trial).
     ``trials`` is at most :data:`MAX_TRIALS`; ``seed`` a non-negative integer below 2⁶⁴.
     Invalid arguments raise :class:`geoloc.InvalidInputError` (a ``ValueError``).
     """
@@ -230,7 +245,7 @@ def montecarlo(
             raise InvalidInputError(f"models: expected 'paper' or 'propagated', got {m!r}")
     cam = Camera(525.0, 525.0, 320.0, 240.0)
     rng = np.random.default_rng(seed)
-    fixed = short_baseline_scene() if scene == "short" else paper_scene()
+    fixed = {"short": short_baseline_scene, "ahead": short_baseline_ahead_scene}.get(scene, paper_scene)()
     columns: list[MonteCarloColumn] = []
     total = trials * len(sigmas) * len(label_noise)
     done = 0
