@@ -576,6 +576,22 @@ impl Map {
         k: usize,
         excluded: std::ops::Range<usize>,
     ) -> Result<Vec<usize>> {
+        self.retrieve_ranked(query, k, excluded, Ranking::Map)
+    }
+
+    /// [`Map::retrieve_top`] by the given ranking: a fused map answers by its bag of words
+    /// alone with [`Ranking::Words`] (the query's global descriptor is still checked); other
+    /// maps have one ranking.
+    ///
+    /// # Errors
+    /// As [`Map::retrieve_top`].
+    pub fn retrieve_ranked(
+        &self,
+        query: &RetrievalQuery<'_>,
+        k: usize,
+        excluded: std::ops::Range<usize>,
+        ranking: Ranking,
+    ) -> Result<Vec<usize>> {
         if k == 0 {
             return Err(GeolocError::invalid("top_k", "must be ≥ 1"));
         }
@@ -586,6 +602,10 @@ impl Map {
         let top: Vec<usize> = match &self.retrieval {
             Retrieval::Global(index) => kept(global_ranking(index, query.global, want)?).into_iter().take(k).collect(),
             Retrieval::Bow { vocabulary, database } => {
+                kept(bow_ranking(vocabulary, database, &query.descriptors, want)?).into_iter().take(k).collect()
+            }
+            Retrieval::Fused { vocabulary, database, index } if ranking == Ranking::Words => {
+                checked_global(index, query.global)?;
                 kept(bow_ranking(vocabulary, database, &query.descriptors, want)?).into_iter().take(k).collect()
             }
             Retrieval::Fused { vocabulary, database, index } => {
@@ -668,8 +688,23 @@ pub struct RetrievalQuery<'a> {
     pub global: Option<&'a [f32]>,
 }
 
+/// Which ranking [`Map::retrieve_ranked`] answers by.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Ranking {
+    /// The map's own: BoW, the network, or their fusion.
+    Map,
+    /// A fused map's bag of words alone (the same as `Map` for other maps).
+    Words,
+}
+
 /// The keyframes by global-descriptor distance, nearest first (`want` of them).
 fn global_ranking(index: &DescriptorIndex, global: Option<&[f32]>, want: usize) -> Result<Vec<usize>> {
+    let g = checked_global(index, global)?;
+    Ok(index.query(g, want)?.1)
+}
+
+/// The query's global descriptor, present, of the index's size and finite.
+fn checked_global<'g>(index: &DescriptorIndex, global: Option<&'g [f32]>) -> Result<&'g [f32]> {
     let g = global.ok_or_else(|| {
         GeolocError::invalid("global_descriptor", "this map retrieves by global descriptor; give one")
     })?;
@@ -682,7 +717,7 @@ fn global_ranking(index: &DescriptorIndex, global: Option<&[f32]>, want: usize) 
     if let Some(i) = g.iter().position(|v| !v.is_finite()) {
         return Err(GeolocError::NonFinite { name: "global_descriptor".into(), index: i });
     }
-    Ok(index.query(g, want)?.1)
+    Ok(g)
 }
 
 /// The keyframes by BoW score, best first (`want` of them at most).

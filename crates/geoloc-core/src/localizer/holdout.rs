@@ -1,6 +1,8 @@
 //! Held-out re-localization: a keyframe's own features localized against the map without
 //! a range of keyframes, by the geometric locator alone (no motion model, no fusion) — what
 //! the map's noise estimate ([`crate::map::Map::with_estimated_noise`]) measures C_map with.
+//! Retrieval is by the bag of words (a fused map's too): C_map measures the map, and the
+//! localizer's own answers are those of BoW's keyframes wherever those are accepted.
 
 use std::sync::Arc;
 
@@ -8,6 +10,7 @@ use super::{Estimate, Frame, Localizer, Locator, Timings};
 use crate::error::Result;
 use crate::keyframes::select_keyframes;
 use crate::lie::SE3;
+use crate::map::Ranking;
 
 impl Localizer {
     /// The geometric pose of keyframe `k`'s own features against the map without the
@@ -24,11 +27,13 @@ impl Localizer {
             global: kf.global.as_deref(),
             pixel_sigmas: None,
         };
+        let k = if self.options.locator == Locator::Model { self.options.top_k } else { 1 };
+        let top = map.retrieve_ranked(&frame.retrieval_query(), k, excluded.clone(), Ranking::Words)?;
         if self.options.locator == Locator::Model {
-            let (_, pose, _) = self.model_pose(&frame, excluded, &mut Timings::default())?;
+            let (_, pose, _) = self.model_pose(&frame, &top, excluded, &mut Timings::default())?;
             return Ok(pose.ok());
         }
-        let seed = map.retrieve_excluding(&frame.retrieval_query(), excluded.clone())?;
+        let seed = top[0];
         let allowed: Vec<usize> = (0..map.keyframes.len()).filter(|i| !excluded.contains(i)).collect();
         let poses: Vec<SE3> = allowed.iter().map(|&i| map.keyframes[i].world_from_cam).collect();
         let local = allowed.iter().position(|&i| i == seed).expect("invariant: retrieval skips the excluded");

@@ -80,21 +80,20 @@ struct Correspondence {
 }
 
 impl Localizer {
-    /// The model locator (see the module doc), skipping the keyframes in `excluded`.
+    /// The model locator (see the module doc) from the retrieved keyframes `top` (best
+    /// first, at least one), skipping the keyframes in `excluded`.
     pub(super) fn model_pose(
         &self,
         frame: &Frame<'_>,
+        top: &[usize],
         excluded: Range<usize>,
         timings: &mut Timings,
     ) -> Result<GeometricPose> {
         let model = self.model().ok_or_else(|| GeolocError::invalid("locator", "the map has no 3D model"))?;
-        let t = Instant::now();
-        let top = self.map.retrieve_top(&frame.retrieval_query(), self.options.top_k, excluded.clone())?;
-        timings.retrieval_ms = ms(t);
         let usable = usable_points(model, &excluded);
         let t = Instant::now();
         let grid = KeypointGrid::new(frame.keypoints, self.options.guided_radius_px);
-        let per_keyframe = self.retrieved_matches(frame, model, &top, usable.as_deref())?;
+        let per_keyframe = self.retrieved_matches(frame, model, top, usable.as_deref())?;
         timings.matching_ms = ms(t);
         let union = one_to_one(per_keyframe.concat());
         let (mut pose, mut inliers, margin) =

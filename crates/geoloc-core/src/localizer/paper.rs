@@ -60,9 +60,9 @@ impl MapPoints {
 }
 
 impl Localizer {
-    /// The paper's geometric locator: (a) retrieval, (b) the co-visible keyframe group
-    /// around the retrieved keyframe, (c) forward intersection (cached per group), then
-    /// backward intersection. The keyframe whose group gave the pose, T_G and C_G or why
+    /// The paper's geometric locator from the retrieved `keyframe` ((a) retrieval is the
+    /// caller's): (b) the co-visible keyframe group around it, (c) forward intersection
+    /// (cached per group), then backward intersection. The keyframe whose group gave the pose, T_G and C_G or why
     /// not, the inliers; and a note when the pose came from tracking.
     ///
     /// Tracking (sequential use): when the retrieved group gives fewer than half the inliers
@@ -75,11 +75,9 @@ impl Localizer {
     pub(super) fn paper_pose(
         &mut self,
         frame: &Frame<'_>,
+        keyframe: usize,
         timings: &mut Timings,
     ) -> Result<(GeometricPose, Option<String>)> {
-        let t = Instant::now();
-        let keyframe = self.map.retrieve(&frame.retrieval_query())?;
-        timings.retrieval_ms = ms(t);
         let (geometric, inliers) = self.group_pose(frame, keyframe, timings)?;
         if let Some((last, support)) = self.last_support
             && last != keyframe

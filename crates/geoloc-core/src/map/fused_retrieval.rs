@@ -89,7 +89,10 @@ pub fn verified_inliers(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::sync::Arc;
+
     use crate::lie::SE3;
+    use crate::localizer::{Frame, Localization, Localizer, LocalizerOptions, Locator, Source};
     use crate::map::{Keyframe, Map, RetrievalKind, RetrievalQuery};
     use crate::matching::DescriptorSet;
     use crate::testing::{LANDMARK_DESCRIPTOR_BYTES, LandmarkScene, SplitMix64, walk};
@@ -104,6 +107,7 @@ mod tests {
         distance_m: Vec<f64>,
         nearest: usize,
         camera: Camera,
+        truth: SE3,
     }
 
     const NEAR_M: f64 = 0.45;
@@ -129,7 +133,7 @@ mod tests {
         let distance_m: Vec<f64> =
             keyframes.iter().map(|k| (k.world_from_cam.translation - truth.translation).norm()).collect();
         let nearest = (0..keyframes.len()).min_by(|&a, &b| distance_m[a].total_cmp(&distance_m[b])).expect("keyframes");
-        Scene { keyframes, query, distance_m, nearest, camera: world.camera }
+        Scene { keyframes, query, distance_m, nearest, camera: world.camera, truth }
     }
 
     fn top1(keyframes: Vec<Keyframe>, kind: RetrievalKind, query: &Scene, global: f32) -> usize {
@@ -176,6 +180,80 @@ mod tests {
         assert_eq!(top1(keyframes.clone(), BOW, &s, honest), 0, "BoW alone takes the decoy");
         let fused = top1(keyframes, FUSED, &s, honest);
         assert!(fused > 0 && s.distance_m[fused - 1] < NEAR_M, "{fused}");
+    }
+
+    /// The scene's query localized by a fresh localizer (one frame, as a robot that just
+    /// started) on a map of `keyframes` retrieving by `kind`, with the network's answer `global`.
+    fn localize(
+        keyframes: Vec<Keyframe>,
+        kind: RetrievalKind,
+        s: &Scene,
+        global: f32,
+        locator: Locator,
+    ) -> Localization {
+        let map = Arc::new(Map::build(s.camera, keyframes, None, kind, 0).expect("valid map"));
+        let options = LocalizerOptions { locator, ..LocalizerOptions::default() };
+        let mut localizer = Localizer::new(map, options).expect("localizer");
+        let g = [global, 0.0];
+        let descriptors = crate::matching::Descriptors::Binary { data: &s.query.1, width: LANDMARK_DESCRIPTOR_BYTES };
+        let frame = Frame { timestamp: 0.0, keypoints: &s.query.0, descriptors, global: Some(&g), pixel_sigmas: None };
+        localizer.localize(&frame).expect("a valid frame")
+    }
+
+    /// A localization's pose and covariance as bits, source, reason, keyframe and inliers.
+    type Answer = (Option<(Vec<u64>, Vec<u64>)>, Source, String, usize, usize);
+
+    /// What a localization says, bit for bit.
+    fn answer(l: &Localization) -> Answer {
+        let estimate = l.estimate.as_ref().map(|e| {
+            let pose = e.world_from_cam.matrix();
+            (pose.iter().map(|v| v.to_bits()).collect(), e.covariance.iter().map(|v| v.to_bits()).collect())
+        });
+        (estimate, l.source, l.reason.clone(), l.keyframe, l.inliers)
+    }
+
+    /// A frame the bag of words localizes gets the BoW map's answer from a fused map, bit for
+    /// bit, whatever the network says — here a network pointing at a keyframe 6 m away — with
+    /// either locator.
+    #[test]
+    fn a_fused_map_localizes_what_bow_localizes_as_the_bow_map_does() {
+        let s = scene();
+        let far = s.keyframes[0].global.as_ref().expect("global")[0];
+        for locator in [Locator::Paper, Locator::Model] {
+            let bow = localize(s.keyframes.clone(), BOW, &s, far, locator);
+            assert!(bow.estimate.is_some(), "{locator:?}: {}", bow.reason);
+            let fused = localize(s.keyframes.clone(), FUSED, &s, far, locator);
+            assert_eq!(answer(&fused), answer(&bow), "{locator:?}");
+        }
+    }
+
+    /// A frame whose BoW keyframe gives no accepted pose (a decoy with the query's own
+    /// descriptors on scrambled keypoints: BoW's best score, no geometry) is localized from
+    /// the keyframe the network proposes and the images verify, and says so; the BoW map
+    /// loses it.
+    #[test]
+    fn the_network_localizes_a_frame_bows_keyframes_cannot() {
+        let s = scene();
+        let mut rng = SplitMix64::new(9);
+        let keypoints = s
+            .query
+            .0
+            .iter()
+            .map(|_| nalgebra::Vector2::new(rng.uniform_in(0.0, 640.0), rng.uniform_in(0.0, 480.0)))
+            .collect();
+        let descriptors = DescriptorSet::Binary { data: s.query.1.clone(), width: LANDMARK_DESCRIPTOR_BYTES };
+        let decoy =
+            Keyframe { world_from_cam: SE3::identity(), keypoints, descriptors, global: Some(vec![100.0, 0.0]) };
+        let keyframes: Vec<Keyframe> = std::iter::once(decoy).chain(s.keyframes.iter().cloned()).collect();
+        let honest = s.keyframes[s.nearest].global.as_ref().expect("global")[0];
+        let bow = localize(keyframes.clone(), BOW, &s, honest, Locator::Paper);
+        assert!(bow.estimate.is_none(), "the BoW map localized from its decoy: {}", bow.reason);
+        let fused = localize(keyframes, FUSED, &s, honest, Locator::Paper);
+        let estimate = fused.estimate.as_ref().unwrap_or_else(|| panic!("lost: {}", fused.reason));
+        let error = (estimate.world_from_cam.translation - s.truth.translation).norm();
+        assert!(error < 0.05, "{error} m off");
+        assert!(fused.keyframe > 0 && s.distance_m[fused.keyframe - 1] < NEAR_M);
+        assert!(fused.reason.contains("retrieved with the network"), "{}", fused.reason);
     }
 
     #[test]
