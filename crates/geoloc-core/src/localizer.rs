@@ -503,10 +503,7 @@ impl Localizer {
     /// that verified with twice BoW's inliers replaced BoW's keyframes and cost poses: 7-Scenes
     /// frames 58 and 66 went from 2 cm to 8 and 15 cm with a GoogLeNet trained from scratch.)
     fn geometric_step(&mut self, frame: &Frame<'_>, timings: &mut Timings) -> Result<(GeometricPose, Option<String>)> {
-        let k = match self.options.locator {
-            Locator::Paper => 1,
-            Locator::Model => self.options.top_k,
-        };
+        let k = self.retrieved_keyframes();
         let t = Instant::now();
         let words = self.map.retrieve_ranked(&frame.retrieval_query(), k, 0..0, Ranking::Words)?;
         timings.retrieval_ms = ms(t);
@@ -527,6 +524,14 @@ impl Localizer {
         let why = first.0.1.as_ref().err().map_or("", String::as_str);
         let retried = format!("retrieved with the network: the bag of words' keyframes gave no accepted pose ({why})");
         Ok((second, Some(note.map_or(retried.clone(), |n| format!("{n}; {retried}")))))
+    }
+
+    /// How many keyframes the locator retrieves: one for the paper's, `top_k` for the model's.
+    fn retrieved_keyframes(&self) -> usize {
+        match self.options.locator {
+            Locator::Paper => 1,
+            Locator::Model => self.options.top_k,
+        }
     }
 
     /// The geometric locator from the retrieved keyframes `top` (best first).

@@ -27,7 +27,7 @@ impl Localizer {
             global: kf.global.as_deref(),
             pixel_sigmas: None,
         };
-        let k = if self.options.locator == Locator::Model { self.options.top_k } else { 1 };
+        let k = self.retrieved_keyframes();
         let top = map.retrieve_ranked(&frame.retrieval_query(), k, excluded.clone(), Ranking::Words)?;
         if self.options.locator == Locator::Model {
             let (_, pose, _) = self.model_pose(&frame, &top, excluded, &mut Timings::default())?;
