@@ -1,6 +1,6 @@
 """Side-by-side: geoloc's PnP and triangulation against OpenCV, PoseLib and pycolmap.
 
-    python benchmarks/geometry.py [--trials 200]
+    python benchmarks/geometry.py [--trials 200] [--json out.json]
 
 All peers run in this process on identical data (K = (525, 525, 320, 240), 1 px noise):
 
@@ -17,8 +17,9 @@ All peers run in this process on identical data (K = (525, 525, 320, 240), 1 px 
    LO-RANSAC estimate_triangulation (one call per track) and cv2.triangulatePoints (first
    two views of each track).
 
-Prints time per call, accuracy and success rate, and each peer's time relative to geoloc.
-Peers that are not installed are skipped. Not part of the test suite.
+Prints time per call, accuracy and success rate, and each peer's time relative to geoloc
+(``--json``: the same rows, for ``benchmarks/report.py``). Peers that are not installed are
+skipped (``pip install -e ".[bench]"`` installs them). Not part of the test suite.
 """
 
 from __future__ import annotations
@@ -165,7 +166,7 @@ def run_pnp(
     make: Callable[[np.random.Generator], tuple[Array, Array, Array, Array]],
     trials: int,
     uses_init: bool,
-) -> None:
+) -> dict[str, dict[str, float]]:
     rng = np.random.default_rng(0)
     cases = [make(rng) for _ in range(trials)]
     rows = []
@@ -188,6 +189,11 @@ def run_pnp(
     print(f"  {'implementation':<36} {'µs/call':>9} {'× geoloc':>9} {'median cm':>10} {'median °':>9} {'ok 5cm/1°':>10}")
     for name, t, med, ok in rows:
         print(f"  {name:<36} {t * 1e6:>9.1f} {t / base:>8.2f}x {med[0]:>10.3f} {med[1]:>9.4f} {100 * ok:>9.1f}%")
+    return {
+        name: {"us_per_call": t * 1e6, "x_geoloc": t / base, "median_cm": float(med[0]), "median_deg": float(med[1]),
+               "ok_5cm_1deg": ok}
+        for name, t, med, ok in rows
+    }
 
 
 def refine_case(n: int) -> Callable[[np.random.Generator], tuple[Array, Array, Array, Array]]:
@@ -288,7 +294,7 @@ def cv2_triangulate(scene: dict[str, Any]) -> Array:
     return out
 
 
-def run_triangulation() -> None:
+def run_triangulation() -> dict[str, dict[str, float]]:
     scene = triangulation_scene(np.random.default_rng(1), 4000)
     n = len(scene["points"])
     impls: dict[str, Callable[[], Array]] = {
@@ -319,6 +325,11 @@ def run_triangulation() -> None:
     print(f"  {'implementation':<36} {'ms':>8} {'× geoloc':>9} {'returned':>9} {'median cm':>10} {'RMS cm':>8} {'>10 cm':>7} {'>1 m':>5}")
     for name, t, v, med, rms, gross, huge in rows:
         print(f"  {name:<36} {t * 1e3:>8.2f} {t / base:>8.2f}x {100 * v:>8.1f}% {100 * med:>10.2f} {100 * rms:>8.1f} {100 * gross:>6.1f}% {huge:>5}")
+    return {
+        name: {"ms": t * 1e3, "x_geoloc": t / base, "returned": float(v), "median_cm": 100 * float(med),
+               "rms_cm": 100 * float(rms), "over_10cm": float(gross), "over_1m": huge}
+        for name, t, v, med, rms, gross, huge in rows
+    }
 
 
 def _geoloc_points(scene: dict[str, Any]) -> Array:
@@ -330,8 +341,10 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--trials", type=int, default=200)
     parser.add_argument("--sizes", type=int, nargs="+", default=[50, 200, 1000])
+    parser.add_argument("--json", default=None, help="also write the rows here")
     args = parser.parse_args()
     print(f"geoloc {geoloc.__version__} geometry benchmark; {os.cpu_count()} CPUs")
+    report: dict[str, Any] = {}
     for n in args.sizes:
         solvers: dict[str, Callable[..., Array | None]] = {
             "geoloc solve_pnp (Huber LM + cov)": geoloc_refine,
@@ -343,7 +356,8 @@ def main() -> None:
             solvers["poselib.refine_absolute_pose"] = poselib_refine
         if pycolmap is not None:
             solvers["pycolmap.refine_absolute_pose (+cov)"] = colmap_refine
-        run_pnp(f"PnP refinement from a 2 cm / 1° perturbed pose, N = {n}", solvers, refine_case(n), args.trials, True)
+        title = f"PnP refinement from a 2 cm / 1° perturbed pose, N = {n}"
+        report[title] = run_pnp(title, solvers, refine_case(n), args.trials, True)
     for n in args.sizes:
         for outliers in (0.0, 0.3, 0.5):
             solvers = {"geoloc solve_pnp (P3P RANSAC)": geoloc_ransac}
@@ -353,8 +367,14 @@ def main() -> None:
                 solvers["cv2.solvePnPRansac (SQPnP)"] = cv2_ransac
             if pycolmap is not None:
                 solvers["pycolmap.estimate_absolute_pose"] = colmap_ransac
-            run_pnp(f"RANSAC PnP, N = {n}, {int(100 * outliers)} % outliers", solvers, ransac_case(n, outliers), args.trials, False)
-    run_triangulation()
+            title = f"RANSAC PnP, N = {n}, {int(100 * outliers)} % outliers"
+            report[title] = run_pnp(title, solvers, ransac_case(n, outliers), args.trials, False)
+    report["Triangulation, 4000 tracks"] = run_triangulation()
+    if args.json:
+        import json
+
+        with open(args.json, "w") as f:
+            json.dump(report, f, indent=1)
 
 
 if __name__ == "__main__":
