@@ -99,6 +99,12 @@ def _versions() -> str:
             parts.append(f"{name} {getattr(module, '__version__', '?')}")
         except Exception:  # a missing or broken package is reported, not fatal
             parts.append(f"{name} not importable")
+    for name in ("poselib", "pycolmap", "onnxruntime", "torch"):  # peers and runtimes, when installed
+        try:
+            module = __import__(name)
+        except Exception:
+            continue
+        parts.append(f"{name} {getattr(module, '__version__', '?')}")
     return ", ".join(parts)
 
 
