@@ -29,8 +29,9 @@ def measure(name: str, fn: Callable[[], object], repeats: int = 7, warmup: int =
     return Timing(name, times[0], times[len(times) // 2])
 
 
-def print_table(title: str, n: int, timings: list[Timing], baseline: str) -> None:
-    """Print times per call and per item, and each one's speed relative to ``baseline``."""
+def print_table(title: str, n: int, timings: list[Timing], baseline: str) -> dict[str, dict[str, float]]:
+    """Print times per call and per item, and each one's speed relative to ``baseline``;
+    the same rows, by implementation, for a ``--json`` result."""
     base = next(t for t in timings if t.name == baseline)
     print(f"\n{title} ({n} items; ratio = other's time / {baseline}'s time)")
     print(f"  {'implementation':<42} {'best ms':>9} {'median ms':>10} {'ns/item':>9} {'ratio':>7}")
@@ -38,3 +39,8 @@ def print_table(title: str, n: int, timings: list[Timing], baseline: str) -> Non
         ratio = t.best_s / base.best_s
         print(f"  {t.name:<42} {t.best_s * 1e3:>9.2f} {t.median_s * 1e3:>10.2f} "
               f"{t.best_s / n * 1e9:>9.1f} {ratio:>6.1f}x")
+    return {
+        t.name: {"best_ms": t.best_s * 1e3, "median_ms": t.median_s * 1e3, "ns_per_item": t.best_s / n * 1e9,
+                 "ratio": t.best_s / base.best_s}
+        for t in timings
+    }

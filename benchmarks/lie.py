@@ -1,6 +1,6 @@
 """geoloc.lie against vectorized numpy, scipy's Rotation and pypose, on identical twists.
 
-    python benchmarks/lie.py [--n 200000]
+    python benchmarks/lie.py [--n 200000] [--json out.json]
 
 Prints, per operation, the best and median wall time of each implementation and its ratio
 to geoloc. The numpy implementation is the straightforward vectorized Rodrigues/Barfoot
@@ -70,7 +70,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--n", type=int, default=200_000)
     parser.add_argument("--repeats", type=int, default=7)
+    parser.add_argument("--json", default=None, help="also write the rows here")
     args = parser.parse_args()
+    report: dict[str, object] = {}
     n = args.n
     xi = random_twists(np.random.default_rng(0), n, 1.0, 10.0)
     xi[:, 3:] *= np.random.default_rng(1).uniform(0, np.pi - 0.01, size=(n, 1))  # angles 0…π
@@ -95,7 +97,7 @@ def main() -> None:
 
         xi_pp = torch.from_numpy(np.hstack([xi[:, :3], xi[:, 3:]]))  # pypose se3: (ρ, φ)
         rows.append(measure("pypose se3_Exp().matrix()", lambda: pp.se3(xi_pp).Exp().matrix(), args.repeats))
-    print_table("se3_exp", n, rows, "geoloc.lie.se3_exp")
+    report["se3_exp"] = print_table("se3_exp", n, rows, "geoloc.lie.se3_exp")
 
     rows = [
         measure("geoloc.lie.so3_exp", lambda: lie.so3_exp(phi), args.repeats),
@@ -104,7 +106,7 @@ def main() -> None:
     rotation = _scipy_rotation()
     if rotation is not None:
         rows.append(measure("scipy Rotation.from_rotvec().as_matrix()", lambda: rotation.from_rotvec(phi).as_matrix(), args.repeats))
-    print_table("so3_exp", n, rows, "geoloc.lie.so3_exp")
+    report["so3_exp"] = print_table("so3_exp", n, rows, "geoloc.lie.so3_exp")
 
     rows = [
         measure("geoloc.lie.so3_log", lambda: lie.so3_log(R), args.repeats),
@@ -112,7 +114,7 @@ def main() -> None:
     ]
     if rotation is not None:
         rows.append(measure("scipy Rotation.from_matrix().as_rotvec()", lambda: rotation.from_matrix(R).as_rotvec(), args.repeats))
-    print_table("so3_log", n, rows, "geoloc.lie.so3_log")
+    report["so3_log"] = print_table("so3_log", n, rows, "geoloc.lie.so3_log")
 
     near_pi = random_twists(np.random.default_rng(2), 1000, np.pi - 1e-6, 0.0)[:, 3:]
     R_pi = lie.so3_exp(near_pi)
@@ -120,13 +122,23 @@ def main() -> None:
     print(f"    geoloc {np.abs(lie.so3_log(R_pi) - near_pi).max():.1e}, "
           f"numpy textbook {np.abs(numpy_so3_log(R_pi) - near_pi).max():.1e}"
           + (f", scipy {np.abs(rotation.from_matrix(R_pi).as_rotvec() - near_pi).max():.1e}" if rotation else ""))
+    report["so3_log error at π − 1e-6 (rad)"] = {
+        "geoloc": float(np.abs(lie.so3_log(R_pi) - near_pi).max()),
+        "numpy textbook": float(np.abs(numpy_so3_log(R_pi) - near_pi).max()),
+        **({"scipy": float(np.abs(rotation.from_matrix(R_pi).as_rotvec() - near_pi).max())} if rotation else {}),
+    }
 
     rows = [
         measure("geoloc.lie.se3_log", lambda: lie.se3_log(T), args.repeats),
         measure("geoloc.lie.se3_right_jacobian", lambda: lie.se3_right_jacobian(xi), args.repeats),
         measure("geoloc.lie.se3_adjoint", lambda: lie.se3_adjoint(T), args.repeats),
     ]
-    print_table("other geoloc.lie calls", n, rows, "geoloc.lie.se3_log")
+    report["other geoloc.lie calls"] = print_table("other geoloc.lie calls", n, rows, "geoloc.lie.se3_log")
+    if args.json:
+        import json
+
+        with open(args.json, "w") as f:
+            json.dump(report, f, indent=1)
 
 
 def _scipy_rotation():  # type: ignore[no-untyped-def]
