@@ -85,12 +85,31 @@ pub fn curly_hat(xi: &Twist) -> Matrix6<f64> {
 /// (or ρ alone in a 4×4 product) would overflow.
 pub const MAX_TRANSLATION_NORM: f64 = 1e150;
 
+/// ‖ρ‖² below which [`check_twist`] accepts at once (strictly inside [`MAX_TRANSLATION_NORM`]²).
+const FAST_TRANSLATION_NORM_SQUARED: f64 = 0.99 * MAX_TRANSLATION_NORM * MAX_TRANSLATION_NORM;
+/// ‖φ‖² below which [`check_twist`] accepts at once (strictly inside
+/// [`so3::MAX_ROTATION_VECTOR_NORM`]²).
+const FAST_ROTATION_VECTOR_NORM_SQUARED: f64 = 0.99 * so3::MAX_ROTATION_VECTOR_NORM * so3::MAX_ROTATION_VECTOR_NORM;
+
 /// Checks a twist ξ = (ρ, φ): finite, ‖φ‖ ≤ [`so3::MAX_ROTATION_VECTOR_NORM`] and
 /// ‖ρ‖ ≤ [`MAX_TRANSLATION_NORM`].
 ///
 /// # Errors
 /// [`GeolocError::NonFinite`] or [`GeolocError::InvalidInput`] named "xi".
+#[inline]
 pub fn check_twist(xi: &Twist) -> Result<()> {
+    // the common case in a few flops: NaN fails both comparisons and ∞ the bounds, which sit
+    // strictly inside the limits, so whatever passes here passes the checks below
+    if phi(xi).norm_squared() <= FAST_ROTATION_VECTOR_NORM_SQUARED
+        && rho(xi).norm_squared() <= FAST_TRANSLATION_NORM_SQUARED
+    {
+        return Ok(());
+    }
+    check_twist_in_detail(xi)
+}
+
+/// [`check_twist`]'s checks one by one, for the error that names what is wrong.
+fn check_twist_in_detail(xi: &Twist) -> Result<()> {
     so3::check_finite(xi.as_slice()).map_err(|e| e.at("xi", 0))?;
     so3::check_rotation_vector(&phi(xi)).map_err(|e| match e {
         GeolocError::InvalidInput { reason, .. } => GeolocError::invalid("xi", reason),
@@ -316,5 +335,57 @@ fn relabel_rigid(e: GeolocError) -> GeolocError {
             reason: format!("rotation block: {reason}"),
         },
         other => other,
+    }
+}
+
+#[cfg(test)]
+mod check_tests {
+    use super::*;
+
+    /// The quick acceptance of [`check_twist`] and [`so3::check_rotation_vector`] agrees with
+    /// their detailed checks everywhere: ordinary twists, each limit and its neighbours
+    /// (one ulp either side), huge, infinite and NaN entries in every position.
+    #[test]
+    fn quick_acceptance_agrees_with_the_detailed_checks() {
+        let specials = [
+            0.0,
+            1.0,
+            -3.0,
+            1e6,
+            so3::MAX_ROTATION_VECTOR_NORM,
+            so3::MAX_ROTATION_VECTOR_NORM.next_up(),
+            so3::MAX_ROTATION_VECTOR_NORM.next_down(),
+            so3::MAX_ROTATION_VECTOR_NORM / 3f64.sqrt(),
+            MAX_TRANSLATION_NORM,
+            MAX_TRANSLATION_NORM.next_up(),
+            MAX_TRANSLATION_NORM.next_down(),
+            MAX_TRANSLATION_NORM / 3f64.sqrt(),
+            1e200,
+            f64::MAX,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            f64::NAN,
+        ];
+        let mut checked = 0;
+        for &a in &specials {
+            for &b in &specials {
+                for position in 0..6 {
+                    let mut xi = Twist::from_element(0.5);
+                    xi[position] = a;
+                    xi[(position + 1) % 6] = b;
+                    let (quick, detailed) = (check_twist(&xi), check_twist_in_detail(&xi));
+                    assert_eq!(quick.is_ok(), detailed.is_ok(), "{xi:?}");
+                    if let (Err(q), Err(d)) = (quick, detailed) {
+                        assert_eq!(q.to_string(), d.to_string());
+                    }
+                    let phi = phi(&xi);
+                    let (quick, detailed) =
+                        (so3::check_rotation_vector(&phi), so3::check_rotation_vector_in_detail(&phi));
+                    assert_eq!(quick.is_ok(), detailed.is_ok(), "{phi:?}");
+                    checked += 1;
+                }
+            }
+        }
+        assert_eq!(checked, specials.len() * specials.len() * 6);
     }
 }

@@ -83,7 +83,18 @@ pub fn rotation_angle(r: &Matrix3<f64>) -> f64 {
 /// # Errors
 /// [`GeolocError::NonFinite`] or [`GeolocError::InvalidInput`], named "phi" (batch callers
 /// re-index with [`GeolocError::at`]).
+#[inline]
 pub fn check_rotation_vector(phi: &Vector3<f64>) -> Result<()> {
+    // the common case: NaN fails the comparison and ∞ the bound, which sits strictly inside
+    // the limit, so whatever passes here passes the checks below
+    if phi.norm_squared() <= 0.99 * MAX_ROTATION_VECTOR_NORM * MAX_ROTATION_VECTOR_NORM {
+        return Ok(());
+    }
+    check_rotation_vector_in_detail(phi)
+}
+
+/// [`check_rotation_vector`]'s checks one by one, for the error that names what is wrong.
+pub(super) fn check_rotation_vector_in_detail(phi: &Vector3<f64>) -> Result<()> {
     check_finite(phi.as_slice()).map_err(|e| e.at("phi", 0))?;
     // the largest entry first: ‖φ‖ itself overflows to ∞ beyond 1e154
     let theta = if phi.amax() > MAX_ROTATION_VECTOR_NORM { phi.amax() } else { phi.norm() };
