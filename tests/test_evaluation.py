@@ -107,6 +107,26 @@ def test_nees_refuses_a_singular_covariance() -> None:
         evaluation.pose_errors(np.stack([np.eye(4)] * 2), np.eye(4))
 
 
+def test_an_overflowing_nees_names_the_frame_and_all_its_inputs() -> None:
+    """δᵀC⁻¹δ beyond any float — poses 1e300 m apart, or a covariance at the edge of
+    underflow — is refused naming the frame's pose and covariance alike (either may be the
+    cause), not returned as ∞ or NaN."""
+    far = np.eye(4)
+    far[2, 3] = 1e300
+    shifted = np.eye(4)
+    shifted[0, 3] = 1e10
+    cases = {
+        "poses 1e300 m apart": (np.stack([np.eye(4)] * 2), np.stack([np.eye(6)] * 2), np.stack([np.eye(4), far])),
+        "covariance near underflow": (
+            np.stack([np.eye(4), shifted]), np.stack([np.eye(6), np.eye(6) * 1e-300]), np.stack([np.eye(4)] * 2)
+        ),
+    }
+    for why, (est, cov, gt) in cases.items():
+        with pytest.raises(geoloc.InvalidInputError, match=r"cov\[1\], est\[1\], gt\[1\]: the NEES overflows"):
+            evaluation.nees(est, cov, gt)
+        assert np.isfinite(evaluation.nees(est[:1], cov[:1], gt[:1])).all(), why
+
+
 def _summary_inputs() -> tuple[list[np.ndarray | None], np.ndarray, list[np.ndarray | None], list[str]]:
     gt = np.stack([np.eye(4)] * 4)
     offsets = [0.01, 0.2, None, 0.04]  # metres along x; None = lost

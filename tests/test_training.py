@@ -254,6 +254,38 @@ def test_train_command_errors(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -
         _run_command(["--dataset", str(tmp_path), "--out", str(tmp_path / "m.onnx")])
 
 
+def test_an_absurd_learning_rate_is_refused_before_any_work(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """`--lr` above the largest rate Adam can use is refused with one line naming it (exit 2),
+    before the frames are read, and nothing is written."""
+    from geoloc.cli import main
+
+    out = tmp_path / "m.onnx"
+    argv = ["train", "--dataset", "synthetic", "--tiny", "--epochs", "1", "--pairs", "2", "--batch-size", "2",
+            "--dim", "8", "--no-progress", "--out", str(out), "--lr", "1e21"]
+    assert main(argv) == 2
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert len(lines) == 1 and "lr: expected at most 1" in lines[0], lines
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_diverging_loss_names_the_learning_rate(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A loss that becomes NaN stops training with an error naming `lr` (the user's to lower),
+    not an internal error."""
+    from geoloc.training import train as train_module
+
+    monkeypatch.setattr(train_module, "contrastive_loss", lambda a, b, y, m: (a.sum() + b.sum()) * float("nan"))
+    def pose(x: float) -> np.ndarray:
+        T = np.eye(4)
+        T[0, 3] = x
+        return T
+
+    # frames 0.2 m apart along a line: neighbours are similar pairs, frames 1 m apart dissimilar
+    posed = [PosedImage(np.zeros((24, 32, 3), np.uint8), pose(0.2 * i)) for i in range(8)]
+    cfg = TrainConfig(backbone="tiny", dim=8, epochs=1, n_pos=2, n_neg=2, batch_size=2, validation=0.0, progress=False)
+    with pytest.raises(geoloc.InvalidInputError, match=r"lr: the loss became nan at epoch 1 with lr = 0.001; lower it"):
+        train(posed, cfg)
+
+
 # --- a tiny training run beats the tiny-image baseline ----------------------------------------
 
 

@@ -161,8 +161,13 @@ def nees(est: ArrayLike, cov: ArrayLike, gt: ArrayLike) -> Array:
         with np.errstate(all="ignore"):
             w = np.linalg.solve(chol, delta[k])
             out[k] = float(w @ w)
-        if not np.isfinite(out[k]):  # a covariance at the edge of underflow: δᵀC⁻¹δ overflows
-            raise InvalidInputError(f"cov[{k}]: too close to singular for its NEES to be a number")
+        if not np.isfinite(out[k]):
+            # δᵀC⁻¹δ overflows: a covariance at the edge of underflow, or an error beyond any
+            # covariance (translations of 1e300) — the frame's three inputs share the blame
+            raise InvalidInputError(
+                f"cov[{k}], est[{k}], gt[{k}]: the NEES overflows (error up to {np.abs(delta[k]).max():.1e} "
+                "against this covariance): the covariance is too close to singular or the poses too far apart"
+            )
     return out
 
 

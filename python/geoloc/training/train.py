@@ -59,6 +59,11 @@ AUGMENT_LOG_GAIN = 0.3
 AUGMENT_OFFSET = 0.4
 
 
+#: The largest learning rate accepted: Adam and AdamW move every weight by about lr per step,
+#: and the networks' weights are of order 0.1, so a larger rate only diverges.
+MAX_LR = 1.0
+
+
 @dataclass(frozen=True)
 class TrainConfig:
     """Training options; the defaults are the paper's schedule (see the module doc)."""
@@ -107,6 +112,8 @@ class TrainConfig:
             v = getattr(self, name)
             if not np.isfinite(v) or v <= 0:
                 raise InvalidInputError(f"{name}: expected a finite number > 0, got {v!r}")
+        if self.lr > MAX_LR:
+            raise InvalidInputError(f"lr: expected at most {MAX_LR:g} (Adam moves every weight by about lr per step), got {self.lr!r}")
         if self.eval_every is not None and (isinstance(self.eval_every, bool) or not isinstance(self.eval_every, int) or self.eval_every < 1):
             raise InvalidInputError(f"eval_every: expected a positive integer or None, got {self.eval_every!r}")
         if not (np.isfinite(self.validation) and 0.0 <= self.validation <= 0.5):
@@ -350,7 +357,9 @@ def _run(
             total += float(loss.detach()) * n
         mean = total / len(order)
         if not np.isfinite(mean):
-            raise FloatingPointError(f"the loss became {mean} at epoch {epoch + 1}; lower lr")
+            # the learning rate is what diverged it (no weights are written): a user's error to
+            # correct, named as such
+            raise InvalidInputError(f"lr: the loss became {mean} at epoch {epoch + 1} with lr = {cfg.lr:g}; lower it")
         losses.append(mean)
         epoch_seconds.append(time.perf_counter() - t0)
         done = epoch + 1
