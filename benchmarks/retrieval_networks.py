@@ -11,8 +11,9 @@ of the fold's training frames from the default features (``Map.from_features``, 
 bag of words) queried with ``Map.retrieve_features`` — and, for each network in
 ``--descriptors DIR`` (the per-fold descriptors ``benchmarks/train_folds.py`` writes, each
 network trained on that fold's training frames), the network alone (exact L2 1-NN) and the
-map fused with it (``retrieval="fused"``): its first keyframe for k = 1 (what the paper's
-locator retrieves) and k = 5 (the model locator's first of five), with the time per query.
+map fused with it (``retrieval="fused"``): its first keyframe for k = 1 and k = 5 (the
+rankings the paper's and the model locator fall back on when BoW's keyframes give no accepted
+pose), with the time per query.
 Prints the table, the mean over the folds and each method's gain over BoW on its worst fold.
 ``--model`` files are not used with ``--folds``: a network trained on the queries would be
 scored on its own training images.
@@ -140,8 +141,9 @@ def folds(args: argparse.Namespace) -> None:
     table: dict[str, dict[str, float]] = {}
     seconds: dict[str, list[float]] = {}
     methods = ["tiny image", "BoW"] + [f"{net} {m}" for net in networks for m in ("alone", "fused k=1", "fused k=5")]
-    print("recall@1 (%) per fold; 'fused k=1': the paper locator's retrieval (BoW's best and the network's, "
-          "verified), 'fused k=5': the model locator's first keyframe (BoW's 5 and the network's first 2, verified)", flush=True)
+    print("recall@1 (%) per fold; 'fused k=1': the fused ranking's first keyframe of BoW's best and the network's, "
+          "verified (the paper locator's fallback); 'fused k=5': of BoW's 5 and the network's first 2, verified "
+          "(the model locator's fallback)", flush=True)
     print(f"{'fold':<9} " + " ".join(f"{m:>{max(10, len(m))}}" for m in methods) + f" {'ceiling':>8}", flush=True)
     for lo in range(0, n, 100):
         hi = min(lo + 100, n)
