@@ -145,6 +145,25 @@ mod tests {
         map.retrieve_top(&q, 1, 0..0).expect("retrieves")[0]
     }
 
+    /// The scene's keyframes behind a decoy (keyframe 0): the query's own descriptors — BoW's
+    /// best possible score — on scrambled keypoints that fit no geometry, with a network
+    /// descriptor far from every other; and the network's answer for the query, which points
+    /// at the keyframe nearest to it.
+    fn with_decoy(s: &Scene) -> (Vec<Keyframe>, f32) {
+        let mut rng = SplitMix64::new(9);
+        let keypoints = s
+            .query
+            .0
+            .iter()
+            .map(|_| nalgebra::Vector2::new(rng.uniform_in(0.0, 640.0), rng.uniform_in(0.0, 480.0)))
+            .collect();
+        let descriptors = DescriptorSet::Binary { data: s.query.1.clone(), width: LANDMARK_DESCRIPTOR_BYTES };
+        let decoy =
+            Keyframe { world_from_cam: SE3::identity(), keypoints, descriptors, global: Some(vec![100.0, 0.0]) };
+        let keyframes = std::iter::once(decoy).chain(s.keyframes.iter().cloned()).collect();
+        (keyframes, s.keyframes[s.nearest].global.as_ref().expect("global")[0])
+    }
+
     const BOW: RetrievalKind = RetrievalKind::Bow { branching: 8, depth: 4 };
     const FUSED: RetrievalKind = RetrievalKind::Fused { branching: 8, depth: 4 };
 
@@ -163,20 +182,7 @@ mod tests {
     #[test]
     fn a_keyframe_only_the_network_proposes_wins_when_the_images_verify_it() {
         let s = scene();
-        // a decoy first: the query's own descriptors (BoW's best possible score) on scrambled
-        // keypoints that fit no geometry
-        let mut rng = SplitMix64::new(9);
-        let keypoints = s
-            .query
-            .0
-            .iter()
-            .map(|_| nalgebra::Vector2::new(rng.uniform_in(0.0, 640.0), rng.uniform_in(0.0, 480.0)))
-            .collect();
-        let descriptors = DescriptorSet::Binary { data: s.query.1.clone(), width: LANDMARK_DESCRIPTOR_BYTES };
-        let decoy =
-            Keyframe { world_from_cam: SE3::identity(), keypoints, descriptors, global: Some(vec![100.0, 0.0]) };
-        let keyframes: Vec<Keyframe> = std::iter::once(decoy).chain(s.keyframes.iter().cloned()).collect();
-        let honest = s.keyframes[s.nearest].global.as_ref().expect("global")[0];
+        let (keyframes, honest) = with_decoy(&s);
         assert_eq!(top1(keyframes.clone(), BOW, &s, honest), 0, "BoW alone takes the decoy");
         let fused = top1(keyframes, FUSED, &s, honest);
         assert!(fused > 0 && s.distance_m[fused - 1] < NEAR_M, "{fused}");
@@ -234,18 +240,7 @@ mod tests {
     #[test]
     fn the_network_localizes_a_frame_bows_keyframes_cannot() {
         let s = scene();
-        let mut rng = SplitMix64::new(9);
-        let keypoints = s
-            .query
-            .0
-            .iter()
-            .map(|_| nalgebra::Vector2::new(rng.uniform_in(0.0, 640.0), rng.uniform_in(0.0, 480.0)))
-            .collect();
-        let descriptors = DescriptorSet::Binary { data: s.query.1.clone(), width: LANDMARK_DESCRIPTOR_BYTES };
-        let decoy =
-            Keyframe { world_from_cam: SE3::identity(), keypoints, descriptors, global: Some(vec![100.0, 0.0]) };
-        let keyframes: Vec<Keyframe> = std::iter::once(decoy).chain(s.keyframes.iter().cloned()).collect();
-        let honest = s.keyframes[s.nearest].global.as_ref().expect("global")[0];
+        let (keyframes, honest) = with_decoy(&s);
         let bow = localize(keyframes.clone(), BOW, &s, honest, Locator::Paper);
         assert!(bow.estimate.is_none(), "the BoW map localized from its decoy: {}", bow.reason);
         let fused = localize(keyframes, FUSED, &s, honest, Locator::Paper);
