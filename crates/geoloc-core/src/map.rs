@@ -549,17 +549,8 @@ impl Map {
     /// A query without what the map's retrieval needs, or of the wrong size
     /// (`global_descriptor`, `descriptors`).
     pub fn retrieve(&self, query: &RetrievalQuery<'_>) -> Result<usize> {
-        self.retrieve_excluding(query, 0..0)
-    }
-
-    /// [`Map::retrieve`] skipping the keyframes in `excluded` (for held-out re-localization);
-    /// the best of the others.
-    ///
-    /// # Errors
-    /// As [`Map::retrieve`]; `InvalidInput` when every keyframe is excluded.
-    pub fn retrieve_excluding(&self, query: &RetrievalQuery<'_>, excluded: std::ops::Range<usize>) -> Result<usize> {
         // retrieve_top returns at least one keyframe or an error
-        Ok(self.retrieve_top(query, 1, excluded)?[0])
+        Ok(self.retrieve_top(query, 1, 0..0)?[0])
     }
 
     /// The `k` keyframes most similar to a query, best first, skipping those in `excluded`
