@@ -62,8 +62,8 @@ impl MapPoints {
 impl Localizer {
     /// The paper's geometric locator from the retrieved `keyframe` ((a) retrieval is the
     /// caller's): (b) the co-visible keyframe group around it, (c) forward intersection
-    /// (cached per group), then backward intersection. The keyframe whose group gave the pose, T_G and C_G or why
-    /// not, the inliers; and a note when the pose came from tracking.
+    /// (cached per group), then backward intersection. The keyframe whose group gave the
+    /// pose, T_G and C_G or why not, the inliers; and a note when the pose came from tracking.
     ///
     /// Tracking (sequential use): when the retrieved group gives fewer than half the inliers
     /// of the last frame whose geometric pose was used (or none), and the last frame's seed
@@ -229,21 +229,25 @@ impl Localizer {
         )?;
         let by_id = |i: usize| tri.point(i).expect("invariant: tracked holds exactly the triangulated track ids");
         let valid: Vec<usize> = tracked.iter().copied().filter(|&i| by_id(i).status == TrackStatus::Valid).collect();
-        // each track's views in input order (the triangulation's order), by a stable sort on the track
-        let mut order: Vec<usize> = (0..observations.track_ids.len()).collect();
-        order.sort_by_key(|&o| observations.track_ids[o]);
-        let (mut view_offsets, mut view_cams) = (vec![0u32], Vec::new());
-        let mut next = 0;
-        for &i in &valid {
-            while observations.track_ids[order[next]] < i {
-                next += 1;
-            }
-            let views = order[next..].iter().take_while(|&&o| observations.track_ids[o] == i);
-            for (&o, _) in views.zip(&by_id(i).inliers).filter(|(_, inlier)| **inlier) {
-                view_cams.push(u32::try_from(observations.cam_ids[o]).expect("invariant: a group has < 2³² keyframes"));
-            }
-            view_offsets.push(u32::try_from(view_cams.len()).expect("invariant: a group has < 2³² observations"));
+        // each valid point's inlier views in input order (the triangulation's order): the
+        // observations it kept, stably sorted by point
+        let mut views: Vec<(usize, u32)> = (0..observations.track_ids.len())
+            .filter(|&o| tri.observation_inliers[o])
+            .map(|o| {
+                let row =
+                    valid.binary_search(&observations.track_ids[o]).expect("invariant: kept views are valid points'");
+                (row, u32::try_from(observations.cam_ids[o]).expect("invariant: a group has < 2³² keyframes"))
+            })
+            .collect();
+        views.sort_by_key(|&(row, _)| row);
+        let mut view_offsets = vec![0u32; valid.len() + 1];
+        for &(row, _) in &views {
+            view_offsets[row + 1] += 1;
         }
+        for row in 0..valid.len() {
+            view_offsets[row + 1] += view_offsets[row];
+        }
+        let view_cams = views.into_iter().map(|(_, cam)| cam).collect();
         Ok(MapPoints {
             points: valid.iter().map(|&i| by_id(i).point).collect(),
             descriptors: kf[seed].descriptors.select(&valid),
