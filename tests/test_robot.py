@@ -188,6 +188,17 @@ def test_stdin_threads_output_file_and_stats(geoloc_rs: Path, room: datasets.Seq
     assert piped.returncode == 0, piped.stderr
     assert out.read_text() == first.stdout  # same bytes whatever the thread count
     assert "8 frames" in piped.stderr and "frames/s" in piped.stderr and "peak RSS" in piped.stderr
+    # benchmarks/robot.py --json reads the summary's numbers
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    try:
+        import robot as robot_benchmark
+    finally:
+        sys.path.pop(0)
+    stats = robot_benchmark.parse_stats(piped.stderr)
+    assert stats["frames"] == 8 and float(stats["frames_per_s"]) > 0  # type: ignore[arg-type]
+    assert sum(stats["sources"].values()) == 8, stats  # type: ignore[attr-defined]
+    assert {"retrieval", "total"} <= set(stats["median_ms"]), stats  # type: ignore[arg-type]
+    assert float(stats["peak_rss_mib"]) > 0  # type: ignore[arg-type]
     # the first eight columns read as a TUM trajectory
     tum = np.loadtxt(out, usecols=range(8))
     assert tum.shape == (8, 8) and np.all(np.diff(tum[:, 0]) > 0)
