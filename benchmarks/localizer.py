@@ -1,20 +1,23 @@
 """Matching against OpenCV's brute-force matcher, and the per-frame cost of the localizer.
 
-    python benchmarks/localizer.py
+    python benchmarks/localizer.py [--json FILE]
 
 1. 2000 × 2000 binary (ORB-like, 32-byte) descriptors with ratio test 0.8 and mutual check:
    geoloc.matching vs cv2.BFMatcher(NORM_HAMMING).knnMatch(k=2) + ratio + cross check;
    1000 × 1000 float (128-D) descriptors vs cv2 NORM_L2. Same matches required.
 2. One localizer step on a simulated sequence (1500 landmarks, ~1000 features per frame,
    BoW retrieval): per-stage median milliseconds over 60 frames.
-Not part of the test suite.
+Not part of the test suite. ``--json``: the same numbers, for ``benchmarks/report.py``.
 """
 
 from __future__ import annotations
 
+import argparse
+import json
 import os
 import sys
 import time
+from typing import Any
 
 import numpy as np
 
@@ -44,7 +47,8 @@ def cv2_matches(a: np.ndarray, b: np.ndarray, norm: int) -> set[tuple[int, int]]
     return {(m.queryIdx, m.trainIdx) for m, n in fwd if m.distance < 0.8 * n.distance and back.get(m.trainIdx) == m.queryIdx}
 
 
-def bench_matching() -> None:
+def bench_matching() -> dict[str, Any]:
+    rows: dict[str, Any] = {}
     rng = np.random.default_rng(0)
     try:
         import cv2
@@ -63,14 +67,18 @@ def bench_matching() -> None:
             norm = None if cv2 is None else cv2.NORM_L2
         t_g, (pairs, _) = best_of(lambda: matching.match_descriptors(a, b))
         line = f"  {kind:<12} {n} × {n}: geoloc {t_g * 1e3:7.1f} ms ({len(pairs)} matches)"
+        row: dict[str, Any] = {"n": n, "geoloc_ms": t_g * 1e3, "matches": len(pairs)}
         if cv2 is not None:
             t_c, ref = best_of(lambda: cv2_matches(a, b, norm), 3)
             same = ref == {tuple(p) for p in pairs.tolist()}
             line += f", cv2 BFMatcher {t_c * 1e3:7.1f} ms ({len(ref)} matches) → {t_c / t_g:.1f}× ; same matches: {same}"
+            row.update(cv2_ms=t_c * 1e3, cv2_over_geoloc=t_c / t_g, same_matches=same)
         print(line)
+        rows[kind] = row
+    return rows
 
 
-def bench_localizer() -> None:
+def bench_localizer() -> dict[str, float]:
     from test_localizer import CAM, _observe, _walk
 
     rng = np.random.default_rng(0)
@@ -91,11 +99,22 @@ def bench_localizer() -> None:
             stages.setdefault(k, []).append(v)
     print("  per-frame median ms: " + ", ".join(f"{k} {np.median(v):.2f}" for k, v in stages.items()))
     print(f"  (map_points is non-zero only when the keyframe group changes: mean {np.mean(stages['map_points']):.1f} ms)")
+    return {k: float(np.median(v)) for k, v in stages.items()}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--json", default=None, help="also write the numbers here")
+    args = parser.parse_args()
+    print(f"geoloc {geoloc.__version__}, {os.cpu_count()} CPUs")
+    print("matching (ratio 0.8 + mutual check):")
+    matched = bench_matching()
+    print("localizer step:")
+    step = bench_localizer()
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump({"matching": matched, "localizer_step_median_ms": step}, f, indent=1)
 
 
 if __name__ == "__main__":
-    print(f"geoloc {geoloc.__version__}, {os.cpu_count()} CPUs")
-    print("matching (ratio 0.8 + mutual check):")
-    bench_matching()
-    print("localizer step:")
-    bench_localizer()
+    main()

@@ -1,14 +1,16 @@
 """geoloc.retrieval.DescriptorIndex against scipy's cKDTree and a numpy brute force.
 
-    python benchmarks/retrieval.py [--queries 2000]
+    python benchmarks/retrieval.py [--queries 2000] [--json FILE]
 
 N ∈ {1k, 10k, 20k, 100k} × D ∈ {3, 16, 32, 128} L2-normalized random descriptors; build and
 query (k = 1) times in one process, results checked equal to brute force. Not a test.
+``--json``: the same rows (best of 3 query ms, build ms, agreement), for ``benchmarks/report.py``.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 import time
@@ -44,7 +46,9 @@ def numpy_brute(data: np.ndarray, q: np.ndarray) -> np.ndarray:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--queries", type=int, default=2000)
+    parser.add_argument("--json", default=None, help="also write the rows here")
     args = parser.parse_args()
+    rows: dict[str, dict[str, float | None]] = {}
     try:
         from scipy.spatial import cKDTree
     except ImportError:
@@ -74,6 +78,14 @@ def main() -> None:
             row += f" {t_b * 1e3:>12.1f} {t_s / t_g:>14.1f}x"
             assert np.mean(ind[:, 0] == ind_b) > 0.999, "geoloc must equal brute force"
             print(row + ("" if np.isnan(agree) else f"   (agree {100 * agree:.1f} %)"))
+            finite = lambda x: None if np.isnan(x) else float(x)  # noqa: E731
+            rows[f"{n} x {dim}"] = {
+                "geoloc_query_ms": t_g * 1e3, "geoloc_build_ms": build_g * 1e3, "ckdtree_query_ms": finite(t_s * 1e3),
+                "numpy_brute_ms": t_b * 1e3, "ckdtree_over_geoloc": finite(t_s / t_g), "ckdtree_agreement": finite(agree),
+            }
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump({"queries": args.queries, "rows": rows}, f, indent=1)
 
 
 if __name__ == "__main__":
