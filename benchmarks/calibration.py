@@ -9,7 +9,7 @@ model + gated fusion) — and the synthetic room. Per fold × mode: median error
 NEES, sources; and the map's estimated noise (√diag C_map, acceleration PSD).
 
     PYTHONPATH=python python benchmarks/calibration.py [--folds 0,6] [--synthetic] [--json out.json]
-        [--keep-labels] [--reference FILE] [--network DIR/NAME]
+        [--keep-labels] [--reference FILE] [--network DIR/NAME] [--seed S]
 
 ``--keep-labels`` builds every map on the labels as they are (by default ``Map.build``
 corrects them by bundle adjustment); with the
@@ -89,7 +89,7 @@ class FrameDescriptors:
 
 def evaluate(
     train: Any, test: Any, locator: str | None = None, adjust_labels: bool = True, reference: Any = None,
-    network: Any = None,
+    network: Any = None, seed: int | None = None,
 ) -> dict[str, Any]:
     """Build the map on ``train``, localize ``test`` in both modes; the summaries, the map noise
     and (under ``"frames"``) the per-frame errors δ = log(T_gt⁻¹T_est), covariances and sources;
@@ -97,7 +97,8 @@ def evaluate(
     it (``"<mode> vs reference"``), aligned on the training frames to the map's keyframe poses."""
     t0 = time.perf_counter()
     # the paper's locator needs no 3D model; None: the core's default (the model locator)
-    m = geoloc.Map.build(train, network or "bow", model=False if locator == "paper" else None, adjust_labels=adjust_labels)
+    m = geoloc.Map.build(train, network or "bow", model=False if locator == "paper" else None, adjust_labels=adjust_labels,
+                         seed=seed)
     build_s = time.perf_counter() - t0
     noise = m.map_noise
     h = noise["holdout"]
@@ -211,6 +212,9 @@ def main() -> int:
                     help="maps keep their labels as the truth (default: corrected by bundle adjustment)")
     ap.add_argument("--reference", type=Path, default=REFERENCE if REFERENCE.is_file() else None,
                     help="SfM reference poses to score against as well (default: the shared one, when present)")
+    ap.add_argument("--seed", type=int, default=None,
+                    help="seed of every map's vocabulary (default: the core's); another seed shows how much a fold's "
+                    "numbers move with a nuisance parameter")
     ap.add_argument("--network", type=Path, metavar="DIR/NAME",
                     help="fuse each fold's map with the network whose descriptors DIR/NAME-fold<LO>.npz holds")
     args = ap.parse_args()
@@ -233,7 +237,7 @@ def main() -> int:
             if args.network is not None:
                 saved = args.network.parent / f"{args.network.name}-fold{b * BLOCK}.npz"
                 network = FrameDescriptors(rows, np.load(saved)["descriptors"], args.network.name)
-            r = evaluate(train, test, args.locator, args.adjust_labels, reference, network)
+            r = evaluate(train, test, args.locator, args.adjust_labels, reference, network, args.seed)
             name = f"{b * BLOCK}-{b * BLOCK + len(test) - 1}"
             report[name] = r
             for mode in ("single", "sequential"):

@@ -16,8 +16,9 @@ header, the benchmark's printed output (its own tables) and the JSON rendered as
 a JSON file made earlier; as this script cannot know where that ran, the header says so
 unless ``--measured`` tells it.
 
-The benchmarks with ``--json``: calibration, honesty, label_adjustment, label_consistency,
-latency, novel_views (label_runs reads calibration's). Not a test.
+The benchmarks with ``--json``: calibration, geometry, honesty, label_adjustment,
+label_consistency, latency, lie, localizer, novel_views, retrieval, retrieval_networks, robot
+(label_runs reads calibration's), and ``geoloc montecarlo``. Not a test.
 """
 
 from __future__ import annotations
