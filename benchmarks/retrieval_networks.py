@@ -1,7 +1,7 @@
 """Image retrieval on the shared 7-Scenes frames: the CNN descriptor against BoW and tiny images.
 
     python benchmarks/retrieval_networks.py --folds [--descriptors DIR] [--json out.json]
-    python benchmarks/retrieval_networks.py [--model m.onnx ...] [--train-tiny EPOCHS]
+    python benchmarks/retrieval_networks.py [--model m.onnx ...] [--train-tiny EPOCHS] [--json out.json]
                                             [--data ../shared/data/7scenes-redkitchen]
 
 ``--folds``: every contiguous block of 100 frames of 0–699 is the query set in turn, the
@@ -193,7 +193,7 @@ def main() -> None:
     parser.add_argument("--k", type=int, default=5)
     parser.add_argument("--folds", action="store_true", help="every 100-frame block of 0-699 in turn (see above)")
     parser.add_argument("--descriptors", type=Path, help="--folds: a folder of benchmarks/train_folds.py outputs")
-    parser.add_argument("--json", help="--folds: write the table here")
+    parser.add_argument("--json", help="write the table here")
     args = parser.parse_args()
     if not args.data.is_dir():
         sys.exit(f"no 7-Scenes frames at {args.data}")
@@ -237,6 +237,10 @@ def main() -> None:
     print(f"  {'method':<38} {'recall@1':>9} {'recall@' + str(args.k):>9}   notes")
     for name, r, note in rows:
         print(f"  {name:<38} {100 * r.recall_at_1:>8.0f}% {100 * r.recall_at_k:>8.0f}%   {note}")
+    if args.json:
+        table = {name: {"recall_at_1": r.recall_at_1, f"recall_at_{args.k}": r.recall_at_k, "notes": note} for name, r, note in rows}
+        Path(args.json).write_text(json.dumps({"split": "train 0-599, queries 600-699", "ceiling": rows[0][1].ceiling,
+                                               "methods": table}, indent=1))
 
 
 if __name__ == "__main__":
