@@ -43,6 +43,11 @@ def numpy_brute(data: np.ndarray, q: np.ndarray) -> np.ndarray:
     return out
 
 
+def finite(x: float) -> float | None:
+    """``x``, or None for NaN (a peer that was skipped): JSON has no NaN."""
+    return None if np.isnan(x) else float(x)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--queries", type=int, default=2000)
@@ -78,7 +83,6 @@ def main() -> None:
             row += f" {t_b * 1e3:>12.1f} {t_s / t_g:>14.1f}x"
             assert np.mean(ind[:, 0] == ind_b) > 0.999, "geoloc must equal brute force"
             print(row + ("" if np.isnan(agree) else f"   (agree {100 * agree:.1f} %)"))
-            finite = lambda x: None if np.isnan(x) else float(x)  # noqa: E731
             rows[f"{n} x {dim}"] = {
                 "geoloc_query_ms": t_g * 1e3, "geoloc_build_ms": build_g * 1e3, "ckdtree_query_ms": finite(t_s * 1e3),
                 "numpy_brute_ms": t_b * 1e3, "ckdtree_over_geoloc": finite(t_s / t_g), "ckdtree_agreement": finite(agree),

@@ -62,14 +62,15 @@ def main() -> None:
         map_path, frames = Path(tmp) / "kitchen.geoloc", Path(tmp) / "frames.bin"
         start = time.perf_counter()
         geoloc.Map.build(seq[0 : 600 : args.train_step]).save(map_path)
-        result["map"] = {"keyframes": len(range(0, 600, args.train_step)), "build_s": time.perf_counter() - start,
-                         "file_mib": map_path.stat().st_size / 2**20}
-        print(f"map: {len(range(0, 600, args.train_step))} keyframes in {time.perf_counter() - start:.1f} s, "
-              f"{map_path.stat().st_size / 2**20:.1f} MiB")
+        built = {"keyframes": len(range(0, 600, args.train_step)), "build_s": time.perf_counter() - start,
+                 "file_mib": map_path.stat().st_size / 2**20}
+        result["map"] = built
+        print(f"map: {built['keyframes']} keyframes in {built['build_s']:.1f} s, {built['file_mib']:.1f} MiB")
         start = time.perf_counter()
         n = geoloc.export_frames(geoloc.Map.load(map_path), seq[a : b : (k[0] if k else 1)], frames)
-        result["export"] = {"frames": n, "seconds": time.perf_counter() - start, "file_mib": frames.stat().st_size / 2**20}
-        print(f"export_frames: {n} frames in {time.perf_counter() - start:.1f} s, {frames.stat().st_size / 2**20:.1f} MiB")
+        exported = {"frames": n, "seconds": time.perf_counter() - start, "file_mib": frames.stat().st_size / 2**20}
+        result["export"] = exported
+        print(f"export_frames: {n} frames in {exported['seconds']:.1f} s, {exported['file_mib']:.1f} MiB")
         for threads in (["--threads", "1"], []):
             r = subprocess.run(
                 [str(BINARY), "localize", "--map", str(map_path), "--input", str(frames), "--output", str(Path(tmp) / "p.txt"),
@@ -86,8 +87,9 @@ def main() -> None:
         with tempfile.TemporaryDirectory() as tmp:
             stripped = Path(tmp) / "geoloc-rs"
             subprocess.run([strip, "-o", str(stripped), str(BINARY)], check=True)
-            result["stripped_bytes"] = stripped.stat().st_size
-            print(f"stripped: {stripped.stat().st_size} bytes ({stripped.stat().st_size / 2**20:.2f} MiB)")
+            stripped_bytes = stripped.stat().st_size
+            result["stripped_bytes"] = stripped_bytes
+            print(f"stripped: {stripped_bytes} bytes ({stripped_bytes / 2**20:.2f} MiB)")
     if args.json:
         args.json.write_text(json.dumps(result, indent=1))
 
