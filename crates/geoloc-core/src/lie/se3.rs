@@ -87,9 +87,6 @@ pub const MAX_TRANSLATION_NORM: f64 = 1e150;
 
 /// ‖ρ‖² below which [`check_twist`] accepts at once (strictly inside [`MAX_TRANSLATION_NORM`]²).
 const FAST_TRANSLATION_NORM_SQUARED: f64 = 0.99 * MAX_TRANSLATION_NORM * MAX_TRANSLATION_NORM;
-/// ‖φ‖² below which [`check_twist`] accepts at once (strictly inside
-/// [`so3::MAX_ROTATION_VECTOR_NORM`]²).
-const FAST_ROTATION_VECTOR_NORM_SQUARED: f64 = 0.99 * so3::MAX_ROTATION_VECTOR_NORM * so3::MAX_ROTATION_VECTOR_NORM;
 
 /// Checks a twist ξ = (ρ, φ): finite, ‖φ‖ ≤ [`so3::MAX_ROTATION_VECTOR_NORM`] and
 /// ‖ρ‖ ≤ [`MAX_TRANSLATION_NORM`].
@@ -100,7 +97,7 @@ const FAST_ROTATION_VECTOR_NORM_SQUARED: f64 = 0.99 * so3::MAX_ROTATION_VECTOR_N
 pub fn check_twist(xi: &Twist) -> Result<()> {
     // the common case in a few flops: NaN fails both comparisons and ∞ the bounds, which sit
     // strictly inside the limits, so whatever passes here passes the checks below
-    if phi(xi).norm_squared() <= FAST_ROTATION_VECTOR_NORM_SQUARED
+    if phi(xi).norm_squared() <= so3::FAST_ROTATION_VECTOR_NORM_SQUARED
         && rho(xi).norm_squared() <= FAST_TRANSLATION_NORM_SQUARED
     {
         return Ok(());

@@ -78,6 +78,10 @@ pub fn rotation_angle(r: &Matrix3<f64>) -> f64 {
     sin_theta.atan2(cos_theta)
 }
 
+/// ‖φ‖² below which [`check_rotation_vector`] (and `se3::check_twist`) accept at once:
+/// strictly inside [`MAX_ROTATION_VECTOR_NORM`]², so whatever passes passes the detailed checks.
+pub(super) const FAST_ROTATION_VECTOR_NORM_SQUARED: f64 = 0.99 * MAX_ROTATION_VECTOR_NORM * MAX_ROTATION_VECTOR_NORM;
+
 /// Checks that φ is finite with ‖φ‖ ≤ [`MAX_ROTATION_VECTOR_NORM`].
 ///
 /// # Errors
@@ -87,7 +91,7 @@ pub fn rotation_angle(r: &Matrix3<f64>) -> f64 {
 pub fn check_rotation_vector(phi: &Vector3<f64>) -> Result<()> {
     // the common case: NaN fails the comparison and ∞ the bound, which sits strictly inside
     // the limit, so whatever passes here passes the checks below
-    if phi.norm_squared() <= 0.99 * MAX_ROTATION_VECTOR_NORM * MAX_ROTATION_VECTOR_NORM {
+    if phi.norm_squared() <= FAST_ROTATION_VECTOR_NORM_SQUARED {
         return Ok(());
     }
     check_rotation_vector_in_detail(phi)
