@@ -255,7 +255,7 @@ def test_train_command_errors(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -
 
 
 def test_an_absurd_learning_rate_is_refused_before_any_work(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """`--lr` above the largest rate Adam can use is refused with one line naming it (exit 2),
+    """`--lr` above the largest rate Adam can use is refused with one line naming the option (exit 2),
     before the frames are read, and nothing is written."""
     from geoloc.cli import main
 
@@ -264,7 +264,7 @@ def test_an_absurd_learning_rate_is_refused_before_any_work(tmp_path: Path, caps
             "--dim", "8", "--no-progress", "--out", str(out), "--lr", "1e21"]
     assert main(argv) == 2
     lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
-    assert len(lines) == 1 and "lr: expected at most 1" in lines[0], lines
+    assert len(lines) == 1 and "--lr: expected at most 1" in lines[0], lines  # the option, as typed
     assert list(tmp_path.iterdir()) == []
 
 

@@ -27,11 +27,13 @@ of a few minutes on 2 CPU cores.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import re
 import sys
 import time
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 from ..commands._common import SYNTHETIC_FRAMES, FrameRange, dataset_inputs, load_dataset, select
 from ..commands._options import (
@@ -170,31 +172,33 @@ def add_train_command(commands: argparse._SubParsersAction[argparse.ArgumentPars
         refuse_alias(curve_path(args.out), "--out (its .curve.json)", dataset_inputs(dataset, "--dataset") + [("--init", args.init)])
         refuse_alias(args.checkpoint, "--checkpoint", dataset_inputs(dataset, "--dataset"))
         epochs = args.epochs or (TINY_EPOCHS if args.tiny else PAPER_EPOCHS)
-        config = TrainConfig(
-            backbone="tiny" if args.tiny else "googlenet",
-            dim=args.dim,
-            epochs=epochs,
-            batch_size=args.batch_size,
-            n_pos=args.pairs,
-            n_neg=args.pairs,
-            lr=args.lr,
-            hard_negatives=args.hard_negatives,
-            seed=args.seed,
-            device=args.device,
-            threads=args.threads,
-            checkpoint=args.checkpoint,
-            resume=args.resume,
-            init_from=args.init,
-            validation=args.validation,
-            eval_every=args.eval_every,
-            weight_decay=args.weight_decay,
-            progress=not args.no_progress,
-        )
+        with options_named(TrainConfig):
+            config = TrainConfig(
+                backbone="tiny" if args.tiny else "googlenet",
+                dim=args.dim,
+                epochs=epochs,
+                batch_size=args.batch_size,
+                n_pos=args.pairs,
+                n_neg=args.pairs,
+                lr=args.lr,
+                hard_negatives=args.hard_negatives,
+                seed=args.seed,
+                device=args.device,
+                threads=args.threads,
+                checkpoint=args.checkpoint,
+                resume=args.resume,
+                init_from=args.init,
+                validation=args.validation,
+                eval_every=args.eval_every,
+                weight_decay=args.weight_decay,
+                progress=not args.no_progress,
+            )
         if args.train is not None or args.stride is not None:
             print(DEPRECATED, file=sys.stderr)
         print(f"geoloc train: {len(frames)} frames, {config.backbone}, D = {config.dim}, {epochs} epochs", file=sys.stderr)
         start = time.perf_counter()
-        result = train(frames, config, init_state=init_state)
+        with options_named(TrainConfig):  # the loss diverging names the learning rate
+            result = train(frames, config, init_state=init_state)
         elapsed = time.perf_counter() - start
         stats = result.pair_stats
         report = export_onnx(result.model, args.out)
@@ -229,3 +233,22 @@ def selection_summary(selection: dict[str, Any]) -> str:
         f"validation recall@1 ({selection['validation_frames']} held-out frames, {selection['training_frames']} trained on) "
         f"by epoch: {points}\nkept epoch {selection['best_epoch']}"
     )
+
+
+
+#: TrainConfig fields whose command-line option is not ``--`` and the field's name with dashes.
+FIELD_OPTIONS = {"n_pos": "--pairs", "n_neg": "--pairs", "init_from": "--init"}
+
+
+@contextmanager
+def options_named(config_type: Any) -> Iterator[None]:
+    """A refusal that names a field of ``config_type`` (``lr: …``) names the command-line
+    option instead (``--lr: …``): the user typed the option, not the field."""
+    try:
+        yield
+    except InvalidInputError as e:
+        field, sep, reason = str(e).partition(": ")
+        if not sep or field not in {f.name for f in dataclasses.fields(config_type)}:
+            raise
+        option = FIELD_OPTIONS.get(field, "--" + field.replace("_", "-"))
+        raise InvalidInputError(f"{option}: {reason}") from None
