@@ -5,7 +5,9 @@
 //! 1. **Pose-neighbour pairs.** For each keyframe a, the other keyframes b with baseline
 //!    ‖t_a − t_b‖ ∈ (`min_distance_m`, `max_distance_m`) and relative rotation angle
 //!    ∠(R_aᵀR_b) < `max_angle_rad`, ordered by |baseline − `baseline_m`| (ties: lower index),
-//!    the first `neighbours` of them; the pairs (min, max) of all keyframes, sorted, deduplicated.
+//!    the first `neighbours` of them, then the next `revisit_neighbours` in that order that are
+//!    at least `revisit_gap` keyframes away in capture order (revisits of the place); the
+//!    pairs (min, max) of all keyframes, sorted, deduplicated.
 //! 2. **Matches** of each pair: mutual ratio matching of the local descriptors
 //!    ([`match_descriptors`]), then the Sampson check against the epipolar geometry of the two
 //!    known poses ([`epipolar_checked`], `epipolar_px`) — the localizer's own keyframe check.
@@ -58,6 +60,15 @@ pub struct ModelOptions {
     pub triangulation: TriangulationOptions,
     /// Fewest inlier observations of a kept point (default 2, at least 2).
     pub min_track_length: usize,
+    /// Revisits matched per keyframe besides its `neighbours` (default 0): the next candidates
+    /// by the same order that lie at least `revisit_gap` keyframes away in capture order.
+    /// The nearest-baseline neighbours of a keyframe are almost always the frames just
+    /// before and after it; a part of the trajectory that only revisits a place shares no
+    /// pair with it then, and its tracks cannot tie the two passes together.
+    pub revisit_neighbours: usize,
+    /// Fewest keyframes between a and b in capture order for b to count as a revisit of a
+    /// (default 20).
+    pub revisit_gap: usize,
 }
 
 impl Default for ModelOptions {
@@ -76,6 +87,8 @@ impl Default for ModelOptions {
                 ..TriangulationOptions::default()
             },
             min_track_length: 2,
+            revisit_neighbours: 0,
+            revisit_gap: 20,
         }
     }
 }
@@ -309,7 +322,13 @@ fn neighbour_pairs(poses: &[SE3], options: &ModelOptions) -> Vec<(usize, usize)>
             })
             .collect();
         candidates.sort_by(|x, y| x.0.total_cmp(&y.0).then(x.1.cmp(&y.1)));
-        candidates.into_iter().take(options.neighbours).map(|(_, b)| (a.min(b), a.max(b))).collect::<Vec<_>>()
+        let nearest = candidates.iter().take(options.neighbours);
+        let revisits = candidates
+            .iter()
+            .skip(options.neighbours)
+            .filter(|&&(_, b)| a.abs_diff(b) >= options.revisit_gap)
+            .take(options.revisit_neighbours);
+        nearest.chain(revisits).map(|&(_, b)| (a.min(b), a.max(b))).collect::<Vec<_>>()
     });
     let mut pairs: Vec<(usize, usize)> = per_keyframe.into_iter().flatten().collect();
     pairs.sort_unstable();
@@ -354,7 +373,10 @@ impl PairMatches {
     pub fn serves(&self, options: &ModelOptions) -> bool {
         let pairing =
             |o: &ModelOptions| (o.neighbours, o.max_distance_m, o.min_distance_m, o.max_angle_rad, o.baseline_m);
-        pairing(&self.options) == pairing(options) && self.options.matching == options.matching
+        let revisits = |o: &ModelOptions| (o.revisit_neighbours, o.revisit_gap);
+        pairing(&self.options) == pairing(options)
+            && revisits(&self.options) == revisits(options)
+            && self.options.matching == options.matching
     }
 }
 
@@ -588,6 +610,53 @@ mod tests {
         let matches = vec![vec![(0, 1), (1, 0)], vec![(2, 0)], vec![(1, 2), (2, 0), (2, 1)]];
         let got = tracks(&keyframes, &pairs, &matches);
         assert_eq!(got, vec![vec![(0, 0), (1, 1), (2, 2)], vec![(0, 1), (1, 0)]]);
+    }
+
+    /// Two passes 0.4 m apart along a line, keyframes 2.5 cm apart: the nearest baselines
+    /// (0.2 m preferred) all lie on a keyframe's own pass, so without revisits the passes share
+    /// no pair; with them every keyframe of the first pass pairs with the second, each revisit
+    /// pair is within the pair limits and `revisit_gap` apart in capture order, and the
+    /// nearest-baseline pairs stay as they were. Checked against a brute-force selection.
+    #[test]
+    fn revisit_pairs_join_the_passes_of_a_trajectory() {
+        let n = 40;
+        let poses: Vec<SE3> = (0..2 * n)
+            .map(|k| {
+                let (i, pass) = (k % n, k / n);
+                SE3::new(crate::lie::SO3::identity(), Vector3::new(0.025 * i as f64, 0.4 * pass as f64, 0.0))
+            })
+            .collect();
+        let crossing = |pairs: &[(usize, usize)]| pairs.iter().filter(|&&(a, b)| (a < n) != (b < n)).count();
+        let plain = ModelOptions::default();
+        let without = neighbour_pairs(&poses, &plain);
+        assert_eq!(crossing(&without), 0);
+        let options = ModelOptions { revisit_neighbours: 3, revisit_gap: 20, ..plain };
+        let with = neighbour_pairs(&poses, &options);
+        assert!(without.iter().all(|p| with.contains(p)), "the nearest pairs are kept");
+        for a in 0..n {
+            assert!(
+                with.iter().filter(|&&(x, y)| (x == a && y >= n) || (y == a && x >= n)).count() >= 3,
+                "keyframe {a}"
+            );
+        }
+        // brute force: per keyframe, candidates by |d − baseline|, the first `neighbours`, then
+        // the next three at least 20 apart
+        let mut expected = Vec::new();
+        for a in 0..poses.len() {
+            let mut c: Vec<(f64, usize)> = (0..poses.len())
+                .filter(|&b| b != a)
+                .map(|b| ((poses[a].translation - poses[b].translation).norm(), b))
+                .filter(|&(d, _)| d > plain.min_distance_m && d < plain.max_distance_m)
+                .map(|(d, b)| ((d - plain.baseline_m).abs(), b))
+                .collect();
+            c.sort_by(|x, y| x.0.total_cmp(&y.0).then(x.1.cmp(&y.1)));
+            let far = c[plain.neighbours..].iter().filter(|&&(_, b)| a.abs_diff(b) >= 20).take(3);
+            expected.extend(c[..plain.neighbours].iter().chain(far).map(|&(_, b)| (a.min(b), a.max(b))));
+        }
+        expected.sort_unstable();
+        expected.dedup();
+        assert_eq!(with, expected);
+        assert!(with.iter().all(|&(a, b)| (a < n) == (b < n) || a.abs_diff(b) >= 20));
     }
 
     #[test]
