@@ -20,6 +20,15 @@ def _rotation_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.degrees(np.arccos(np.clip((np.trace(rel, axis1=1, axis2=2) - 1) / 2, -1, 1)))
 
 
+def _errors_against_reference(reference: np.ndarray, frames: np.ndarray, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per frame, the distance (m) and rotation (°) of ``poses`` from the reference poses of
+    ``frames``, aligned on them as documented."""
+    from geoloc.reference import align_reference
+
+    aligned = align_reference(reference[frames], poses).apply(reference[frames])
+    return np.linalg.norm(poses[:, :3, 3] - aligned[:, :3, 3], axis=1), _rotation_deg(poses, aligned)
+
+
 def _bumped(seq: Sequence, run: slice, bump: np.ndarray) -> Sequence:
     """``seq`` with the labels of ``run`` moved by the world-frame transform ``bump``."""
     assert seq.poses is not None
@@ -76,19 +85,12 @@ def test_adjusted_keyframes_agree_with_the_image_reference(kitchen: tuple[Sequen
     """Frames 0–599, every third: against the SfM reference (aligned as documented) the
     adjusted keyframes lie within 1.5 cm / 0.5° (median) and 4 cm / 1.5° (95th percentile),
     and closer than the labels in rotation."""
-    from geoloc.reference import align_reference
-
     seq, reference = kitchen
     frames = np.arange(0, 600, 3)
     m = Map.build(seq[0:600:3], estimate_noise=False, adjust_labels=True)
     assert seq.poses is not None
-
-    def errors(poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        aligned = align_reference(reference[frames], poses).apply(reference[frames])
-        return np.linalg.norm(poses[:, :3, 3] - aligned[:, :3, 3], axis=1), _rotation_deg(poses, aligned)
-
-    _, r_labels = errors(seq.poses[frames])
-    t, r = errors(m.keyframe_poses)
+    _, r_labels = _errors_against_reference(reference, frames, seq.poses[frames])
+    t, r = _errors_against_reference(reference, frames, m.keyframe_poses)
     assert np.median(t) <= 0.015 and np.median(r) <= 0.5, (np.median(t), np.median(r))
     assert np.percentile(t, 95) <= 0.04 and np.percentile(r, 95) <= 1.5, (np.percentile(t, 95), np.percentile(r, 95))
     assert np.median(r) < 0.7 * np.median(r_labels), (np.median(r), np.median(r_labels))
@@ -102,18 +104,11 @@ def test_a_part_that_only_revisits_the_place_is_corrected_too(kitchen: tuple[Seq
     the rest only where the camera comes back to the same place. Their labels are ≈ 1° off
     the reference; the adjustment has to tie them to the rest through revisit pairs — with
     the nearest-baseline pairs alone they share none and ended 1.4° off, worse than the labels."""
-    from geoloc.reference import align_reference
-
     seq, reference = kitchen
     assert seq.poses is not None
     frames = np.array([i for i in range(0, 600, 3) if i < 85 or i >= 215])
     m = Map.build(seq[frames], estimate_noise=False)
     cut_off = frames < 85
-
-    def rotation_errors(poses: np.ndarray) -> np.ndarray:
-        aligned = align_reference(reference[frames], poses).apply(reference[frames])
-        return _rotation_deg(poses, aligned)
-
-    labels = np.median(rotation_errors(seq.poses[frames])[cut_off])
-    adjusted = np.median(rotation_errors(m.keyframe_poses)[cut_off])
+    labels = np.median(_errors_against_reference(reference, frames, seq.poses[frames])[1][cut_off])
+    adjusted = np.median(_errors_against_reference(reference, frames, m.keyframe_poses)[1][cut_off])
     assert adjusted <= 0.75 and adjusted < 0.7 * labels, (adjusted, labels)

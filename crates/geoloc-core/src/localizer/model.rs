@@ -47,6 +47,7 @@ use nalgebra::{Matrix3, Vector2, Vector3};
 
 use super::grid::KeypointGrid;
 use super::{Estimate, Frame, GeometricPose, Localizer, Timings, ms};
+use crate::adjust::correction;
 use crate::error::{GeolocError, Result};
 use crate::lie::SE3;
 use crate::map::SceneModel;
@@ -86,11 +87,8 @@ type Hypothesis = (std::result::Result<Estimate, String>, usize);
 fn choose_hypothesis(union: Hypothesis, first: Hypothesis) -> Hypothesis {
     match (&union.0, &first.0) {
         (Ok(u), Ok(f)) => {
-            let delta = (u.world_from_cam.inverse() * f.world_from_cam).log();
+            let (delta, nees) = correction(&u.world_from_cam, &f.world_from_cam, &(u.covariance + f.covariance));
             let (metres, degrees) = (delta.fixed_rows::<3>(0).norm(), delta.fixed_rows::<3>(3).norm().to_degrees());
-            let nees = (u.covariance + f.covariance)
-                .try_inverse()
-                .map_or(f64::INFINITY, |inverse| (delta.transpose() * inverse * delta)[0]);
             let far = metres > AMBIGUOUS_SEPARATION_M || degrees > AMBIGUOUS_SEPARATION_DEG;
             if far && nees > CHI2_6_999 {
                 let why = format!(
