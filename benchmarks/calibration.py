@@ -33,7 +33,12 @@ Results: ``docs/reports/calibration-run.md`` (default locator) and
 the recall counts it — "median" is over the localized frames only, so two modes that lose
 different frames are not compared on the same frames there. The second line per fold
 breaks the single mode's NEES coverage down by PnP inlier count: where the covariance is too
-small or too large.
+small or too large. The third compares the modes on the frames both localized (against the
+reference when given): the modes' own medians run over different frames, and the sequential
+mode answers frames the single one loses. The fourth gives, per mode, the factor s on the
+map's C_map at which the fold's NEES coverage, and its lowest per-axis coverage, would be
+95 % (0: the measurement covariance alone covers it): C_map is one matrix per map, so it can be right on every fold only if the
+folds need about the same s.
 """
 
 from __future__ import annotations
@@ -49,8 +54,8 @@ from typing import Any
 import numpy as np
 
 import geoloc
-from geoloc.evaluation import CHI2_6_95, summarize_results
-from geoloc.lie import se3_inverse, se3_log
+from geoloc.evaluation import CHI2_6_95, COVERAGE_Z, summarize_results
+from geoloc.lie import se3_adjoint, se3_inverse, se3_log
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "7scenes-redkitchen"
 REFERENCE = DATA.parent / "7scenes-redkitchen-reference" / "sfm-poses.txt"
@@ -121,15 +126,21 @@ def evaluate(
     }
     gt = test.poses
     alignment = None
+    gt_reference = None
     if reference is not None:
         from geoloc.reference import align_reference
 
         alignment = align_reference(reference[train.indices], m.keyframe_poses)
         out["alignment"] = alignment.statistics()
+        gt_reference = alignment.apply(reference[test.indices])
+    # C_map in the results' convention (the labels'): Ad(X) C_map Ad(X)ᵀ, X = label_from_cam
+    label_from_cam = se3_inverse(m.keyframe_poses[0]) @ m.camera_poses[0]
+    adjoint = se3_adjoint(label_from_cam)
+    out["map_noise"]["pose_covariance_labels"] = (adjoint @ noise["pose_covariance"] @ adjoint.T).tolist()
     for mode in ("single", "sequential"):
         results = geoloc.Localizer(m, locator=locator, global_descriptor=network).localize_sequence(test, mode)
-        if alignment is not None:
-            ref = summarize_results(results, alignment.apply(reference[test.indices]))
+        if gt_reference is not None:
+            ref = summarize_results(results, gt_reference)
             ref.pop("per_frame", None)
             out[f"{mode} vs reference"] = ref
         s = summarize_results(results, gt)
@@ -142,6 +153,8 @@ def evaluate(
                 "source": str(r.source),
                 "reason": r.reason,
                 "delta": None if r.pose is None else se3_log(se3_inverse(gt[i]) @ r.pose).tolist(),
+                "delta_reference": None if r.pose is None or gt_reference is None
+                else se3_log(se3_inverse(gt_reference[i]) @ r.pose).tolist(),
                 "covariance": None if r.covariance is None else np.asarray(r.covariance).tolist(),
                 "position": gt[i][:3, 3].tolist(),
                 "inliers": int(r.inliers),
@@ -182,6 +195,46 @@ def coverage_by_inliers(frames: list[dict[str, Any]]) -> str:
         label = f"<{hi}" if lo == 0 else (f"≥{lo}" if hi is None else f"{lo}-{hi - 1}")
         cells.append(f"{label}: " + ("—" if not nees else f"{np.mean(np.array(nees) <= CHI2_6_95):.0%} ({len(nees)})"))
     return "  ".join(cells)
+
+
+def common_frame_medians(frames: dict[str, list[dict[str, Any]]], key: str) -> str:
+    """Median translation error of each mode over the frames *both* localized (δ under ``key``):
+    the modes' own medians run over different frames when one answers frames the other loses."""
+    both = [i for i, (a, b) in enumerate(zip(frames["single"], frames["sequential"])) if a[key] is not None and b[key] is not None]
+    if not both:
+        return "no frame localized in both modes"
+    med = {mode: 100 * float(np.median([np.linalg.norm(frames[mode][i][key][:3]) for i in both])) for mode in frames}
+    return f"{len(both)} frames: single {med['single']:.2f} cm, sequential {med['sequential']:.2f} cm"
+
+
+def map_noise_scale_for_coverage(frames: list[dict[str, Any]], key: str, c_map: Any, per_axis: bool = False,
+                                 target: float = 0.95) -> float | None:
+    """The factor s on the map's C_map (results' convention) at which the frames' coverage would
+    be ``target``: NEES coverage (χ²₆ 95 %), or with ``per_axis`` the lowest per-axis 1.96σ
+    coverage; C(s) = C − C_map + s·C_map per frame, s bisected on [0, 1000] (coverage grows
+    with s). 0 when the measurement part alone covers ``target``; None without frames or when
+    even s = 1000 does not. One C_map for the whole map is right only if every fold needs
+    about the same s."""
+    c_map = np.asarray(c_map)
+    pairs = [(np.asarray(f[key]), np.asarray(f["covariance"]) - c_map) for f in frames if f[key] is not None and f["covariance"] is not None]
+    if not pairs:
+        return None
+
+    def coverage(s: float) -> float:
+        if per_axis:
+            inside = [np.abs(d) <= COVERAGE_Z * np.sqrt(np.diag(c + s * c_map)) for d, c in pairs]
+            return float(np.min(np.mean(inside, axis=0)))
+        return float(np.mean([d @ np.linalg.solve(c + s * c_map, d) <= CHI2_6_95 for d, c in pairs]))
+
+    if coverage(0.0) >= target:
+        return 0.0
+    lo, hi = 0.0, 1000.0
+    if coverage(hi) < target:
+        return None
+    for _ in range(50):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (lo, mid) if coverage(mid) >= target else (mid, hi)
+    return hi
 
 
 def row(name: str, mode: str, s: dict[str, Any]) -> str:
@@ -245,6 +298,16 @@ def main() -> int:
                 if f"{mode} vs reference" in r:
                     print(row("", f"{mode[:3]} vs ref", r[f"{mode} vs reference"]), flush=True)
             print(f"{'':<10} NEES coverage by PnP inliers, single: {coverage_by_inliers(r['frames']['single'])}", flush=True)
+            key, against = ("delta_reference", "reference") if reference is not None else ("delta", "labels")
+            print(f"{'':<10} against the {against} on the {common_frame_medians(r['frames'], key)}", flush=True)
+            c_map = r["map_noise"]["pose_covariance_labels"]
+            scale = {
+                (mode, per_axis): map_noise_scale_for_coverage(r["frames"][mode], key, c_map, per_axis)
+                for mode in r["frames"] for per_axis in (False, True)
+            }
+            print(f"{'':<10} C_map × s for 95 % coverage against the {against} (NEES / lowest axis): "
+                  + ", ".join(f"{mode} " + " / ".join("—" if scale[mode, a] is None else f"{scale[mode, a]:.2f}" for a in (False, True))
+                              for mode in r["frames"]), flush=True)
             n = r["map_noise"]
             print(f"{'':<10} map noise √diag C_map {np.round(n['sqrt_diag'], 4).tolist()} "
                   f"(n={n['holdout_samples']}), q {np.round(n['acceleration_psd'], 3).tolist()}, build {r['build_s']:.0f} s",
