@@ -9,6 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 BENCHMARKS = sorted((Path(__file__).resolve().parents[1] / "benchmarks").glob("*.py"))
@@ -32,3 +33,44 @@ def test_every_benchmark_with_options_answers_help(path: Path) -> None:
     result = subprocess.run([sys.executable, str(path), "--help"], capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr[-2000:]
     assert "usage:" in result.stdout
+
+
+def _calibration_module():
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import calibration
+
+    return calibration
+
+
+def test_the_map_noise_factor_for_95_percent_has_its_closed_form() -> None:
+    """C = C_G + C_map with C_G = εI (ε = 1e-12) and C_map = I: a frame's NEES at factor s is
+    ‖δ‖²/(s + ε), so
+    19 of 20 frames with ‖δ‖² = 1, …, 20 lie inside χ²₆ 95 % exactly from s = 19/χ²₆(0.95);
+    per axis (δ on one axis) |δ| ≤ 1.96·√s from s = 19/1.96². Lost frames are skipped;
+    nothing to cover gives None; frames the measurement part already covers give 0."""
+    from geoloc.evaluation import CHI2_6_95, COVERAGE_Z
+
+    cal = _calibration_module()
+    eye = np.eye(6)
+    frames = [{"d": np.sqrt(k) * np.eye(6)[0], "covariance": (1 + 1e-12) * eye} for k in range(1, 21)]
+    frames.append({"d": None, "covariance": None})
+    nees_factor = cal.map_noise_scale_for_coverage(frames, "d", eye)
+    assert nees_factor == pytest.approx(19 / CHI2_6_95, rel=1e-9)
+    axis_factor = cal.map_noise_scale_for_coverage(frames, "d", eye, per_axis=True)
+    assert axis_factor == pytest.approx(19 / COVERAGE_Z**2, rel=1e-9)
+    assert cal.map_noise_scale_for_coverage([{"d": None, "covariance": None}], "d", eye) is None
+    covered = [{"d": 0.1 * np.ones(6), "covariance": 2 * eye}]
+    assert cal.map_noise_scale_for_coverage(covered, "d", eye) == 0.0
+
+
+def test_the_modes_are_compared_on_the_frames_both_localized() -> None:
+    cal = _calibration_module()
+    frames = {
+        "single": [{"d": [0.01, 0, 0]}, {"d": None}, {"d": [0.03, 0, 0]}, {"d": [0.05, 0, 0]}],
+        "sequential": [{"d": [0.02, 0, 0]}, {"d": [0.9, 0, 0]}, {"d": None}, {"d": [0.04, 0, 0]}],
+    }
+    # frames 0 and 3: single 1 and 5 cm (median 3), sequential 2 and 4 cm (median 3)
+    assert cal.common_frame_medians(frames, "d") == "2 frames: single 3.00 cm, sequential 3.00 cm"
+    assert cal.common_frame_medians({"single": [{"d": None}], "sequential": [{"d": [1, 0, 0]}]}, "d") == (
+        "no frame localized in both modes"
+    )
