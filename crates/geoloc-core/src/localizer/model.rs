@@ -34,7 +34,9 @@
 //!    keyframes can outvote the right matches in the union; the best-ranked keyframe alone
 //!    is not outvoted by them. Of the accepted poses the one with more inliers is kept — but
 //!    when both are accepted and lie apart, grossly and beyond their covariances, the image
-//!    supports two places and the frame is refused ([`choose_hypothesis`]).
+//!    supports two places and the frame is refused ([`choose_hypothesis`]). The two
+//!    hypotheses share nothing they write, so they run side by side when the process has
+//!    threads ([`crate::parallel`]; the same bits with any thread count).
 //!
 //! Held-out keyframes (`excluded`, for the map's noise estimate): retrieval and guided
 //! matching skip the excluded keyframes, and a point observed by any excluded keyframe is
@@ -53,6 +55,7 @@ use crate::lie::SE3;
 use crate::map::SceneModel;
 use crate::map::model::project_in_front;
 use crate::matching::{MatchOptions, match_descriptors};
+use crate::parallel::map_slice;
 use crate::pnp::{PnpResult, PointUncertainty, solve_pnp_with_pixel_sigmas};
 use crate::stats::chi2::CHI2_6_999;
 
@@ -135,13 +138,26 @@ impl Localizer {
         let per_keyframe = self.retrieved_matches(frame, model, top, usable.as_deref())?;
         timings.matching_ms = ms(t);
         let union = one_to_one(per_keyframe.concat());
-        let mut chosen = self.hypothesis(frame, model, union, usable.as_deref(), &excluded, &grid, timings)?;
-        if top.len() > 1 {
-            // the best-ranked keyframe alone: its matches can be outvoted in the union
-            let first = one_to_one(per_keyframe[0].clone());
-            let alone = self.hypothesis(frame, model, first, usable.as_deref(), &excluded, &grid, timings)?;
-            chosen = choose_hypothesis(chosen, alone);
+        if top.len() == 1 {
+            let chosen = self.hypothesis(frame, model, union, usable.as_deref(), &excluded, &grid, timings)?;
+            return Ok((top[0], chosen.0, chosen.1));
         }
+        // the best-ranked keyframe alone: its matches can be outvoted in the union. The two
+        // hypotheses are independent: they run side by side when threads are available, each
+        // with its own timings (the stage times below are then summed over both)
+        let sets = [union, one_to_one(per_keyframe[0].clone())];
+        let mut solved = map_slice(&sets, 2, |set| {
+            let mut own = Timings::default();
+            let hypothesis = self.hypothesis(frame, model, set.clone(), usable.as_deref(), &excluded, &grid, &mut own);
+            (hypothesis, own)
+        });
+        let (alone, alone_timings) = solved.pop().expect("invariant: two hypotheses");
+        let (union, union_timings) = solved.pop().expect("invariant: two hypotheses");
+        for own in [union_timings, alone_timings] {
+            timings.matching_ms += own.matching_ms;
+            timings.pnp_ms += own.pnp_ms;
+        }
+        let chosen = choose_hypothesis(union?, alone?);
         Ok((top[0], chosen.0, chosen.1))
     }
 
