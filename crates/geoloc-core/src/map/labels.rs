@@ -95,7 +95,9 @@ impl LabelAdjustment {
     }
 
     /// Whether the images disagree with the labels: some correction or the offset beyond
-    /// [`SIGNIFICANT_CORRECTION_CHI2`] (e_Xᵀ Σ_X⁻¹ e_X for the offset, e_X = log(X)).
+    /// [`SIGNIFICANT_CORRECTION_CHI2`] (e_Xᵀ Σ_X⁻¹ e_X for the offset, e_X = log(X)). A
+    /// singular Σ_X counts the offset as not significant (0, where [`correction`] gives ∞):
+    /// it is the covariance of an offset that was not estimated (X = I, Σ_X = 0).
     pub fn significant(&self) -> bool {
         let e = self.offset.log();
         let offset = self.offset_covariance.try_inverse().map_or(0.0, |i| (e.transpose() * i * e)[0]);
