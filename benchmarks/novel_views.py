@@ -10,7 +10,13 @@ database, the camera estimate (``--refine-intrinsics``) and the 3D model, one ``
 model=True, estimate_noise=False, refine_intrinsics=False, adjust_labels=False)`` (with the estimate, the keyframe pairs are matched once for both).
 
     PYTHONPATH=python python benchmarks/novel_views.py [--folds 6,0] [--features orb,sift] [--json out.json]
-        [--uniform-sigma] [--refine-intrinsics]
+        [--uniform-sigma] [--refine-intrinsics] [--adjust-labels] [--reference FILE]
+
+Errors are against the labels and, on a second row per locator (``vs ref``), against the SfM
+reference (``--reference``, default the shared one when present) aligned on the fold's training
+frames to the map's keyframe poses (``geoloc.reference.align_reference``, as ``geoloc evaluate
+--reference`` does). The maps keep their labels unless ``--adjust-labels`` (``Map.build``'s
+default) has them corrected by bundle adjustment.
 
 Each query keypoint is weighted by its detector-scale σ (``Features.pixel_sigmas``), as
 ``geoloc.Localizer`` does; ``--uniform-sigma`` weights them all alike (1 px).
@@ -32,6 +38,7 @@ from typing import Any
 import numpy as np
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "7scenes-redkitchen"
+REFERENCE = DATA.parent / "7scenes-redkitchen-reference" / "sfm-poses.txt"
 BLOCK = 100
 MARGIN = 15
 FRAMES = 700
@@ -81,10 +88,23 @@ def bias(poses: list[Any], truth: Any) -> tuple[Any, float]:
     return np.r_[med[:3] * 100, np.degrees(med[3:])], rest
 
 
+def scores(poses: list[Any], truth: Any) -> dict[str, float]:
+    """Median translation (cm) / rotation (°) error and recall within 5 cm / 5° of ``poses``
+    (None: lost, an infinite error) against ``truth``."""
+    et, er = np.array([errors(None if p is None else np.asarray(p), t) for p, t in zip(poses, truth)]).T
+    return {
+        "median_cm": float(np.median(et) * 100),
+        "median_deg": float(np.median(er)),
+        "recall_5cm_5deg": float(np.mean((et < 0.05) & (er < 5.0))),
+    }
+
+
 def run_fold(
-    seq: Any, feats: tuple[list[Any], list[Any], list[Any]], b: int, uniform: bool = False, refine: bool = False
+    seq: Any, feats: tuple[list[Any], list[Any], list[Any]], b: int, uniform: bool = False, refine: bool = False,
+    adjust: bool = False, reference: Any = None,
 ) -> dict[str, Any]:
     from geoloc import Localizer, Map
+    from geoloc.reference import align_reference
 
     lo, hi = b * BLOCK, min((b + 1) * BLOCK, FRAMES)
     train = [i for i in range(FRAMES) if i < lo - MARGIN or i >= hi + MARGIN]
@@ -93,9 +113,12 @@ def run_fold(
     t0 = time.perf_counter()
     the_map = Map.from_features(
         seq.camera, poses[train], [kps[i] for i in train], [descs[i] for i in train],
-        refine_intrinsics=refine, model=True, estimate_noise=False, adjust_labels=False,
+        refine_intrinsics=refine, model=True, estimate_noise=False, adjust_labels=adjust,
     )
     map_build_s = time.perf_counter() - t0
+    truth_reference = None
+    if reference is not None:
+        truth_reference = align_reference(reference[train], the_map.keyframe_poses).apply(reference[lo:hi])
     localizers = {locator: Localizer(the_map, locator=locator) for locator in ("paper", "model")}
     out: dict[str, Any] = {
         "train": len(train),
@@ -127,6 +150,8 @@ def run_fold(
         b_vec, rest = bias(raw, poses[lo:hi])
         out[locator]["bias_cm_deg"] = None if b_vec is None else b_vec.tolist()
         out[locator]["median_cm_without_bias"] = rest
+        if truth_reference is not None:
+            out[locator]["vs_reference"] = scores(raw, truth_reference)
     return out
 
 
@@ -141,10 +166,21 @@ def main() -> int:
     ap.add_argument("--uniform-sigma", action="store_true", help="no per-keypoint pixel σ (every keypoint 1 px)")
     ap.add_argument("--refine-intrinsics", action="store_true",
                     help="maps estimate their camera from their own tracks (Map.build's default)")
+    ap.add_argument("--adjust-labels", action="store_true",
+                    help="maps correct their labels by bundle adjustment (Map.build's default)")
+    ap.add_argument("--reference", type=Path, default=REFERENCE if REFERENCE.is_file() else None,
+                    help="SfM reference poses to score against as well (default: the shared one, when present)")
     args = ap.parse_args()
     if not DATA.is_dir():
         print(f"no shared data at {DATA}: nothing to measure")
         return 0
+    reference = None
+    if args.reference is not None:
+        from geoloc.reference import load_reference
+
+        keys, ref_poses = load_reference(args.reference)
+        reference = np.full((max(int(keys.max()) + 1, FRAMES), 4, 4), np.nan)
+        reference[keys] = ref_poses
     seq = geoloc.datasets.load_7scenes(DATA, intrinsics=(525.0, 525.0, 320.0, 240.0))[:FRAMES]
     report: dict[str, Any] = {}
     print(f"{'fold':<8} {'feat':<5} {'locator':<7} {'median':>16} {'5cm/5°':>7} {'inliers':>8} {'ms/frame':>9}  map build", flush=True)
@@ -153,7 +189,8 @@ def main() -> int:
         feats = extract(seq, kind)
         print(f"({kind}: features of {FRAMES} frames in {time.perf_counter() - t0:.0f} s)", flush=True)
         for b in (int(x) for x in args.folds.split(",")):
-            r = run_fold(seq, feats, b, uniform=args.uniform_sigma, refine=args.refine_intrinsics)
+            r = run_fold(seq, feats, b, uniform=args.uniform_sigma, refine=args.refine_intrinsics,
+                         adjust=args.adjust_labels, reference=reference)
             name = f"{b * BLOCK}-{min((b + 1) * BLOCK, FRAMES) - 1}"
             report[f"{name} {kind}"] = r
             if r["self_calibration"] is not None:
@@ -166,6 +203,10 @@ def main() -> int:
                     f"{s['recall_5cm_5deg']:>7.0%} {s['median_inliers']:>8.0f} {s['median_ms']:>9.1f}  {build}",
                     flush=True,
                 )
+                if "vs_reference" in s:
+                    v = s["vs_reference"]
+                    print(f"{name:<8} {kind:<5} {'vs ref':<7} {v['median_cm']:>7.1f} cm {v['median_deg']:>5.2f}° "
+                          f"{v['recall_5cm_5deg']:>7.0%}", flush=True)
                 if s["bias_cm_deg"] is not None:
                     print(
                         f"{'':<22}camera-frame median error (x y z cm, φx φy φz °) {np.round(s['bias_cm_deg'], 1).tolist()}; "
