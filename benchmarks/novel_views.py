@@ -127,21 +127,15 @@ def run_fold(
     }
     for locator in ("paper", "model"):
         loc = localizers[locator]
-        et, er, inl, ms, raw = [], [], [], [], []
+        inl, ms, raw = [], [], []
         for i in range(lo, hi):
             loc.reset()
             r = loc.localize_features(float(i) / 30.0, kps[i], descs[i], pixel_sigmas=None if uniform else sigmas[i])
-            t, a = errors(r.pose, poses[i])
-            et.append(t)
-            er.append(a)
             inl.append(r.inliers)
             ms.append(r.timings["total"])
             raw.append(None if r.pose is None else np.asarray(r.pose).tolist())
-        et_a, er_a = np.array(et), np.array(er)
         out[locator] = {
-            "median_cm": float(np.median(et_a) * 100),
-            "median_deg": float(np.median(er_a)),
-            "recall_5cm_5deg": float(np.mean((et_a < 0.05) & (er_a < 5.0))),
+            **scores(raw, poses[lo:hi]),
             "median_inliers": float(np.median(inl)),
             "median_ms": float(np.median(ms)),
             "p90_ms": float(np.percentile(ms, 90)),
