@@ -35,10 +35,10 @@ pub(super) fn estimate_label_sigma(labels: &[SE3], adjusted: &[SE3]) -> LabelSig
 /// each at least this far (m) or this much turned (rad) from the last one taken. Keyframes
 /// much closer than that see the same images: the adjustment moves them together whatever
 /// their labels did, and counting them would measure its own smoothing. 2.5 cm / 1.5° keeps
-/// one 7-Scenes frame in 3.6 (5 cm / 3°, one in 6.7, gave fewer observations and revisit
-/// pairs: 7-fold mean single-image error against the SfM reference 1.73 → 1.64 cm,
-/// 0.47 → 0.44°, recall 87.9 → 91.6 % with revisits in both; a 1.25 cm / 0.75° skeleton
-/// was no better and slower).
+/// one 7-Scenes frame in 3.6; 5 cm / 3° keeps one in 6.7, with fewer observations and
+/// revisit pairs (7-fold mean single-image error against the SfM reference, revisits in
+/// both: 1.64 cm / 0.44°, recall 91.6 % at 2.5 cm; 1.73 cm / 0.47°, 87.9 % at 5 cm); a
+/// 1.25 cm / 0.75° skeleton is no better and slower.
 pub const CORRELATION_SPACING: (f64, f64) = (0.025, 0.026_179_938_779_914_945);
 
 /// τ = 1 + 2 Σ_{l ≥ 1} r(l), the integrated autocorrelation time of the label corrections

@@ -81,9 +81,9 @@ type Hypothesis = (std::result::Result<Estimate, String>, usize);
 /// [`AMBIGUOUS_SEPARATION_DEG`]. Then the frame is refused, naming the separation: whichever
 /// were reported, the inlier counts cannot tell it from the other (7-Scenes folds, single
 /// image against the SfM reference: one answer 66 cm / 15° off with 218 inliers and NEES
-/// 1456; refusing such frames took the seven folds' answers outside the 99.9 % region from 5
-/// to 0 and those more than 25 cm off from 5 to 0, mean recall 91.6 → 90.3 %; the second
-/// hypothesis on every frame without this refusal: 92.9 %, 4 and 3).
+/// 1456; with this refusal the seven folds have no answer outside the 99.9 % region and none
+/// more than 25 cm off, mean recall 90.3 %; the second hypothesis on every frame without it:
+/// 92.9 %, 4 and 3 such answers).
 /// Both conditions: the two solutions share most matches, so C_u + C_f overstates how far
 /// they may drift apart by chance, and poses within a few centimetres of each other are one
 /// place however small their covariances.
