@@ -114,11 +114,13 @@ def evaluate(
             "pose_covariance": noise["pose_covariance"].tolist(),
             "acceleration_psd": noise["acceleration_psd"].tolist(),
             "holdout_samples": noise["holdout_samples"],
+            "holdout_inliers": noise["holdout_inliers"],
             "holdout": {
                 "keyframe": h["keyframe"].tolist(),
                 "position": [train.poses[k][:3, 3].tolist() for k in h["keyframe"]],
                 "delta": h["delta"].tolist(),
                 "covariance": h["covariance"].tolist(),
+                "inliers": h["inliers"].tolist(),
                 "used": h["used"].tolist(),
             },
         },
@@ -158,6 +160,7 @@ def evaluate(
                 "covariance": None if r.covariance is None else np.asarray(r.covariance).tolist(),
                 "position": gt[i][:3, 3].tolist(),
                 "inliers": int(r.inliers),
+                "map_noise_scale": float(r.map_noise_scale),
                 "keyframe": int(r.keyframe),
             }
             for i, r in enumerate(results)
@@ -209,22 +212,24 @@ def common_frame_medians(frames: dict[str, list[dict[str, Any]]], key: str) -> s
 
 def map_noise_scale_for_coverage(frames: list[dict[str, Any]], key: str, c_map: Any, per_axis: bool = False,
                                  target: float = 0.95) -> float | None:
-    """The factor s on the map's C_map (results' convention) at which the frames' coverage would
+    """The factor s on the map noise (results' convention) at which the frames' coverage would
     be ``target``: NEES coverage (χ²₆ 95 %), or with ``per_axis`` the lowest per-axis 1.96σ
-    coverage; C(s) = C − C_map + s·C_map per frame, s bisected on [0, 1000] (coverage grows
-    with s). 0 when the measurement part alone covers ``target``; None without frames or when
-    even s = 1000 does not. One C_map for the whole map is right only if every fold needs
-    about the same s."""
+    coverage; C(s) = C − C_i + s·C_i per frame, C_i = f_i·C_map the map noise the frame's
+    covariance holds (f_i its ``map_noise_scale``, 1 when absent), s bisected on [0, 1000]
+    (coverage grows with s). 0 when the measurement part alone covers ``target``; None without
+    frames or when even s = 1000 does not. 1 means the map noise is right for the fold; the
+    map's C_map is right on every fold only if every fold needs about the same s."""
     c_map = np.asarray(c_map)
-    pairs = [(np.asarray(f[key]), np.asarray(f["covariance"]) - c_map) for f in frames if f[key] is not None and f["covariance"] is not None]
+    pairs = [(np.asarray(f[key]), np.asarray(f["covariance"]) - f.get("map_noise_scale", 1.0) * c_map, f.get("map_noise_scale", 1.0) * c_map)
+             for f in frames if f[key] is not None and f["covariance"] is not None]
     if not pairs:
         return None
 
     def coverage(s: float) -> float:
         if per_axis:
-            inside = [np.abs(d) <= COVERAGE_Z * np.sqrt(np.diag(c + s * c_map)) for d, c in pairs]
+            inside = [np.abs(d) <= COVERAGE_Z * np.sqrt(np.diag(c + s * m)) for d, c, m in pairs]
             return float(np.min(np.mean(inside, axis=0)))
-        return float(np.mean([d @ np.linalg.solve(c + s * c_map, d) <= CHI2_6_95 for d, c in pairs]))
+        return float(np.mean([d @ np.linalg.solve(c + s * m, d) <= CHI2_6_95 for d, c, m in pairs]))
 
     if coverage(0.0) >= target:
         return 0.0
@@ -310,7 +315,8 @@ def main() -> int:
                               for mode in r["frames"]), flush=True)
             n = r["map_noise"]
             print(f"{'':<10} map noise √diag C_map {np.round(n['sqrt_diag'], 4).tolist()} "
-                  f"(n={n['holdout_samples']}), q {np.round(n['acceleration_psd'], 3).tolist()}, build {r['build_s']:.0f} s",
+                  f"(n={n['holdout_samples']}, median inliers {n['holdout_inliers']:.0f}), "
+                  f"q {np.round(n['acceleration_psd'], 3).tolist()}, build {r['build_s']:.0f} s",
                   flush=True)
     elif args.folds:
         print(f"(no shared data at {DATA}: 7-Scenes folds skipped)")

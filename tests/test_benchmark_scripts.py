@@ -61,6 +61,10 @@ def test_the_map_noise_factor_for_95_percent_has_its_closed_form() -> None:
     assert cal.map_noise_scale_for_coverage([{"d": None, "covariance": None}], "d", eye) is None
     covered = [{"d": 0.1 * np.ones(6), "covariance": 2 * eye}]
     assert cal.map_noise_scale_for_coverage(covered, "d", eye) == 0.0
+    # frames whose covariance holds the map noise scaled by 2 (C = εI + 2·C_map): NEES at s is
+    # ‖δ‖²/(2s + ε), so the same 19 of 20 from s = 19/(2·χ²₆(0.95))
+    scaled = [{"d": f["d"], "covariance": (2 + 1e-12) * eye, "map_noise_scale": 2.0} for f in frames[:-1]]
+    assert cal.map_noise_scale_for_coverage(scaled, "d", eye) == pytest.approx(19 / (2 * CHI2_6_95), rel=1e-9)
 
 
 def test_the_modes_are_compared_on_the_frames_both_localized() -> None:

@@ -45,12 +45,18 @@ def test_map_records_its_noise_and_keeps_it(room: tuple[Any, Any, geoloc.Map], t
         np.testing.assert_array_equal(back[key], noise[key])
 
 
-def test_noise_the_held_out_keyframes_cannot_resolve_is_floored_and_said(tmp_path: Path) -> None:
+@pytest.fixture(scope="module")
+def exact() -> tuple[Any, geoloc.Map]:
+    """A map large enough to estimate its noise (≥ 12 held-out keyframes), exact labels."""
+    seq = geoloc.datasets.synthetic_room(n_frames=300, seed=0)
+    return seq, geoloc.Map.build(seq[:300:2], n_features=500)
+
+
+def test_noise_the_held_out_keyframes_cannot_resolve_is_floored_and_said(exact: tuple[Any, geoloc.Map], tmp_path: Path) -> None:
     # exact labels: the held-out errors are all measurement error, no axis has map noise
     # the samples can resolve — C_map is floored on every axis, never zero, and says so
-    seq = geoloc.datasets.synthetic_room(n_frames=300, seed=0)
-    exact = geoloc.Map.build(seq[:300:2], n_features=500)
-    noise = exact.map_noise
+    _, exact_map = exact
+    noise = exact_map.map_noise
     assert noise["holdout_samples"] >= geoloc._core.MIN_NOISE_SAMPLES
     h = noise["holdout"]
     second = h["delta"] ** 2
@@ -64,8 +70,35 @@ def test_noise_the_held_out_keyframes_cannot_resolve_is_floored_and_said(tmp_pat
     assert np.all(c > 0) and np.all(c >= standard_error * n / (n - 7) * (1 - 1e-12)), (c, standard_error)
     assert "on tx, ty, tz, φx, φy, φz they do not resolve it" in noise["pose_covariance_source"]
     path = tmp_path / "exact.geoloc"
-    exact.save(path)
+    exact_map.save(path)
     assert geoloc.Map.load(path).map_noise["resolved"] is None  # the samples are build-time diagnostics
+
+
+def test_a_pose_with_less_support_than_the_held_out_keyframes_gets_more_map_noise(
+    exact: tuple[Any, geoloc.Map], tmp_path: Path
+) -> None:
+    """n̄ is the median inliers of the held-out samples C_map used; it is stored with the map;
+    a pose on n inliers carries C_map·max(1, n̄/n) (written out in numpy here)."""
+    seq, m = exact
+    noise = m.map_noise
+    h = noise["holdout"]
+    assert h["used"].all() and len(h["inliers"]) == noise["holdout_samples"]
+    n_bar = float(np.median(h["inliers"]))
+    assert noise["holdout_inliers"] == n_bar > 0
+    c = noise["pose_covariance"]
+    for n in (1, int(n_bar) // 2, int(n_bar), 10 * int(n_bar)):
+        np.testing.assert_allclose(m.map_noise_at(n), c * max(1.0, n_bar / n), rtol=1e-15)
+    np.testing.assert_array_equal(m.map_noise_at(None), c)
+    with pytest.raises(ValueError, match="inliers"):
+        m.map_noise_at(-1)
+    m.save(tmp_path / "support.geoloc")
+    assert geoloc.Map.load(tmp_path / "support.geoloc").map_noise["holdout_inliers"] == n_bar
+    # single images: each pose's factor from its own inliers
+    results = geoloc.Localizer(m).localize_sequence(seq[1:300:10], "single")
+    assert any(r.pose is not None for r in results)
+    for r in results:
+        want = 1.0 if r.pose is None else max(1.0, n_bar / r.inliers)
+        assert r.map_noise_scale == pytest.approx(want, rel=1e-15), (r.inliers, r.source)
 
 
 def test_sequential_is_never_worse_than_single(room: tuple[Any, Any, geoloc.Map]) -> None:

@@ -47,7 +47,11 @@ class Localization:
     ``keyframes``, ``map_points``, ``matching``, ``pnp``, ``motion_fusion``; from an image
     also ``decode`` and ``features``; ``total``). When the map adjusted its labels, ``pose`` is
     in the labels' convention (world_from_label, what the sequence's poses were) and
-    ``camera_pose`` is the camera's own world_from_cam; otherwise the two are equal."""
+    ``camera_pose`` is the camera's own world_from_cam; otherwise the two are equal.
+    ``map_noise_scale`` is the factor on the map's C_map inside ``covariance``: max(1, n̄/n)
+    for a pose resting on n inliers when the map's held-out keyframes had a median n̄
+    (``Map.map_noise["holdout_inliers"]``; a motion-only frame takes the last measurement's
+    n), 1 when unscaled or lost."""
 
     pose: NDArray[np.float64] | None
     covariance: NDArray[np.float64] | None
@@ -57,6 +61,7 @@ class Localization:
     inliers: int
     timings: dict[str, float] = field(default_factory=dict)
     camera_pose: NDArray[np.float64] | None = None
+    map_noise_scale: float = 1.0
 
     @property
     def timings_ms(self) -> dict[str, float]:
@@ -68,7 +73,8 @@ class Localization:
 def _from_core(r: Any, timings: dict[str, float] | None = None) -> Localization:
     stages = dict(timings or {})
     stages.update(r.timings_ms)
-    return Localization(r.pose, r.covariance, r.source, r.reason, r.keyframe, r.inliers, stages, r.camera_pose)
+    return Localization(r.pose, r.covariance, r.source, r.reason, r.keyframe, r.inliers, stages, r.camera_pose,
+                        r.map_noise_scale)
 
 
 class Localizer:

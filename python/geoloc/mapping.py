@@ -382,19 +382,22 @@ class Map:
         from the keyframes' timestamps and poses; zero in maps saved before it: no prior),
         ``holdout_samples`` (held-out keyframes C_map comes from; with fewer than
         ``geoloc._core.MIN_NOISE_SAMPLES`` C_map is a conservative default, never zero),
+        ``holdout_inliers`` n̄ (their median PnP inliers: a pose resting on n < n̄ inliers gets
+        C_map·n̄/n, see :meth:`map_noise_at`; 0: C_map applies unscaled),
         ``pose_covariance_source`` (which of the two, in words) and, for a map built in this
         process (not stored in the file), ``holdout``: the held-out re-localizations
         (``keyframe`` (n,), ``delta`` (n, 6) = log(T_label⁻¹T_est), ``covariance`` (n, 6, 6) C_G,
-        ``used`` (n,) bool), and ``resolved`` (6,) bool: per axis, whether those samples resolve
+        ``inliers`` (n,), ``used`` (n,) bool), and ``resolved`` (6,) bool: per axis, whether those samples resolve
         C_map (an axis they do not is floored, never zero; None for a loaded map or too few
         samples)."""
-        cov, psd, velocity_mean, velocity_variance, samples = self._core.map_noise
-        keyframes, deltas, covs, used = self._core.map_noise_holdout
+        cov, psd, velocity_mean, velocity_variance, samples, support = self._core.map_noise
+        keyframes, deltas, covs, inliers, used = self._core.map_noise_holdout
         resolved = self._core.map_noise_resolved
         holdout = {
             "keyframe": np.asarray(keyframes, dtype=np.int64),
             "delta": deltas,
             "covariance": covs,
+            "inliers": np.asarray(inliers, dtype=np.int64),
             "used": np.asarray(used, dtype=bool),
         }
         return {
@@ -403,10 +406,20 @@ class Map:
             "velocity_mean": np.asarray(velocity_mean),
             "velocity_variance": np.asarray(velocity_variance),
             "holdout_samples": samples,
+            "holdout_inliers": support,
             "pose_covariance_source": _noise_source(cov, samples, resolved),
             "holdout": holdout,
             "resolved": None if resolved is None else np.asarray(resolved, dtype=bool),
         }
+
+    def map_noise_at(self, inliers: int | None) -> NDArray[np.float64]:
+        """C_map (6, 6, as ``map_noise["pose_covariance"]``) for a pose resting on ``inliers`` PnP
+        inliers: C_map·max(1, n̄/inliers), n̄ = ``map_noise["holdout_inliers"]`` — what the
+        localizer adds to a pose's covariance (unscaled for None, 0 inliers or n̄ = 0)."""
+        if inliers is not None and (isinstance(inliers, bool) or not isinstance(inliers, (int, np.integer)) or inliers < 0):
+            raise ValueError(f"inliers: expected a count ≥ 0 or None, got {inliers!r}")
+        out: NDArray[np.float64] = self._core.map_noise_at(None if inliers is None else int(inliers))
+        return out
 
     def retrieve_features(
         self,

@@ -5,8 +5,10 @@ use std::fmt::Write as _;
 use std::path::Path;
 
 use geoloc_core::map::file::{FORMAT_NAME, FORMAT_VERSION};
-use geoloc_core::map::{Map, MapHeader, RetrievalHeader};
+use geoloc_core::map::noise::MIN_NOISE_SAMPLES;
+use geoloc_core::map::{Map, MapHeader, MapNoise, RetrievalHeader};
 use geoloc_core::stats::{EvenMedian, median};
+use nalgebra::Matrix6;
 use serde_json::Value;
 
 /// Prints the summary of the map at `path` on stdout.
@@ -36,6 +38,7 @@ fn summary(path: &Path, bytes: u64, map: &Map, h: &MapHeader) -> String {
     let _ = writeln!(s, "features          {}", features(f));
     let _ = writeln!(s, "retrieval         {}", retrieval(h));
     let _ = writeln!(s, "pose covariances  {}", pose_covariances(map));
+    let _ = writeln!(s, "map noise         {}", map_noise(&map.noise));
     if let Some(src) = f.get("source") {
         let frames = src.get("frames").and_then(Value::as_array).map_or(0, Vec::len);
         let name = src.get("sequence").and_then(Value::as_str).unwrap_or("?");
@@ -124,6 +127,34 @@ fn pose_covariances(map: &Map) -> String {
     format!("yes (median σ position {:.4} m, rotation {:.3}°)", sigma_p, sigma_r.to_degrees())
 }
 
+/// C_map's per-axis σ (cm, °), where it came from, and the support it was measured at: what
+/// the localizer adds to every covariance ([`MapNoise::pose_covariance_at`]).
+fn map_noise(n: &MapNoise) -> String {
+    if n.pose_covariance == Matrix6::zeros() {
+        return "not estimated (covariances are the measurement's alone)".to_string();
+    }
+    let sigma = |a: usize| n.pose_covariance[(a, a)].max(0.0).sqrt();
+    let source = if n.holdout_samples < MIN_NOISE_SAMPLES {
+        format!("the default for maps too small to measure it ({} held-out keyframes)", n.holdout_samples)
+    } else {
+        format!("from {} held-out keyframes", n.holdout_samples)
+    };
+    let support = if n.holdout_inliers > 0.0 {
+        format!("; a pose on n < {0:.0} inliers (their median) gets C_map·{0:.0}/n", n.holdout_inliers)
+    } else {
+        String::new()
+    };
+    format!(
+        "C_map σ position {:.1}/{:.1}/{:.1} cm, rotation {:.2}/{:.2}/{:.2}°, {source}{support}",
+        100.0 * sigma(0),
+        100.0 * sigma(1),
+        100.0 * sigma(2),
+        sigma(3).to_degrees(),
+        sigma(4).to_degrees(),
+        sigma(5).to_degrees()
+    )
+}
+
 /// The frontend JSON, with the list of source frames replaced by its length.
 fn compact_frontend(f: &Value) -> String {
     let mut f = f.clone();
@@ -133,4 +164,33 @@ fn compact_frontend(f: &Value) -> String {
         *frames = Value::String(format!("<{n} frame indices>"));
     }
     f.to_string()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::Vector6;
+
+    #[test]
+    fn the_map_noise_line_says_sigma_source_and_support() {
+        assert_eq!(map_noise(&MapNoise::default()), "not estimated (covariances are the measurement's alone)");
+        let deg = 1f64.to_radians();
+        let c = Matrix6::from_diagonal(&Vector6::new(
+            0.02f64.powi(2),
+            0.01f64.powi(2),
+            0.03f64.powi(2),
+            deg * deg,
+            0.0,
+            0.0,
+        ));
+        let estimated =
+            MapNoise { pose_covariance: c, holdout_samples: 40, holdout_inliers: 532.0, ..MapNoise::default() };
+        assert_eq!(
+            map_noise(&estimated),
+            "C_map σ position 2.0/1.0/3.0 cm, rotation 1.00/0.00/0.00°, from 40 held-out keyframes; \
+             a pose on n < 532 inliers (their median) gets C_map·532/n"
+        );
+        let default = MapNoise { pose_covariance: c, holdout_samples: 3, ..MapNoise::default() };
+        assert!(map_noise(&default).ends_with("the default for maps too small to measure it (3 held-out keyframes)"));
+    }
 }

@@ -61,7 +61,16 @@ mod tests {
     use nalgebra::{Matrix6, Vector6};
 
     fn result(estimate: Option<Estimate>, source: Source) -> Localization {
-        Localization { estimate, source, reason: String::new(), keyframe: 0, inliers: 0, timings: Timings::default() }
+        let reason = String::new();
+        Localization {
+            estimate,
+            source,
+            reason,
+            keyframe: 0,
+            inliers: 0,
+            map_noise_scale: 1.0,
+            timings: Timings::default(),
+        }
     }
 
     #[test]

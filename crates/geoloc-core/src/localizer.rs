@@ -344,6 +344,9 @@ pub struct Localization {
     pub keyframe: usize,
     /// PnP inliers (0 without a geometric pose).
     pub inliers: usize,
+    /// The factor on the map's C_map in `estimate`'s covariance
+    /// ([`crate::map::MapNoise::support_scale`]: ≥ 1, 1 when unscaled or lost).
+    pub map_noise_scale: f64,
     /// Time per stage.
     pub timings: Timings,
 }
@@ -363,7 +366,9 @@ type GeometricPose = (usize, std::result::Result<Estimate, String>, usize);
 /// every change of group and left the sequential mode coasting: 7-Scenes 600–699, 42 of
 /// 100 frames motion-only, rotation 2.10° against 1.80° single; with C_map in the gate
 /// 11 frames, 1.94°). The map-frame covariance C_map (label error shared by
-/// consecutive frames, so it must not be averaged down) is added to whatever is returned.
+/// consecutive frames, so it must not be averaged down) is added to whatever is returned,
+/// at the support of the pose ([`crate::map::MapNoise::pose_covariance_at`]: this frame's
+/// PnP inliers, the last measurement's for a motion-only frame); the gate uses T_G's.
 /// The last frame's keyframe also serves the paper's locator as a second seed when
 /// retrieval goes wrong (tracking, see `paper_pose`); [`Localizer::reset`] forgets it.
 pub struct Localizer {
@@ -476,7 +481,7 @@ impl Localizer {
         // (d) motion model and (e) gated fusion
         let t = Instant::now();
         let prediction = self.predict(frame.timestamp);
-        let (mut estimate, source, mut reason) = self.combine(frame.timestamp, geometric, prediction);
+        let (mut estimate, source, mut reason) = self.combine(frame.timestamp, (geometric, inliers), prediction);
         if let Some(note) = tracked {
             reason = format!("{reason}; {note}");
         }
@@ -485,13 +490,17 @@ impl Localizer {
             Source::Motion => self.last_support,
             Source::Lost => None,
         };
+        // the map noise of the support the pose rests on: this frame's inliers, or for a
+        // motion-only frame the last measurement's
+        let mut map_noise_scale = 1.0;
         if let Some(e) = &mut estimate {
-            e.covariance += self.map.noise.pose_covariance;
+            map_noise_scale = self.map.noise.support_scale(self.last_support.map(|(_, n)| n));
+            e.covariance += self.map.noise.pose_covariance * map_noise_scale;
         }
         self.last_timestamp = Some(frame.timestamp);
         timings.motion_fusion_ms = ms(t);
         timings.total_ms = ms(start);
-        Ok(Localization { estimate, source, reason, keyframe, inliers, timings })
+        Ok(Localization { estimate, source, reason, keyframe, inliers, map_noise_scale, timings })
     }
 
     /// Retrieval and the geometric locator. A map fused with a network is asked for its bag
@@ -596,21 +605,21 @@ impl Localizer {
             .map(|p| Estimate { world_from_cam: p.world_from_cam, covariance: p.covariance })
     }
 
-    /// (e) the gate and the fusion of T_G with T_M (measurement parts): which estimate
-    /// the frame gets, its source, and why; updates the history, the rejected run and the
-    /// motion-only count.
+    /// (e) the gate and the fusion of T_G (with its PnP inliers) with T_M (measurement
+    /// parts): which estimate the frame gets, its source, and why; updates the history, the
+    /// rejected run and the motion-only count.
     fn combine(
         &mut self,
         timestamp: f64,
-        geometric: std::result::Result<Estimate, String>,
+        (geometric, inliers): (std::result::Result<Estimate, String>, usize),
         prediction: Option<Estimate>,
     ) -> (Option<Estimate>, Source, String) {
         match (geometric, prediction) {
             (Ok(g), Some(m)) => {
                 let (gate_sigma, gate) = (self.options.gate_sigma, self.options.gate);
-                // the gate allows for the group-level error C_map, the fusion weights by
-                // the measurement parts only (C_map is added once, to the output)
-                let extra = &self.map.noise.pose_covariance;
+                // the gate allows for the group-level error C_map (at T_G's support), the
+                // fusion weights by the measurement parts only (C_map is added once, to the output)
+                let extra = &self.map.noise.pose_covariance_at(Some(inliers));
                 let (pm, cm, pg, cg) = (&m.world_from_cam, &m.covariance, &g.world_from_cam, &g.covariance);
                 match fuse_gated_with(pm, cm, pg, cg, extra, gate_sigma, gate) {
                     Ok(f) if f.details == FusionSource::Fused => {

@@ -137,12 +137,39 @@ pub struct MapNoise {
     /// Held-out keyframes placed within the gross-failure bounds (C_map's samples; with fewer
     /// than 12 C_map is a conservative default, never zero).
     pub holdout_samples: usize,
+    /// n̄: the median PnP inliers of C_map's held-out samples, the support C_map was measured
+    /// at ([`MapNoise::pose_covariance_at`]); 0 when C_map is the default or the map was saved
+    /// before it (C_map then applies unscaled).
+    pub holdout_inliers: f64,
     /// The held-out re-localizations themselves (build-time diagnostics, not stored in the
     /// map file: a loaded map has none).
     pub holdout: Vec<HoldoutSample>,
 }
 
 impl MapNoise {
+    /// The map noise of a pose resting on `inliers` PnP inliers (None: support unknown):
+    ///
+    ///   C_map(n) = C_map · max(1, n̄ / n),
+    ///
+    /// n̄ = [`MapNoise::holdout_inliers`]. The map-frame error a pose shares is that of the map
+    /// points it rests on; with n of them it averages over n (∝ 1/n for independent point
+    /// errors), so a pose with less support than the typical held-out keyframe shares more
+    /// of it than C_map, their average, says. Never below C_map: a pose with more support
+    /// than the held-out keyframes is not shown to share less (the points' errors are
+    /// correlated through the keyframe poses that triangulated them). Unscaled when n̄ is 0
+    /// (default C_map, or a map saved without it) or the support is unknown.
+    pub fn pose_covariance_at(&self, inliers: Option<usize>) -> Matrix6<f64> {
+        self.pose_covariance * self.support_scale(inliers)
+    }
+
+    /// The factor max(1, n̄/n) of [`MapNoise::pose_covariance_at`] (1 when unscaled).
+    pub fn support_scale(&self, inliers: Option<usize>) -> f64 {
+        match inliers {
+            Some(n) if n > 0 && self.holdout_inliers > n as f64 => self.holdout_inliers / n as f64,
+            _ => 1.0,
+        }
+    }
+
     /// Per axis, whether the held-out samples resolve C_map ([`noise::resolved_axes`]);
     /// None when they cannot estimate it or were not kept (a loaded map).
     pub fn resolved_axes(&self) -> Option<[bool; 6]> {
@@ -159,6 +186,8 @@ pub struct HoldoutSample {
     pub delta: Vector6<f64>,
     /// The geometric locator's covariance C_G of T_est.
     pub covariance: Matrix6<f64>,
+    /// PnP inliers of T_est.
+    pub inliers: usize,
     /// Whether the C_map estimate used it (all do, unless there were too few for one).
     pub used: bool,
 }

@@ -10,8 +10,8 @@ use std::sync::Arc;
 
 use geoloc_core::GeolocError;
 use geoloc_core::lie::SE3;
-use geoloc_core::localizer::{Frame, Localizer, LocalizerOptions, Locator, Source, Timings};
-use geoloc_core::map::{DescriptorSet, Keyframe, Map, RetrievalKind};
+use geoloc_core::localizer::{Frame, Localization, Localizer, LocalizerOptions, Locator, Source, Timings};
+use geoloc_core::map::{DescriptorSet, Keyframe, Map, MapNoise, RetrievalKind};
 use geoloc_core::matching::Descriptors;
 use geoloc_core::testing::{self, LandmarkScene, SplitMix64};
 use nalgebra::{Matrix6, Vector2};
@@ -48,12 +48,13 @@ fn keyframes(world: &LandmarkScene, rng: &mut SplitMix64) -> Vec<Keyframe> {
 }
 
 /// Per frame: the position error (∞ when lost), the source, the distance from the
-/// retrieved keyframe to the truth, and the bits of the pose and covariance.
+/// retrieved keyframe to the truth, the bits of the pose and covariance, and the localization.
 struct Run {
     errors: Vec<f64>,
     sources: Vec<Source>,
     retrieval_m: Vec<f64>,
     bits: Vec<u64>,
+    results: Vec<Localization>,
 }
 
 fn run(corrupt_fraction: f64) -> Run {
@@ -61,14 +62,21 @@ fn run(corrupt_fraction: f64) -> Run {
 }
 
 fn run_frames(corrupt_fraction: f64, frames: usize) -> Run {
+    run_with_noise(corrupt_fraction, frames, MapNoise::default(), false)
+}
+
+/// The run on a map with `noise`; `single`: the motion history is forgotten before every frame.
+fn run_with_noise(corrupt_fraction: f64, frames: usize, noise: MapNoise, single: bool) -> Run {
     let mut rng = SplitMix64::new(11);
     let world = LandmarkScene::new(&mut rng, LANDMARKS, 12.0);
     let keyframes = keyframes(&world, &mut rng);
     let kf_poses: Vec<SE3> = keyframes.iter().map(|k| k.world_from_cam).collect();
-    let map =
+    let mut map =
         Map::build(world.camera, keyframes, None, RetrievalKind::Bow { branching: 8, depth: 4 }, 0).expect("valid map");
+    map.noise = noise;
     let mut localizer = Localizer::new(Arc::new(map), LocalizerOptions::default()).expect("valid options");
-    let mut out = Run { errors: Vec::new(), sources: Vec::new(), retrieval_m: Vec::new(), bits: Vec::new() };
+    let mut out =
+        Run { errors: Vec::new(), sources: Vec::new(), retrieval_m: Vec::new(), bits: Vec::new(), results: Vec::new() };
     let mut corrupt_rng = SplitMix64::new(5);
     for f in 0..frames {
         let t = 0.3 + f as f64 / 30.0;
@@ -91,6 +99,9 @@ fn run_frames(corrupt_fraction: f64, frames: usize) -> Run {
             global: None,
             pixel_sigmas: None,
         };
+        if single {
+            localizer.reset();
+        }
         let r = localizer.localize(&frame).expect("valid frame");
         out.sources.push(r.source);
         out.errors
@@ -99,8 +110,52 @@ fn run_frames(corrupt_fraction: f64, frames: usize) -> Run {
         if let Some(e) = r.estimate {
             out.bits.extend(e.world_from_cam.matrix().iter().chain(e.covariance.iter()).map(|v| v.to_bits()));
         }
+        out.results.push(r);
     }
     out
+}
+
+/// The map noise a pose gets is C_map·max(1, n̄/n) at its support n: the frame's own PnP
+/// inliers (single images: the covariance differs from the unscaled map's by exactly
+/// (scale − 1)·C_map), and for a motion-only frame the last measurement's.
+#[test]
+#[allow(clippy::float_cmp)] // the factor is the same division either way: exact equality is the claim
+fn the_map_noise_is_scaled_by_the_support_of_each_pose() {
+    let c_map = Matrix6::from_diagonal(&nalgebra::Vector6::new(4e-4, 1e-4, 9e-4, 1e-5, 4e-5, 1e-5));
+    let noise = |n_bar: f64| MapNoise { pose_covariance: c_map, holdout_inliers: n_bar, ..MapNoise::default() };
+    let plain = run_with_noise(0.0, 20, noise(0.0), true);
+    let supports: Vec<usize> = plain.results.iter().map(|r| r.inliers).collect();
+    let mut sorted = supports.clone();
+    sorted.sort_unstable();
+    // n̄ between the frames' supports: some frames are scaled, some are not
+    let n_bar = sorted[sorted.len() / 2] as f64 + 0.5;
+    let scaled = run_with_noise(0.0, 20, noise(n_bar), true);
+    let (mut up, mut same) = (0, 0);
+    for (a, b) in plain.results.iter().zip(&scaled.results) {
+        assert_eq!(a.source, Source::Geometric);
+        assert_eq!(a.map_noise_scale, 1.0);
+        let want = if (a.inliers as f64) < n_bar { n_bar / a.inliers as f64 } else { 1.0 };
+        assert_eq!(b.map_noise_scale, want, "{} inliers", a.inliers);
+        let (ca, cb) = (a.estimate.expect("localized").covariance, b.estimate.expect("localized").covariance);
+        assert!((cb - ca - c_map * (want - 1.0)).amax() < 1e-15, "{} inliers: {}", a.inliers, cb - ca);
+        if want > 1.0 { up += 1 } else { same += 1 }
+    }
+    assert!(up > 0 && same > 0, "{up} scaled, {same} not");
+    // sequential, with gross failures: a motion-only frame keeps the last measurement's support
+    let run = run_with_noise(0.2, 60, noise(1e5), false);
+    let mut last = None;
+    let mut motion = 0;
+    for r in &run.results {
+        match r.source {
+            Source::Geometric | Source::Fused => last = Some(r.inliers),
+            Source::Motion => motion += 1,
+            Source::Lost => last = None,
+        }
+        let want = last.map_or(1.0, |n| 1e5 / n as f64);
+        let got = if r.source == Source::Lost { 1.0 } else { want };
+        assert_eq!(r.map_noise_scale, got, "{:?} {}", r.source, r.inliers);
+    }
+    assert!(motion > 0, "no motion-only frame");
 }
 
 fn median(v: &[f64]) -> f64 {

@@ -204,31 +204,39 @@ impl FeatureMap {
     }
 
     /// The noise estimated at build time: (C_map (6, 6), acceleration PSD (6,), velocity
-    /// prior mean (6,) and variance (6,), held-out samples).
+    /// prior mean (6,) and variance (6,), held-out samples, their median inliers n̄).
     #[getter]
     #[allow(clippy::type_complexity)]
     fn map_noise<'py>(
         &self,
         py: Python<'py>,
-    ) -> PyResult<(Bound<'py, PyArray2<f64>>, Vec<f64>, Vec<f64>, Vec<f64>, usize)> {
+    ) -> PyResult<(Bound<'py, PyArray2<f64>>, Vec<f64>, Vec<f64>, Vec<f64>, usize, f64)> {
         let n = &self.inner.noise;
         let list = |v: &nalgebra::Vector6<f64>| v.iter().copied().collect();
         let (mean, variance) = (list(&n.velocity_prior.mean), list(&n.velocity_prior.variance));
-        Ok((square(py, &n.pose_covariance)?, list(&n.acceleration_psd), mean, variance, n.holdout_samples))
+        let c = square(py, &n.pose_covariance)?;
+        Ok((c, list(&n.acceleration_psd), mean, variance, n.holdout_samples, n.holdout_inliers))
     }
 
-    /// The build's held-out re-localizations: (keyframes, δ (n, 6), C_G (n, 6, 6), used).
+    /// C_map at a pose's support: C_map·max(1, n̄/inliers) (unscaled for None).
+    fn map_noise_at<'py>(&self, py: Python<'py>, inliers: Option<usize>) -> PyResult<Bound<'py, PyArray2<f64>>> {
+        square(py, &self.inner.noise.pose_covariance_at(inliers))
+    }
+
+    /// The build's held-out re-localizations: (keyframes, δ (n, 6), C_G (n, 6, 6), inliers, used).
     #[getter]
     #[allow(clippy::type_complexity)]
     fn map_noise_holdout<'py>(
         &self,
         py: Python<'py>,
-    ) -> (Vec<usize>, Bound<'py, PyArray2<f64>>, Bound<'py, numpy::PyArray3<f64>>, Vec<bool>) {
+    ) -> (Vec<usize>, Bound<'py, PyArray2<f64>>, Bound<'py, numpy::PyArray3<f64>>, Vec<usize>, Vec<bool>) {
         let h = &self.inner.noise.holdout;
         let deltas: Vec<_> = h.iter().map(|s| s.delta.transpose()).collect();
         let covs: Vec<_> = h.iter().map(|s| s.covariance).collect();
         let keyframes = h.iter().map(|s| s.keyframe).collect();
-        (keyframes, matrices_to_array(py, &deltas), matrices_to_array3(py, &covs), h.iter().map(|s| s.used).collect())
+        let inliers = h.iter().map(|s| s.inliers).collect();
+        let used = h.iter().map(|s| s.used).collect();
+        (keyframes, matrices_to_array(py, &deltas), matrices_to_array3(py, &covs), inliers, used)
     }
 
     /// Per axis, whether the build's held-out samples resolve C_map (None: too few, or a loaded map).
@@ -311,6 +319,12 @@ impl Localization {
     #[getter]
     fn inliers(&self) -> usize {
         self.inner.inliers
+    }
+
+    /// The factor on the map's C_map inside `covariance` (≥ 1; 1 when unscaled or lost).
+    #[getter]
+    fn map_noise_scale(&self) -> f64 {
+        self.inner.map_noise_scale
     }
 
     /// Milliseconds per stage: retrieval, keyframes, map_points, matching, pnp, motion_fusion, total.

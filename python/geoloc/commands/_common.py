@@ -266,3 +266,11 @@ def describe_labels(found: dict[str, Any] | None) -> str:
         f"{100 * float(np.linalg.norm(found['label_from_cam_translation_m'])):.1f} cm / {found['label_from_cam_rotation_deg']:.2f}°; "
         f"track residuals {before:.2f} -> {after:.2f} px rms; runs of significant corrections (keyframes): {runs}"
     )
+
+
+def describe_map_noise(noise: dict[str, Any]) -> str:
+    """One line on the map's noise C_map (``Map.map_noise``): where it came from and the
+    support it was measured at (a pose on fewer inliers gets it scaled up)."""
+    support = noise["holdout_inliers"]
+    scaled = f"; a pose on n < {support:.0f} inliers (their median) gets C_map·{support:.0f}/n" if support > 0 else ""
+    return f"map noise C_map: {noise['pose_covariance_source']}{scaled}"

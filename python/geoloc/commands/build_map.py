@@ -11,6 +11,7 @@ from ._common import (
     Progress,
     dataset_inputs,
     describe_labels,
+    describe_map_noise,
     describe_self_calibration,
     load_dataset,
     model_input,
@@ -54,5 +55,5 @@ def run(args: argparse.Namespace) -> int:
     )
     print(describe_self_calibration(the_map.self_calibration))
     print(describe_labels(the_map.labels))
-    print(f"map noise C_map: {the_map.map_noise['pose_covariance_source']}")
+    print(describe_map_noise(the_map.map_noise))
     return 0

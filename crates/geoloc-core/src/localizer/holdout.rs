@@ -14,9 +14,13 @@ use crate::map::Ranking;
 
 impl Localizer {
     /// The geometric pose of keyframe `k`'s own features against the map without the
-    /// keyframes in `excluded` (retrieval and the keyframe group skip them); None when the
-    /// locator fails. The model locator uses no point that an excluded keyframe observes.
-    pub(crate) fn localize_held_out(&mut self, k: usize, excluded: std::ops::Range<usize>) -> Result<Option<Estimate>> {
+    /// keyframes in `excluded` (retrieval and the keyframe group skip them), with its PnP
+    /// inliers; None when the locator fails. The model locator uses no point that an excluded keyframe observes.
+    pub(crate) fn localize_held_out(
+        &mut self,
+        k: usize,
+        excluded: std::ops::Range<usize>,
+    ) -> Result<Option<(Estimate, usize)>> {
         let map = Arc::clone(&self.map);
         let kf = &map.keyframes[k];
         let descriptors = kf.descriptors.view();
@@ -30,8 +34,8 @@ impl Localizer {
         let k = self.retrieved_keyframes();
         let top = map.retrieve_ranked(&frame.retrieval_query(), k, excluded.clone(), Ranking::Words)?;
         if self.options.locator == Locator::Model {
-            let (_, pose, _) = self.model_pose(&frame, &top, excluded, &mut Timings::default())?;
-            return Ok(pose.ok());
+            let (_, pose, inliers) = self.model_pose(&frame, &top, excluded, &mut Timings::default())?;
+            return Ok(pose.ok().map(|p| (p, inliers)));
         }
         let seed = top[0];
         let allowed: Vec<usize> = (0..map.keyframes.len()).filter(|i| !excluded.contains(i)).collect();
@@ -40,7 +44,7 @@ impl Localizer {
         let group: Vec<usize> =
             select_keyframes(&poses, local, &self.options.keyframes)?.into_iter().map(|j| allowed[j]).collect();
         let points = self.map_points(seed, &group)?;
-        let (pose, _) = self.geometric_pose(&frame, seed, &points, group.len(), &mut Timings::default())?;
-        Ok(pose.ok())
+        let (pose, inliers) = self.geometric_pose(&frame, seed, &points, group.len(), &mut Timings::default())?;
+        Ok(pose.ok().map(|p| (p, inliers)))
     }
 }

@@ -469,6 +469,7 @@ mod scene_tests {
     use crate::localizer::{LocalizerOptions, Locator, Source};
     use crate::map::model::fixture;
     use crate::parallel::{Parallelism, with_parallelism};
+    use crate::pnp::MIN_ACCEPTED_INLIERS;
     use crate::testing::{SplitMix64, walk};
 
     /// Queries 15 cm beside the keyframes' path: (position error, inliers) per frame.
@@ -555,8 +556,9 @@ mod scene_tests {
         for c in first.iter().chain(&guided) {
             assert!(model.observers(c.point).iter().all(|o| !excluded.contains(o)), "point {} leaks", c.point);
         }
-        let pose = loc.localize_held_out(k, excluded).expect("valid").expect("localized");
+        let (pose, inliers) = loc.localize_held_out(k, excluded).expect("valid").expect("localized");
         assert!((pose.world_from_cam.translation - kf.world_from_cam.translation).norm() < 0.05);
+        assert!((MIN_ACCEPTED_INLIERS..=kf.keypoints.len()).contains(&inliers), "{inliers}");
         assert!(loc.localize_held_out(35, 1..60).expect("valid").is_none());
     }
 }

@@ -335,6 +335,15 @@ pub struct NoiseHeader {
     pub velocity_variance: Vec<f64>,
     /// Held-out keyframes C_map was estimated from.
     pub holdout_samples: usize,
+    /// n̄, their median PnP inliers ([`MapNoise::holdout_inliers`]; absent in files saved
+    /// before it, and when C_map is the default: C_map then applies unscaled).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub holdout_inliers: f64,
+}
+
+/// Whether a count is 0 (then not written).
+fn is_zero(v: &f64) -> bool {
+    *v == 0.0
 }
 
 impl NoiseHeader {
@@ -345,10 +354,11 @@ impl NoiseHeader {
             velocity_mean: six_or_none(&n.velocity_prior, &n.velocity_prior.mean),
             velocity_variance: six_or_none(&n.velocity_prior, &n.velocity_prior.variance),
             holdout_samples: n.holdout_samples,
+            holdout_inliers: n.holdout_inliers,
         })
     }
 
-    /// Checks and converts: 36 + 6 finite values, C_map symmetric PSD, q ≥ 0.
+    /// Checks and converts: 36 + 6 finite values, C_map symmetric PSD, q ≥ 0, n̄ finite ≥ 0.
     fn to_noise(&self) -> Result<MapNoise> {
         if self.pose_covariance.len() != 36 || self.acceleration_psd.len() != 6 {
             return Err(format_error("map_noise: expected 36 pose_covariance and 6 acceleration_psd values"));
@@ -372,11 +382,15 @@ impl NoiseHeader {
             }
         };
         velocity_prior.check().map_err(|e| format_error(format!("map_noise.{e}")))?;
+        if !(self.holdout_inliers.is_finite() && self.holdout_inliers >= 0.0) {
+            return Err(format_error("map_noise.holdout_inliers: must be finite and ≥ 0"));
+        }
         Ok(MapNoise {
             pose_covariance: c,
             acceleration_psd: q,
             velocity_prior,
             holdout_samples: self.holdout_samples,
+            holdout_inliers: self.holdout_inliers,
             holdout: vec![],
         })
     }
@@ -1066,6 +1080,7 @@ mod tests {
     }
 
     #[test]
+    #[allow(clippy::float_cmp)] // values are copied, not computed
     fn map_noise_round_trips_and_old_maps_read_it_as_zero() {
         let mut original = map(true, RetrievalKind::Bow { branching: 4, depth: 2 }, false);
         let old = original.to_map_file("{}").expect("serializes");
@@ -1082,12 +1097,23 @@ mod tests {
                 variance: Vector6::new(0.04, 0.05, 0.06, 0.07, 0.08, 0.09),
             },
             holdout_samples: 57,
+            holdout_inliers: 312.5,
             holdout: vec![],
         };
         let file = original.to_map_file("{}").expect("serializes");
         let (back, header) = Map::from_map_file(&file).expect("valid");
         assert_eq!(back.noise, original.noise);
         assert_eq!(header.map_noise.map(|n| n.holdout_samples), Some(57));
+        let mut bad = file.clone();
+        bad.header = bad.header.replace("312.5", "-312.5");
+        assert!(Map::from_map_file(&bad).expect_err("negative n̄").to_string().contains("holdout_inliers"));
+        // a file saved before the support: the key is absent, C_map applies unscaled
+        let mut old_support = file.clone();
+        old_support.header = old_support.header.replace(r#","holdout_inliers":312.5"#, "");
+        assert!(!old_support.header.contains("holdout_inliers"), "{}", old_support.header);
+        let (back, _) = Map::from_map_file(&old_support).expect("valid");
+        assert_eq!(back.noise.holdout_inliers, 0.0);
+        assert_eq!(back.noise.pose_covariance_at(Some(10)), a);
         let mut bad = file.clone();
         bad.header = bad.header.replace("0.25", "-0.25");
         assert!(Map::from_map_file(&bad).expect_err("negative q").to_string().contains("acceleration_psd"));
