@@ -273,3 +273,13 @@ def test_build_map_says_where_the_map_noise_came_from_and_its_support() -> None:
     assert describe_map_noise(measured) == (
         "map noise C_map: estimated from 48 held-out keyframes; a pose on n < 532 inliers (their median) gets C_map·532/n"
     )
+
+
+def test_build_map_gives_the_camera_estimates_median_residual_before_the_rms() -> None:
+    from geoloc.commands._common import describe_self_calibration
+
+    found = {"camera": {"fx": 524.56, "fy": 524.23, "cx": 320.31, "cy": 239.57}, "distortion": [0.022, -0.088, -0.0014, 0.0004, 0.0],
+             "rms_before_px": 2.152, "rms_after_px": 2.309, "median_before_px": 1.024, "median_after_px": 0.955,
+             "observations": 91556, "correction_sigma_px": 0.13, "reason": "ok"}
+    line = describe_self_calibration(found)
+    assert "track residuals median 1.02 -> 0.95 px, rms 2.15 -> 2.31 px over 91556 observations" in line, line

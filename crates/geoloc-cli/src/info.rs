@@ -6,7 +6,7 @@ use std::path::Path;
 
 use geoloc_core::map::file::{FORMAT_NAME, FORMAT_VERSION};
 use geoloc_core::map::noise::MIN_NOISE_SAMPLES;
-use geoloc_core::map::{Map, MapHeader, MapNoise, RetrievalHeader};
+use geoloc_core::map::{Map, MapHeader, MapNoise, RetrievalHeader, SelfCalibrationHeader};
 use geoloc_core::stats::{EvenMedian, median};
 use nalgebra::Matrix6;
 use serde_json::Value;
@@ -62,12 +62,21 @@ fn image_size(f: &Value) -> String {
 }
 
 /// What the map estimated about its camera (the localizer corrects every frame's keypoints with it).
+/// The track residuals before → after: the median first (what the robust fit lowers), then
+/// the RMS, which a few large residuals dominate and which may rise as the many fall.
 fn self_calibration(h: &MapHeader) -> String {
-    let Some(sc) = &h.self_calibration else { return "none (the given intrinsics are used as they are)".to_string() };
+    h.self_calibration
+        .as_ref()
+        .map_or_else(|| "none (the given intrinsics are used as they are)".to_string(), camera_estimate)
+}
+
+/// [`self_calibration`]'s line for a map that tried.
+fn camera_estimate(sc: &SelfCalibrationHeader) -> String {
+    let px = |v: Option<f64>| v.map_or("?".to_string(), |v| format!("{v:.3}"));
     match (&sc.camera, &sc.distortion) {
         (Some(c), Some(d)) => format!(
             "fx {:.2} fy {:.2} cx {:.2} cy {:.2}, distortion k1 {:+.5} k2 {:+.5} p1 {:+.6} p2 {:+.6}; \
-             track residuals {} -> {} px rms ({} observations); frames' keypoints are corrected with it",
+             track residuals median {} -> {} px, rms {} -> {} px ({} observations); frames' keypoints are corrected with it",
             c.fx,
             c.fy,
             c.cx,
@@ -76,8 +85,10 @@ fn self_calibration(h: &MapHeader) -> String {
             d[1],
             d[2],
             d[3],
-            sc.rms_before_px.map_or("?".to_string(), |v| format!("{v:.3}")),
-            sc.rms_after_px.map_or("?".to_string(), |v| format!("{v:.3}")),
+            px(sc.median_before_px),
+            px(sc.median_after_px),
+            px(sc.rms_before_px),
+            px(sc.rms_after_px),
             sc.observations
         ),
         _ => format!("not applied ({})", sc.reason),
@@ -170,6 +181,27 @@ fn compact_frontend(f: &Value) -> String {
 mod tests {
     use super::*;
     use nalgebra::Vector6;
+
+    #[test]
+    fn the_camera_estimate_gives_the_median_residual_before_the_rms() {
+        let sc: SelfCalibrationHeader = serde_json::from_str(
+            r#"{"camera":{"fx":524.5,"fy":524.25,"cx":320.5,"cy":239.5},"distortion":[0.02,-0.08,-0.001,0.0004,0.0],
+                "reason":"ok","rms_before_px":2.152,"rms_after_px":2.309,"median_before_px":1.024,"median_after_px":0.955,
+                "observations":91556,"points":20000,"correction_sigma_px":0.13}"#,
+        )
+        .expect("valid header");
+        let line = camera_estimate(&sc);
+        assert!(
+            line.contains("track residuals median 1.024 -> 0.955 px, rms 2.152 -> 2.309 px (91556 observations)"),
+            "{line}"
+        );
+        let refused: SelfCalibrationHeader = serde_json::from_str(
+            r#"{"reason":"too few tracks","rms_before_px":null,"rms_after_px":null,"median_before_px":null,
+                "median_after_px":null,"observations":3,"points":1,"correction_sigma_px":null}"#,
+        )
+        .expect("valid header");
+        assert_eq!(camera_estimate(&refused), "not applied (too few tracks)");
+    }
 
     #[test]
     fn the_map_noise_line_says_sigma_source_and_support() {

@@ -238,7 +238,9 @@ def open_retrieval(text: str) -> Any:
 
 
 def describe_self_calibration(found: dict[str, Any] | None) -> str:
-    """One line on the camera a map estimated from its keyframes (``Map.self_calibration``)."""
+    """One line on the camera a map estimated from its keyframes (``Map.self_calibration``); the
+    track residuals' median first (what the robust fit lowers), then their RMS (a few large
+    residuals dominate it, and it may rise as the many fall)."""
     if found is None:
         return "camera: the given intrinsics, as they are (--nominal-intrinsics)"
     cam = found.get("camera")
@@ -247,8 +249,9 @@ def describe_self_calibration(found: dict[str, Any] | None) -> str:
     k1, k2, p1, p2, _ = found["distortion"]
     return (
         f"camera estimated from the keyframes: fx {cam['fx']:.1f} fy {cam['fy']:.1f} cx {cam['cx']:.1f} cy {cam['cy']:.1f}, "
-        f"k1 {k1:+.4f} k2 {k2:+.4f} p1 {p1:+.5f} p2 {p2:+.5f}; track residuals {found['rms_before_px']:.2f} -> "
-        f"{found['rms_after_px']:.2f} px rms over {found['observations']} observations (correction 1σ "
+        f"k1 {k1:+.4f} k2 {k2:+.4f} p1 {p1:+.5f} p2 {p2:+.5f}; track residuals median {found['median_before_px']:.2f} -> "
+        f"{found['median_after_px']:.2f} px, rms {found['rms_before_px']:.2f} -> {found['rms_after_px']:.2f} px "
+        f"over {found['observations']} observations (correction 1σ "
         f"{found['correction_sigma_px']:.2f} px)"
     )
 
