@@ -368,7 +368,7 @@ type GeometricPose = (usize, std::result::Result<Estimate, String>, usize);
 /// 11 frames, 1.94°). The map-frame covariance C_map (label error shared by
 /// consecutive frames, so it must not be averaged down) is added to whatever is returned,
 /// at the support of the pose ([`crate::map::MapNoise::pose_covariance_at`]: this frame's
-/// PnP inliers, the last measurement's for a motion-only frame); the gate uses T_G's.
+/// PnP inliers, the last measurement's for a motion-only frame); the gate uses C_map as it is.
 /// The last frame's keyframe also serves the paper's locator as a second seed when
 /// retrieval goes wrong (tracking, see `paper_pose`); [`Localizer::reset`] forgets it.
 pub struct Localizer {
@@ -481,7 +481,7 @@ impl Localizer {
         // (d) motion model and (e) gated fusion
         let t = Instant::now();
         let prediction = self.predict(frame.timestamp);
-        let (mut estimate, source, mut reason) = self.combine(frame.timestamp, (geometric, inliers), prediction);
+        let (mut estimate, source, mut reason) = self.combine(frame.timestamp, geometric, prediction);
         if let Some(note) = tracked {
             reason = format!("{reason}; {note}");
         }
@@ -605,21 +605,25 @@ impl Localizer {
             .map(|p| Estimate { world_from_cam: p.world_from_cam, covariance: p.covariance })
     }
 
-    /// (e) the gate and the fusion of T_G (with its PnP inliers) with T_M (measurement
-    /// parts): which estimate the frame gets, its source, and why; updates the history, the
-    /// rejected run and the motion-only count.
+    /// (e) the gate and the fusion of T_G with T_M (measurement parts): which estimate
+    /// the frame gets, its source, and why; updates the history, the rejected run and the
+    /// motion-only count.
     fn combine(
         &mut self,
         timestamp: f64,
-        (geometric, inliers): (std::result::Result<Estimate, String>, usize),
+        geometric: std::result::Result<Estimate, String>,
         prediction: Option<Estimate>,
     ) -> (Option<Estimate>, Source, String) {
         match (geometric, prediction) {
             (Ok(g), Some(m)) => {
                 let (gate_sigma, gate) = (self.options.gate_sigma, self.options.gate);
-                // the gate allows for the group-level error C_map (at T_G's support), the
-                // fusion weights by the measurement parts only (C_map is added once, to the output)
-                let extra = &self.map.noise.pose_covariance_at(Some(inliers));
+                // the gate allows for the group-level error C_map, the fusion weights by the
+                // measurement parts only (C_map is added once, to the output, at the pose's
+                // support). The gate's C_map is not scaled up for a low-support T_G: that is the
+                // pose to be strict with (a gate with the scaled C_map let more wrong poses into
+                // the history of maps that keep their labels: 7-Scenes 0–99, sequential recall
+                // 67 % against 71 % with C_map as it is)
+                let extra = &self.map.noise.pose_covariance;
                 let (pm, cm, pg, cg) = (&m.world_from_cam, &m.covariance, &g.world_from_cam, &g.covariance);
                 match fuse_gated_with(pm, cm, pg, cg, extra, gate_sigma, gate) {
                     Ok(f) if f.details == FusionSource::Fused => {

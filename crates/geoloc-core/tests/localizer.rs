@@ -67,6 +67,12 @@ fn run_frames(corrupt_fraction: f64, frames: usize) -> Run {
 
 /// The run on a map with `noise`; `single`: the motion history is forgotten before every frame.
 fn run_with_noise(corrupt_fraction: f64, frames: usize, noise: MapNoise, single: bool) -> Run {
+    run_with_jump(corrupt_fraction, frames, noise, single, usize::MAX)
+}
+
+/// ... and from frame `jump` on, the camera path 10 cm further to the side (a jump the motion
+/// model does not predict).
+fn run_with_jump(corrupt_fraction: f64, frames: usize, noise: MapNoise, single: bool, jump: usize) -> Run {
     let mut rng = SplitMix64::new(11);
     let world = LandmarkScene::new(&mut rng, LANDMARKS, 12.0);
     let keyframes = keyframes(&world, &mut rng);
@@ -80,7 +86,7 @@ fn run_with_noise(corrupt_fraction: f64, frames: usize, noise: MapNoise, single:
     let mut corrupt_rng = SplitMix64::new(5);
     for f in 0..frames {
         let t = 0.3 + f as f64 / 30.0;
-        let truth = walk(t, 0.15);
+        let truth = walk(t, if f >= jump { 0.25 } else { 0.15 });
         let (keypoints, mut data) = world.observe(&mut rng, &truth, 3);
         if f >= 5 && corrupt_rng.uniform() < corrupt_fraction {
             // a gross failure: descriptors shuffled between keypoints, so every match is wrong
@@ -117,7 +123,8 @@ fn run_with_noise(corrupt_fraction: f64, frames: usize, noise: MapNoise, single:
 
 /// The map noise a pose gets is C_map·max(1, n̄/n) at its support n: the frame's own PnP
 /// inliers (single images: the covariance differs from the unscaled map's by exactly
-/// (scale − 1)·C_map), and for a motion-only frame the last measurement's.
+/// (scale − 1)·C_map), and for a motion-only frame the last measurement's; the motion gate
+/// keeps C_map unscaled (same decisions, same poses).
 #[test]
 #[allow(clippy::float_cmp)] // the factor is the same division either way: exact equality is the claim
 fn the_map_noise_is_scaled_by_the_support_of_each_pose() {
@@ -156,6 +163,17 @@ fn the_map_noise_is_scaled_by_the_support_of_each_pose() {
         assert_eq!(r.map_noise_scale, got, "{:?} {}", r.source, r.inliers);
     }
     assert!(motion > 0, "no motion-only frame");
+    // the gate keeps C_map as it is: after a 10 cm jump the gate refuses the new poses, and a
+    // support factor that would widen it 10¹⁰-fold changes nothing
+    let tiny = |n_bar: f64| MapNoise { pose_covariance: c_map * 1e-9, holdout_inliers: n_bar, ..MapNoise::default() };
+    let strict = run_with_jump(0.0, 40, tiny(0.0), false, 20);
+    let gated = strict.results.iter().filter(|r| r.reason.contains("outside the motion gate")).count();
+    let widened = run_with_jump(0.0, 40, tiny(1e12), false, 20);
+    assert_eq!(strict.sources, widened.sources, "{gated} frames outside the gate");
+    for (a, b) in strict.results.iter().zip(&widened.results) {
+        assert_eq!(a.estimate.map(|e| e.world_from_cam.matrix()), b.estimate.map(|e| e.world_from_cam.matrix()));
+    }
+    assert!(gated > 0, "no frame outside the gate: the comparison shows nothing");
 }
 
 fn median(v: &[f64]) -> f64 {
