@@ -258,6 +258,35 @@ def row(name: str, mode: str, s: dict[str, Any]) -> str:
     )
 
 
+#: The paper's split of the frames 0–699: train on 0–599, test on 600–699 (no margin).
+PAPER_TRAIN = 600
+
+
+def print_evaluation(name: str, r: dict[str, Any], against_reference: bool) -> None:
+    """The rows of one evaluation (both modes, against the labels and the reference) and the
+    lines on its coverage, its modes' common frames, its C_map factors and its map noise."""
+    for mode in ("single", "sequential"):
+        print(row(name, mode, r[mode]), flush=True)
+        if f"{mode} vs reference" in r:
+            print(row("", f"{mode[:3]} vs ref", r[f"{mode} vs reference"]), flush=True)
+    print(f"{'':<10} NEES coverage by PnP inliers, single: {coverage_by_inliers(r['frames']['single'])}", flush=True)
+    key, against = ("delta_reference", "reference") if against_reference else ("delta", "labels")
+    print(f"{'':<10} against the {against} on the {common_frame_medians(r['frames'], key)}", flush=True)
+    c_map = r["map_noise"]["pose_covariance_labels"]
+    scale = {
+        (mode, per_axis): map_noise_scale_for_coverage(r["frames"][mode], key, c_map, per_axis)
+        for mode in r["frames"] for per_axis in (False, True)
+    }
+    print(f"{'':<10} C_map × s for 95 % coverage against the {against} (NEES / lowest axis): "
+          + ", ".join(f"{mode} " + " / ".join("—" if scale[mode, a] is None else f"{scale[mode, a]:.2f}" for a in (False, True))
+                      for mode in r["frames"]), flush=True)
+    n = r["map_noise"]
+    print(f"{'':<10} map noise √diag C_map {np.round(n['sqrt_diag'], 4).tolist()} "
+          f"(n={n['holdout_samples']}, median inliers {n['holdout_inliers']:.0f}), "
+          f"q {np.round(n['acceleration_psd'], 3).tolist()}, build {r['build_s']:.0f} s",
+          flush=True)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--folds", default="0,1,2,3,4,5,6", help="comma-separated test blocks of 100 frames")
@@ -275,7 +304,11 @@ def main() -> int:
                     "numbers move with a nuisance parameter")
     ap.add_argument("--network", type=Path, metavar="DIR/NAME",
                     help="fuse each fold's map with the network whose descriptors DIR/NAME-fold<LO>.npz holds")
+    ap.add_argument("--paper-split", action="store_true",
+                    help=f"also the paper's split: train on frames 0-{PAPER_TRAIN - 1}, test on {PAPER_TRAIN}-699")
     args = ap.parse_args()
+    if args.paper_split and args.network is not None:
+        ap.error("--paper-split: the saved network descriptors are per fold; there are none for the paper's split")
     reference = None
     if args.reference is not None:
         from geoloc.reference import load_reference
@@ -286,10 +319,10 @@ def main() -> int:
     report: dict[str, Any] = {}
     header = f"{'fold':<10} {'mode':<10} {'median':>18} {'median, lost=∞':>18} {'5cm/5°':>7} {'NEES':>6} {'axis min':>8} {'med NEES':>8} {'σ_p med':>8}  sources"
     print(header, flush=True)
-    if DATA.is_dir() and args.folds:
+    if DATA.is_dir() and (args.folds or args.paper_split):
         seq = geoloc.datasets.load_7scenes(DATA)[:700]
         rows = frame_rows(seq) if args.network is not None else {}
-        for b in (int(x) for x in args.folds.split(",")):
+        for b in (int(x) for x in args.folds.split(",") if x):
             train, test = fold(seq, b)
             network = None
             if args.network is not None:
@@ -298,27 +331,12 @@ def main() -> int:
             r = evaluate(train, test, args.locator, args.adjust_labels, reference, network, args.seed)
             name = f"{b * BLOCK}-{b * BLOCK + len(test) - 1}"
             report[name] = r
-            for mode in ("single", "sequential"):
-                print(row(name, mode, r[mode]), flush=True)
-                if f"{mode} vs reference" in r:
-                    print(row("", f"{mode[:3]} vs ref", r[f"{mode} vs reference"]), flush=True)
-            print(f"{'':<10} NEES coverage by PnP inliers, single: {coverage_by_inliers(r['frames']['single'])}", flush=True)
-            key, against = ("delta_reference", "reference") if reference is not None else ("delta", "labels")
-            print(f"{'':<10} against the {against} on the {common_frame_medians(r['frames'], key)}", flush=True)
-            c_map = r["map_noise"]["pose_covariance_labels"]
-            scale = {
-                (mode, per_axis): map_noise_scale_for_coverage(r["frames"][mode], key, c_map, per_axis)
-                for mode in r["frames"] for per_axis in (False, True)
-            }
-            print(f"{'':<10} C_map × s for 95 % coverage against the {against} (NEES / lowest axis): "
-                  + ", ".join(f"{mode} " + " / ".join("—" if scale[mode, a] is None else f"{scale[mode, a]:.2f}" for a in (False, True))
-                              for mode in r["frames"]), flush=True)
-            n = r["map_noise"]
-            print(f"{'':<10} map noise √diag C_map {np.round(n['sqrt_diag'], 4).tolist()} "
-                  f"(n={n['holdout_samples']}, median inliers {n['holdout_inliers']:.0f}), "
-                  f"q {np.round(n['acceleration_psd'], 3).tolist()}, build {r['build_s']:.0f} s",
-                  flush=True)
-    elif args.folds:
+            print_evaluation(name, r, reference is not None)
+        if args.paper_split:
+            r = evaluate(seq[:PAPER_TRAIN], seq[PAPER_TRAIN:], args.locator, args.adjust_labels, reference, None, args.seed)
+            report["paper split"] = r
+            print_evaluation(f"{PAPER_TRAIN}-{len(seq) - 1}", r, reference is not None)
+    elif args.folds or args.paper_split:
         print(f"(no shared data at {DATA}: 7-Scenes folds skipped)")
     if args.synthetic:
         seq = geoloc.datasets.synthetic_room(n_frames=300, seed=0)

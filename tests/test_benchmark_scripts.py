@@ -78,3 +78,10 @@ def test_the_modes_are_compared_on_the_frames_both_localized() -> None:
     assert cal.common_frame_medians({"single": [{"d": None}], "sequential": [{"d": [1, 0, 0]}]}, "d") == (
         "no frame localized in both modes"
     )
+
+
+def test_the_paper_split_is_refused_with_per_fold_network_descriptors(tmp_path: Path) -> None:
+    script = Path(__file__).resolve().parents[1] / "benchmarks" / "calibration.py"
+    result = subprocess.run([sys.executable, str(script), "--folds", "", "--paper-split", "--network", str(tmp_path / "net")],
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode == 2 and "--paper-split: the saved network descriptors are per fold" in result.stderr, result.stderr
