@@ -220,8 +220,9 @@ def map_noise_scale_for_coverage(frames: list[dict[str, Any]], key: str, c_map: 
     frames or when even s = 1000 does not. 1 means the map noise is right for the fold; the
     map's C_map is right on every fold only if every fold needs about the same s."""
     c_map = np.asarray(c_map)
-    pairs = [(np.asarray(f[key]), np.asarray(f["covariance"]) - f.get("map_noise_scale", 1.0) * c_map, f.get("map_noise_scale", 1.0) * c_map)
-             for f in frames if f[key] is not None and f["covariance"] is not None]
+    framed = [(np.asarray(f[key]), np.asarray(f["covariance"]), f.get("map_noise_scale", 1.0) * c_map)
+              for f in frames if f[key] is not None and f["covariance"] is not None]
+    pairs = [(d, c - m, m) for d, c, m in framed]
     if not pairs:
         return None
 

@@ -89,8 +89,10 @@ def test_a_pose_with_less_support_than_the_held_out_keyframes_gets_more_map_nois
     for n in (1, int(n_bar) // 2, int(n_bar), 10 * int(n_bar)):
         np.testing.assert_allclose(m.map_noise_at(n), c * max(1.0, n_bar / n), rtol=1e-15)
     np.testing.assert_array_equal(m.map_noise_at(None), c)
-    with pytest.raises(ValueError, match="inliers"):
-        m.map_noise_at(-1)
+    for bad in (-1, 1.5, True, "10"):
+        with pytest.raises(ValueError, match="inliers"):
+            m.map_noise_at(bad)  # type: ignore[arg-type]
+    np.testing.assert_array_equal(m.map_noise_at(2**70), c)  # more support than any n̄: unscaled
     m.save(tmp_path / "support.geoloc")
     assert geoloc.Map.load(tmp_path / "support.geoloc").map_noise["holdout_inliers"] == n_bar
     # single images: each pose's factor from its own inliers

@@ -416,9 +416,9 @@ class Map:
         """C_map (6, 6, as ``map_noise["pose_covariance"]``) for a pose resting on ``inliers`` PnP
         inliers: C_map·max(1, n̄/inliers), n̄ = ``map_noise["holdout_inliers"]`` — what the
         localizer adds to a pose's covariance (unscaled for None, 0 inliers or n̄ = 0)."""
-        if inliers is not None and (isinstance(inliers, bool) or not isinstance(inliers, (int, np.integer)) or inliers < 0):
-            raise ValueError(f"inliers: expected a count ≥ 0 or None, got {inliers!r}")
-        out: NDArray[np.float64] = self._core.map_noise_at(None if inliers is None else int(inliers))
+        # any support at or above n̄ leaves C_map unscaled: a count past the core's integer range is that
+        count = None if inliers is None else min(_as_int(inliers, "inliers", 0), int(np.iinfo(np.uint32).max))
+        out: NDArray[np.float64] = self._core.map_noise_at(count)
         return out
 
     def retrieve_features(

@@ -341,7 +341,7 @@ pub struct NoiseHeader {
     pub holdout_inliers: f64,
 }
 
-/// Whether a count is 0 (then not written).
+/// Whether n̄ is 0 (then not written).
 fn is_zero(v: &f64) -> bool {
     *v == 0.0
 }
