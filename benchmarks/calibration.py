@@ -139,6 +139,7 @@ def evaluate(
     label_from_cam = se3_inverse(m.keyframe_poses[0]) @ m.camera_poses[0]
     adjoint = se3_adjoint(label_from_cam)
     out["map_noise"]["pose_covariance_labels"] = (adjoint @ noise["pose_covariance"] @ adjoint.T).tolist()
+    out["label_from_cam"] = label_from_cam.tolist()
     for mode in ("single", "sequential"):
         results = geoloc.Localizer(m, locator=locator, global_descriptor=network).localize_sequence(test, mode)
         if gt_reference is not None:
