@@ -62,7 +62,11 @@
 //!
 //! Held-out keyframes (`excluded`, for the map's noise estimate): retrieval and guided
 //! matching skip the excluded keyframes, and a point observed by any excluded keyframe is
-//! not used at all (its position carries the held-out keyframe's own observation).
+//! not used at all (its position carries the held-out keyframe's own observation). Step 8
+//! does not decide a held-out keyframe's two places: the estimate takes E[δδᵀ] = C_G + C_map
+//! with C_G the measurement's covariance, and a decided answer's C + δδᵀ is a hedge between
+//! places, not that (with it, the folds' held-out keyframes that it decided moved C_map's
+//! x-axis σ by −2.0 to +1.6 cm).
 
 use std::ops::Range;
 use std::time::Instant;
@@ -231,8 +235,9 @@ impl Localizer {
                     return Ok((top[rank], h.0, h.1));
                 }
             }
-        } else if let Some(places) = places {
-            // two places: the other retrieved keyframes' matches alone vote between them
+        } else if let Some(places) = places.filter(|_| excluded.is_empty()) {
+            // two places: the other retrieved keyframes' matches alone vote between them (not
+            // for a held-out keyframe: see the module doc)
             let mut others = Vec::new();
             for matches in per_keyframe.iter().skip(1) {
                 let h = self.hypothesis(
