@@ -117,6 +117,22 @@ pub fn viewpoint_consistent(
     })
 }
 
+/// Why a pose with measurement covariance `covariance` (translation first) is too uncertain
+/// to be told from a gross error (module doc, rule 1: a per-axis σ above the caps), if it is.
+pub fn too_uncertain(covariance: &Matrix6<f64>, options: &AcceptanceOptions) -> Option<String> {
+    // NaN propagates: a covariance with a NaN variance is never within the caps
+    let sigma = covariance.diagonal().map(|v| if v.is_nan() { v } else { v.max(0.0).sqrt() });
+    let largest =
+        |from: usize| sigma.rows(from, 3).iter().fold(0.0f64, |m, s| if s.is_nan() || *s > m { *s } else { m });
+    let (sigma_p, sigma_r) = (largest(0), largest(3).to_degrees());
+    (!(sigma_p <= options.max_sigma_position_m && sigma_r <= options.max_sigma_rotation_deg)).then(|| {
+        format!(
+            "too uncertain to be told from a gross error: σ {sigma_p:.3} m / {sigma_r:.2}° > {:.3} m / {:.2}°",
+            options.max_sigma_position_m, options.max_sigma_rotation_deg
+        )
+    })
+}
+
 /// Why the geometric pose with centre `center`, measurement covariance `covariance`
 /// (translation first) and inlier `points` (each with the centres of the keyframes that saw
 /// it) may not be reported, if it may not; see the module doc.
@@ -127,16 +143,8 @@ pub fn rejection(
     observers: &[Vec<Vector3<f64>>],
     options: &AcceptanceOptions,
 ) -> Option<String> {
-    // NaN propagates: a covariance with a NaN variance is never within the caps
-    let sigma = covariance.diagonal().map(|v| if v.is_nan() { v } else { v.max(0.0).sqrt() });
-    let largest =
-        |from: usize| sigma.rows(from, 3).iter().fold(0.0f64, |m, s| if s.is_nan() || *s > m { *s } else { m });
-    let (sigma_p, sigma_r) = (largest(0), largest(3).to_degrees());
-    if !(sigma_p <= options.max_sigma_position_m && sigma_r <= options.max_sigma_rotation_deg) {
-        return Some(format!(
-            "too uncertain to be told from a gross error: σ {sigma_p:.3} m / {sigma_r:.2}° > {:.3} m / {:.2}°",
-            options.max_sigma_position_m, options.max_sigma_rotation_deg
-        ));
+    if let Some(why) = too_uncertain(covariance, options) {
+        return Some(why);
     }
     let supported =
         points.iter().zip(observers).filter(|(x, seen)| viewpoint_consistent(center, x, seen, options)).count();

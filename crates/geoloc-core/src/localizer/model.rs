@@ -54,11 +54,15 @@
 //!    accepted poses lie at one of the two places and none at the other, that place is the
 //!    answer ([`vote_between`]), its covariance widened by δδᵀ (δ the separation) so that its
 //!    region holds the other place too — the vote makes one place likelier, it does not rule
-//!    out the other. Otherwise the frame stays refused. The two hypotheses share most
-//!    matches; another keyframe's matches alone are a view of the place neither was fitted to
-//!    (7-Scenes folds 300–399 and 400–499, single image against the SfM reference: of the 16
-//!    frames refused as two places, 15 decided, 11 within 5 cm / 5°; the others 10–42 cm off,
-//!    inside their widened covariance).
+//!    out the other. The widened covariance must pass the acceptance rule's σ caps
+//!    ([`super::acceptance::too_uncertain`]): places so far apart that the answer could be a
+//!    gross error stay refused. Otherwise, too, the frame stays refused. The two hypotheses
+//!    share most matches; another keyframe's matches alone are a view of the place neither
+//!    was fitted to (7-Scenes, the seven folds, single image against the SfM reference: of
+//!    the 23 frames refused as two places that a vote decides, 7 pass the caps — 6 within
+//!    5 cm / 5° of the reference, one 20 cm off inside its covariance; without the caps the
+//!    other 16 were answered too, 13 of them within 5 cm, three 10–42 cm off with σ up to
+//!    60 cm).
 //!
 //! Held-out keyframes (`excluded`, for the map's noise estimate): retrieval and guided
 //! matching skip the excluded keyframes, and a point observed by any excluded keyframe is
@@ -251,7 +255,10 @@ impl Localizer {
                 )?;
                 others.extend(h.0.ok());
             }
-            if let Some((answer, inliers)) = vote_between(places, &others) {
+            // the widened covariance is a claim like any other: within the σ caps or refused
+            if let Some((answer, inliers)) = vote_between(places, &others)
+                && super::acceptance::too_uncertain(&answer.covariance, &self.options.acceptance).is_none()
+            {
                 return Ok((top[0], Ok(answer), inliers));
             }
         }
@@ -573,6 +580,15 @@ mod tests {
         for others in [vec![near_a, near_b], vec![neither], vec![]] {
             assert!(vote_between([(a, 200), (b, 150)], &others).is_none(), "{} others", others.len());
         }
+        // the widened covariance meets the σ caps (0.152 m) only for places close enough:
+        // 30 cm apart, σ_x = √(0.01² + 0.3²) ≈ 0.30 m is refused; 12 cm apart, ≈ 0.12 m is not
+        let caps = crate::localizer::AcceptanceOptions::default();
+        let (wide, _) = vote_between([(a, 200), (b, 150)], &[near_a]).expect("decided");
+        assert!(super::super::acceptance::too_uncertain(&wide.covariance, &caps).is_some());
+        let c = estimate(accepted([0.12, 0.0, 0.0], 0.0, 0.01, 150));
+        let beside_a = estimate(accepted([-0.02, 0.0, 0.0], 0.0, 0.01, 90));
+        let (close, _) = vote_between([(a, 200), (c, 150)], &[beside_a]).expect("decided");
+        assert!(super::super::acceptance::too_uncertain(&close.covariance, &caps).is_none(), "{}", close.covariance);
     }
 
     /// One refused: the other; both refused: the union's reason.
