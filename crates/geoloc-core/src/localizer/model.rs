@@ -222,19 +222,16 @@ impl Localizer {
             _ => None,
         };
         let chosen = choose_hypothesis(union, alone);
+        // steps 3–5 on the matches of the retrieved keyframe of rank `rank` alone
+        let mut alone_at = |rank: usize| {
+            let matches = one_to_one(per_keyframe[rank].clone());
+            self.hypothesis(frame, model, matches, usable.as_deref(), &excluded, &grid, timings)
+        };
         if neither {
             // neither place was accepted: each of the other retrieved keyframes' matches
             // alone, best-ranked first, the first accepted
-            for (rank, matches) in per_keyframe.iter().enumerate().skip(1) {
-                let h = self.hypothesis(
-                    frame,
-                    model,
-                    one_to_one(matches.clone()),
-                    usable.as_deref(),
-                    &excluded,
-                    &grid,
-                    timings,
-                )?;
+            for rank in 1..per_keyframe.len() {
+                let h = alone_at(rank)?;
                 if h.0.is_ok() {
                     return Ok((top[rank], h.0, h.1));
                 }
@@ -243,17 +240,8 @@ impl Localizer {
             // two places: the other retrieved keyframes' matches alone vote between them (not
             // for a held-out keyframe: see the module doc)
             let mut others = Vec::new();
-            for matches in per_keyframe.iter().skip(1) {
-                let h = self.hypothesis(
-                    frame,
-                    model,
-                    one_to_one(matches.clone()),
-                    usable.as_deref(),
-                    &excluded,
-                    &grid,
-                    timings,
-                )?;
-                others.extend(h.0.ok());
+            for rank in 1..per_keyframe.len() {
+                others.extend(alone_at(rank)?.0.ok());
             }
             // the widened covariance is a claim like any other: within the σ caps or refused
             if let Some((answer, inliers)) = vote_between(places, &others)
