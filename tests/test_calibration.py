@@ -69,6 +69,10 @@ def test_noise_the_held_out_keyframes_cannot_resolve_is_floored_and_said(exact: 
     n = len(second)
     assert np.all(c > 0) and np.all(c >= standard_error * n / (n - 7) * (1 - 1e-12)), (c, standard_error)
     assert "on tx, ty, tz, φx, φy, φz they do not resolve it" in noise["pose_covariance_source"]
+    support = noise["holdout_inliers"]
+    assert support > 0 and noise["pose_covariance_source"].endswith(
+        f"; a pose on n < {support:.0f} inliers (their median) gets C_map·{support:.0f}/n"
+    ), noise["pose_covariance_source"]
     path = tmp_path / "exact.geoloc"
     exact_map.save(path)
     assert geoloc.Map.load(path).map_noise["resolved"] is None  # the samples are build-time diagnostics

@@ -267,12 +267,10 @@ def test_the_readme_command_examples_name_real_commands_and_options() -> None:
 def test_build_map_says_where_the_map_noise_came_from_and_its_support() -> None:
     from geoloc.commands._common import describe_map_noise
 
-    default = {"pose_covariance_source": "default: 0 held-out keyframes < 12 cannot estimate it", "holdout_inliers": 0.0}
-    assert describe_map_noise(default) == "map noise C_map: default: 0 held-out keyframes < 12 cannot estimate it"
-    measured = {"pose_covariance_source": "estimated from 48 held-out keyframes", "holdout_inliers": 531.5}
-    assert describe_map_noise(measured) == (
-        "map noise C_map: estimated from 48 held-out keyframes; a pose on n < 532 inliers (their median) gets C_map·532/n"
-    )
+    # the wording is the core's (Map.map_noise["pose_covariance_source"], geoloc-rs info): the
+    # command only prefixes it
+    source = "estimated from 48 held-out keyframes; a pose on n < 532 inliers (their median) gets C_map·532/n"
+    assert describe_map_noise({"pose_covariance_source": source, "holdout_inliers": 531.5}) == f"map noise C_map: {source}"
 
 
 def test_build_map_gives_the_camera_estimates_median_residual_before_the_rms() -> None:

@@ -66,28 +66,6 @@ def _increasing(timestamps: NDArray[np.float64]) -> NDArray[np.float64] | None:
 
 
 #: The six axes of a pose perturbation, translation first (right perturbation).
-_AXES = ("tx", "ty", "tz", "φx", "φy", "φz")
-
-
-def _noise_source(cov: NDArray[np.float64], samples: int, resolved: list[bool] | None = None) -> str:
-    """Where C_map came from, in words (the core picks; this only describes)."""
-    if not np.any(cov):
-        return "none (the map's noise was not estimated)"
-    if samples < _core.MIN_NOISE_SAMPLES:
-        sigma = np.sqrt(np.diag(cov))
-        return (
-            f"default: {samples} held-out keyframes < {_core.MIN_NOISE_SAMPLES} cannot estimate it "
-            f"(σ {100 * sigma[0]:.0f} cm / {np.degrees(sigma[3]):.0f}° per axis)"
-        )
-    unresolved = [axis for axis, ok in zip(_AXES, resolved or [True] * 6) if not ok]
-    if unresolved:
-        return (
-            f"estimated from {samples} held-out keyframes; on {', '.join(unresolved)} they do not resolve it "
-            "(floored at one standard error or the keyframe poses' variance, never zero)"
-        )
-    return f"estimated from {samples} held-out keyframes"
-
-
 def _build_options(
     branching: int | None,
     depth: int | None,
@@ -384,7 +362,7 @@ class Map:
         ``geoloc._core.MIN_NOISE_SAMPLES`` C_map is a conservative default, never zero),
         ``holdout_inliers`` n̄ (their median PnP inliers: a pose resting on n < n̄ inliers gets
         C_map·n̄/n, see :meth:`map_noise_at`; 0: C_map applies unscaled),
-        ``pose_covariance_source`` (which of the two, in words) and, for a map built in this
+        ``pose_covariance_source`` (which of the two and the support rule, in words) and, for a map built in this
         process (not stored in the file), ``holdout``: the held-out re-localizations
         (``keyframe`` (n,), ``delta`` (n, 6) = log(T_label⁻¹T_est), ``covariance`` (n, 6, 6) C_G,
         ``inliers`` (n,), ``used`` (n,) bool), and ``resolved`` (6,) bool: per axis, whether those samples resolve
@@ -407,7 +385,7 @@ class Map:
             "velocity_variance": np.asarray(velocity_variance),
             "holdout_samples": samples,
             "holdout_inliers": support,
-            "pose_covariance_source": _noise_source(cov, samples, resolved),
+            "pose_covariance_source": self._core.map_noise_description,
             "holdout": holdout,
             "resolved": None if resolved is None else np.asarray(resolved, dtype=bool),
         }

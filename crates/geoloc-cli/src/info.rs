@@ -5,7 +5,6 @@ use std::fmt::Write as _;
 use std::path::Path;
 
 use geoloc_core::map::file::{FORMAT_NAME, FORMAT_VERSION};
-use geoloc_core::map::noise::MIN_NOISE_SAMPLES;
 use geoloc_core::map::{Map, MapHeader, MapNoise, RetrievalHeader, SelfCalibrationHeader};
 use geoloc_core::stats::{EvenMedian, median};
 use nalgebra::Matrix6;
@@ -138,31 +137,23 @@ fn pose_covariances(map: &Map) -> String {
     format!("yes (median σ position {:.4} m, rotation {:.3}°)", sigma_p, sigma_r.to_degrees())
 }
 
-/// C_map's per-axis σ (cm, °), where it came from, and the support it was measured at: what
-/// the localizer adds to every covariance ([`MapNoise::pose_covariance_at`]).
+/// C_map's per-axis σ (cm, °), then where it came from and the support it was measured at
+/// ([`MapNoise::description`]): what the localizer adds to every covariance
+/// ([`MapNoise::pose_covariance_at`]).
 fn map_noise(n: &MapNoise) -> String {
     if n.pose_covariance == Matrix6::zeros() {
         return "not estimated (covariances are the measurement's alone)".to_string();
     }
     let sigma = |a: usize| n.pose_covariance[(a, a)].max(0.0).sqrt();
-    let source = if n.holdout_samples < MIN_NOISE_SAMPLES {
-        format!("the default for maps too small to measure it ({} held-out keyframes)", n.holdout_samples)
-    } else {
-        format!("from {} held-out keyframes", n.holdout_samples)
-    };
-    let support = if n.holdout_inliers > 0.0 {
-        format!("; a pose on n < {0:.0} inliers (their median) gets C_map·{0:.0}/n", n.holdout_inliers)
-    } else {
-        String::new()
-    };
     format!(
-        "C_map σ position {:.1}/{:.1}/{:.1} cm, rotation {:.2}/{:.2}/{:.2}°, {source}{support}",
+        "C_map σ position {:.1}/{:.1}/{:.1} cm, rotation {:.2}/{:.2}/{:.2}°, {}",
         100.0 * sigma(0),
         100.0 * sigma(1),
         100.0 * sigma(2),
         sigma(3).to_degrees(),
         sigma(4).to_degrees(),
-        sigma(5).to_degrees()
+        sigma(5).to_degrees(),
+        n.description()
     )
 }
 
@@ -219,10 +210,13 @@ mod tests {
             MapNoise { pose_covariance: c, holdout_samples: 40, holdout_inliers: 532.0, ..MapNoise::default() };
         assert_eq!(
             map_noise(&estimated),
-            "C_map σ position 2.0/1.0/3.0 cm, rotation 1.00/0.00/0.00°, from 40 held-out keyframes; \
+            "C_map σ position 2.0/1.0/3.0 cm, rotation 1.00/0.00/0.00°, estimated from 40 held-out keyframes; \
              a pose on n < 532 inliers (their median) gets C_map·532/n"
         );
         let default = MapNoise { pose_covariance: c, holdout_samples: 3, ..MapNoise::default() };
-        assert!(map_noise(&default).ends_with("the default for maps too small to measure it (3 held-out keyframes)"));
+        assert!(
+            map_noise(&default)
+                .ends_with("default: 3 held-out keyframes < 12 cannot estimate it (σ 2 cm / 1° per axis)")
+        );
     }
 }

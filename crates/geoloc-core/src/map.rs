@@ -175,6 +175,12 @@ impl MapNoise {
     pub fn resolved_axes(&self) -> Option<[bool; 6]> {
         noise::resolved_axes(&self.holdout)
     }
+
+    /// Where C_map came from and the support it was measured at, in words: the one wording
+    /// of `geoloc build-map`, `Map.map_noise` and `geoloc-rs info` ([`noise::describe`]).
+    pub fn description(&self) -> String {
+        noise::describe(self)
+    }
 }
 
 /// One held-out keyframe re-localized against the rest of the map ([`Map::with_estimated_noise`]).

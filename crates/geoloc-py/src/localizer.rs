@@ -239,6 +239,12 @@ impl FeatureMap {
         (keyframes, matrices_to_array(py, &deltas), matrices_to_array3(py, &covs), inliers, used)
     }
 
+    /// Where C_map came from and the support it was measured at, in words (the core's wording).
+    #[getter]
+    fn map_noise_description(&self) -> String {
+        self.inner.noise.description()
+    }
+
     /// Per axis, whether the build's held-out samples resolve C_map (None: too few, or a loaded map).
     #[getter]
     fn map_noise_resolved(&self) -> Option<Vec<bool>> {

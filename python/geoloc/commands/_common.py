@@ -273,7 +273,5 @@ def describe_labels(found: dict[str, Any] | None) -> str:
 
 def describe_map_noise(noise: dict[str, Any]) -> str:
     """One line on the map's noise C_map (``Map.map_noise``): where it came from and the
-    support it was measured at (a pose on fewer inliers gets it scaled up)."""
-    support = noise["holdout_inliers"]
-    scaled = f"; a pose on n < {support:.0f} inliers (their median) gets C_map·{support:.0f}/n" if support > 0 else ""
-    return f"map noise C_map: {noise['pose_covariance_source']}{scaled}"
+    support it was measured at (the core's wording)."""
+    return f"map noise C_map: {noise['pose_covariance_source']}"

@@ -237,6 +237,47 @@ pub fn resolved_axes(samples: &[HoldoutSample]) -> Option<[bool; 6]> {
     })
 }
 
+/// Twist axis names, translation first (for the descriptions).
+const AXES: [&str; 6] = ["tx", "ty", "tz", "φx", "φy", "φz"];
+
+/// [`MapNoise::description`]: "none (…)" when C_map is zero; the default and why when too few
+/// held-out keyframes estimated it; else how many did, and the axes they do not resolve
+/// ([`resolved_axes`], when the samples are at hand); then, when n̄ > 0, the support rule of
+/// [`MapNoise::pose_covariance_at`]: a pose on n < n̄ inliers gets C_map·n̄/n.
+pub(super) fn describe(noise: &MapNoise) -> String {
+    let c = &noise.pose_covariance;
+    if *c == Matrix6::zeros() {
+        return "none (the map's noise was not estimated)".to_string();
+    }
+    let samples = noise.holdout_samples;
+    let source = if samples < MIN_NOISE_SAMPLES {
+        format!(
+            "default: {samples} held-out keyframes < {MIN_NOISE_SAMPLES} cannot estimate it (σ {:.0} cm / {:.0}° per axis)",
+            100.0 * c[(0, 0)].max(0.0).sqrt(),
+            c[(3, 3)].max(0.0).sqrt().to_degrees()
+        )
+    } else {
+        let unresolved: Vec<&str> = noise
+            .resolved_axes()
+            .map(|r| AXES.iter().zip(r).filter(|(_, ok)| !ok).map(|(name, _)| *name).collect())
+            .unwrap_or_default();
+        if unresolved.is_empty() {
+            format!("estimated from {samples} held-out keyframes")
+        } else {
+            format!(
+                "estimated from {samples} held-out keyframes; on {} they do not resolve it (floored at one standard \
+                 error or the keyframe poses' variance, never zero)",
+                unresolved.join(", ")
+            )
+        }
+    };
+    if noise.holdout_inliers > 0.0 {
+        format!("{source}; a pose on n < {0:.0} inliers (their median) gets C_map·{0:.0}/n", noise.holdout_inliers)
+    } else {
+        source
+    }
+}
+
 /// Per axis, the median over `covariances` of the diagonal entry (zero for none): the typical
 /// variance of a keyframe pose.
 fn median_variance(covariances: Option<&[Matrix6<f64>]>) -> Vector6<f64> {
@@ -372,6 +413,34 @@ mod tests {
         // 5: constant 2 mrad against C_G 1e-6 (excess 3e-6) — resolved
         assert_eq!(resolved_axes(&samples), Some([true, false, true, false, false, true]));
         assert_eq!(resolved_axes(&samples[..MIN_NOISE_SAMPLES - 1]), None);
+    }
+
+    #[test]
+    fn the_description_says_the_source_the_unresolved_axes_and_the_support() {
+        assert_eq!(MapNoise::default().description(), "none (the map's noise was not estimated)");
+        let default = MapNoise { pose_covariance: default_map_covariance(), holdout_samples: 3, ..MapNoise::default() };
+        assert_eq!(
+            default.description(),
+            "default: 3 held-out keyframes < 12 cannot estimate it (σ 5 cm / 2° per axis)"
+        );
+        let c = Matrix6::identity() * 1e-4;
+        let loaded =
+            MapNoise { pose_covariance: c, holdout_samples: 40, holdout_inliers: 531.5, ..MapNoise::default() };
+        // n̄ 531.5 is written as 532 in both places; a loaded map keeps no samples: nothing unresolved
+        assert_eq!(
+            loaded.description(),
+            "estimated from 40 held-out keyframes; a pose on n < 532 inliers (their median) gets C_map·532/n"
+        );
+        let holdout = over_explained();
+        let built = MapNoise { pose_covariance: c, holdout_samples: holdout.len(), holdout, ..MapNoise::default() };
+        assert_eq!(
+            built.description(),
+            format!(
+                "estimated from {} held-out keyframes; on ty, φx, φy they do not resolve it (floored at one standard \
+                 error or the keyframe poses' variance, never zero)",
+                built.holdout_samples
+            )
+        );
     }
 
     #[test]
