@@ -214,14 +214,15 @@ fn choose_at_pose(
             let widened = Estimate { covariance: n.covariance + delta * delta.transpose(), ..*n };
             let beyond = if hedge {
                 super::acceptance::too_uncertain(&widened.covariance, caps)
+                    .map(|why| format!("widened to hold the first, the second is {why}"))
             } else {
-                Some("not widened for a held-out keyframe".to_string())
+                Some("a held-out keyframe's two places are not widened".to_string())
             };
             match beyond {
                 None => (Ok(widened), at_pose.1, true),
                 Some(why) => (
                     Err(format!(
-                        "ambiguous: the retrieved keyframes' matches and those of the keyframes nearest their pose give poses {metres:.2} m / {degrees:.1}° apart ({} and {} inliers); the second, widened to hold the first, is {why}",
+                        "ambiguous: the retrieved keyframes' matches and those of the keyframes nearest their pose give poses {metres:.2} m / {degrees:.1}° apart ({} and {} inliers); {why}",
                         first.1, at_pose.1
                     )),
                     at_pose.1,
