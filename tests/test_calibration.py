@@ -53,8 +53,9 @@ def exact() -> tuple[Any, geoloc.Map]:
 
 
 def test_noise_the_held_out_keyframes_cannot_resolve_is_floored_and_said(exact: tuple[Any, geoloc.Map], tmp_path: Path) -> None:
-    # exact labels: the held-out errors are all measurement error, no axis has map noise
-    # the samples can resolve — C_map is floored on every axis, never zero, and says so
+    # exact labels: the held-out errors are all measurement error — no axis has map noise
+    # beyond chance (one standard error, the resolution rule, is exceeded by chance on about
+    # one axis in six); C_map is floored on every unresolved axis, never zero, and says which
     _, exact_map = exact
     noise = exact_map.map_noise
     assert noise["holdout_samples"] >= geoloc._core.MIN_NOISE_SAMPLES
@@ -64,11 +65,15 @@ def test_noise_the_held_out_keyframes_cannot_resolve_is_floored_and_said(exact: 
     standard_error = second.std(0, ddof=1) / np.sqrt(len(second))
     # resolved ⇔ the excess second moment exceeds one standard error, written out in numpy
     np.testing.assert_array_equal(noise["resolved"], excess > standard_error)
-    assert not noise["resolved"].any()
+    assert np.all(excess < 3 * standard_error), excess / standard_error  # no map noise beyond chance
+    unresolved = ~noise["resolved"]
+    assert unresolved.sum() >= 4, noise["resolved"]
     c = np.diag(noise["pose_covariance"])
     n = len(second)
-    assert np.all(c > 0) and np.all(c >= standard_error * n / (n - 7) * (1 - 1e-12)), (c, standard_error)
-    assert "on tx, ty, tz, φx, φy, φz they do not resolve it" in noise["pose_covariance_source"]
+    floor = standard_error * n / (n - 7) * (1 - 1e-12)
+    assert np.all(c > 0) and np.all(c[unresolved] >= floor[unresolved]), (c, standard_error)
+    names = ", ".join(a for a, u in zip(("tx", "ty", "tz", "φx", "φy", "φz"), unresolved) if u)
+    assert f"on {names} they do not resolve it" in noise["pose_covariance_source"], noise["pose_covariance_source"]
     support = noise["holdout_inliers"]
     assert support > 0 and noise["pose_covariance_source"].endswith(
         f"; a pose on n < {support:.0f} inliers (their median) gets C_map·{support:.0f}/n"
