@@ -180,8 +180,16 @@ fn vote_between(places: [(Estimate, usize); 2], others: &[Estimate]) -> Option<(
         _ => return None,
     };
     let (estimate, inliers) = chosen;
+    Some((widened_to_hold(&estimate, other), inliers))
+}
+
+/// `estimate` with its covariance widened to C + δδᵀ, δ = log(T⁻¹ T_other)^∨ (right
+/// perturbation, translation first), so that its region holds `other` too (NEES of `other`
+/// m/(1 + m) < 1 with m = δᵀC⁻¹δ): an answer that makes one of two places likelier without
+/// ruling out the other (steps 8 and 9).
+fn widened_to_hold(estimate: &Estimate, other: &Estimate) -> Estimate {
     let (delta, _) = correction(&estimate.world_from_cam, &other.world_from_cam, &estimate.covariance);
-    Some((Estimate { covariance: estimate.covariance + delta * delta.transpose(), ..estimate }, inliers))
+    Estimate { covariance: estimate.covariance + delta * delta.transpose(), ..*estimate }
 }
 
 /// Step 9's scale of a keyframe's distance from the pose in translation (m) ...
@@ -195,40 +203,36 @@ pub const NEAREST_SCALE_DEG: f64 = 5.0;
 /// as many inliers — the nearest keyframes' matches were the weaker view — else the second
 /// with its covariance widened to C + δδᵀ (δ = log(T⁻¹ T_first)^∨, as in [`vote_between`]),
 /// refused when that is beyond the acceptance rule's σ caps — or, without `hedge` (a held-out
-/// keyframe: see the module doc), refused as two places. Returns the chosen (pose or refusal,
-/// inliers) and whether it is the second's.
+/// keyframe: see the module doc), refused as two places. Each is (keyframe, pose or refusal,
+/// inliers); the chosen one keeps its keyframe.
 fn choose_at_pose(
-    first: Hypothesis,
-    at_pose: Hypothesis,
+    first: GeometricPose,
+    at_pose: GeometricPose,
     caps: &super::AcceptanceOptions,
     hedge: bool,
-) -> (std::result::Result<Estimate, String>, usize, bool) {
-    let (Ok(f), Ok(n)) = (&first.0, &at_pose.0) else { return (first.0, first.1, false) };
-    let stronger = at_pose.1 > first.1;
+) -> GeometricPose {
+    let (Ok(f), Ok(n)) = (&first.1, &at_pose.1) else { return first };
+    let stronger = at_pose.2 > first.2;
     match apart(f, n) {
-        None if stronger => (at_pose.0, at_pose.1, true),
-        None => (first.0, first.1, false),
-        Some(_) if !stronger => (first.0, first.1, false),
+        None if stronger => at_pose,
+        None => first,
+        Some(_) if !stronger => first,
         Some((metres, degrees)) => {
-            let (delta, _) = correction(&n.world_from_cam, &f.world_from_cam, &n.covariance);
-            let widened = Estimate { covariance: n.covariance + delta * delta.transpose(), ..*n };
+            let widened = widened_to_hold(n, f);
             let beyond = if hedge {
                 super::acceptance::too_uncertain(&widened.covariance, caps)
                     .map(|why| format!("widened to hold the first, the second is {why}"))
             } else {
                 Some("a held-out keyframe's two places are not widened".to_string())
             };
-            match beyond {
-                None => (Ok(widened), at_pose.1, true),
-                Some(why) => (
-                    Err(format!(
-                        "ambiguous: the retrieved keyframes' matches and those of the keyframes nearest their pose give poses {metres:.2} m / {degrees:.1}° apart ({} and {} inliers); {why}",
-                        first.1, at_pose.1
-                    )),
-                    at_pose.1,
-                    true,
-                ),
-            }
+            let answer = match beyond {
+                None => Ok(widened),
+                Some(why) => Err(format!(
+                    "ambiguous: the retrieved keyframes' matches and those of the keyframes nearest their pose give poses {metres:.2} m / {degrees:.1}° apart ({} and {} inliers); {why}",
+                    first.2, at_pose.2
+                )),
+            };
+            (at_pose.0, answer, at_pose.2)
         }
     }
 }
@@ -264,12 +268,9 @@ impl Localizer {
         if nearest.is_empty() || nearest == retrieved {
             return Ok(first);
         }
-        let excluded_none = excluded.is_empty();
+        let hedge = excluded.is_empty();
         let at_pose = self.retrieved_pose(model, frame, &nearest, excluded, timings)?;
-        let (first_keyframe, at_pose_keyframe) = (first.0, at_pose.0);
-        let (pose, inliers, second) =
-            choose_at_pose((first.1, first.2), (at_pose.1, at_pose.2), &self.options.acceptance, excluded_none);
-        Ok((if second { at_pose_keyframe } else { first_keyframe }, pose, inliers))
+        Ok(choose_at_pose(first, at_pose, &self.options.acceptance, hedge))
     }
 
     /// Steps 2–8 from the keyframes `top` (best first).
@@ -697,35 +698,37 @@ mod tests {
     #[test]
     fn the_keyframes_nearest_the_answer_replace_it_only_with_more_support() {
         let caps = crate::localizer::AcceptanceOptions::default();
-        let first = accepted([0.0; 3], 0.0, 0.01, 200);
-        let pick = |a: Hypothesis, b: Hypothesis| choose_at_pose(a, b, &caps, true);
-        let (pose, inliers, second) = pick(first.clone(), refused("n"));
-        assert_eq!((pose.expect("first").world_from_cam, inliers, second), (SE3::identity(), 200, false));
+        // the first answer from keyframe 1, the second from keyframe 2
+        let on = |k: usize, h: Hypothesis| (k, h.0, h.1);
+        let first = on(1, accepted([0.0; 3], 0.0, 0.01, 200));
+        let pick = |a: GeometricPose, b: Hypothesis| choose_at_pose(a, on(2, b), &caps, true);
+        let (keyframe, pose, inliers) = pick(first.clone(), refused("n"));
+        assert_eq!((pose.expect("first").world_from_cam, inliers, keyframe), (SE3::identity(), 200, 1));
         let same_place = |n| accepted([0.03, 0.0, 0.0], 0.0, 0.01, n);
-        assert_eq!(pick(first.clone(), same_place(201)).1, 201);
-        assert!(pick(first.clone(), same_place(201)).2);
-        assert_eq!(pick(first.clone(), same_place(200)).1, 200);
-        assert!(!pick(first.clone(), same_place(200)).2, "ties: the first");
+        assert_eq!(pick(first.clone(), same_place(201)).2, 201);
+        assert_eq!(pick(first.clone(), same_place(201)).0, 2);
+        assert_eq!(pick(first.clone(), same_place(200)).2, 200);
+        assert_eq!(pick(first.clone(), same_place(200)).0, 1, "ties: the first");
         let near = |x: f64, n| accepted([x, 0.0, 0.0], 0.0, 0.01, n);
-        let (weaker, _, second) = pick(first.clone(), near(0.12, 150));
-        assert!(!second && weaker.expect("first").world_from_cam == SE3::identity());
-        let (widened, inliers, second) = pick(first.clone(), near(0.12, 250));
+        let (keyframe, weaker, _) = pick(first.clone(), near(0.12, 150));
+        assert!(keyframe == 1 && weaker.expect("first").world_from_cam == SE3::identity());
+        let (keyframe, widened, inliers) = pick(first.clone(), near(0.12, 250));
         let widened = widened.expect("within the caps");
-        assert!(second && inliers == 250);
+        assert!(keyframe == 2 && inliers == 250);
         assert!((widened.world_from_cam.translation.x - 0.12).abs() < 1e-12);
         let mut want = nalgebra::Matrix6::identity() * 1e-4;
         want[(0, 0)] += 0.12 * 0.12;
         assert!((widened.covariance - want).abs().max() < 1e-12, "{}", widened.covariance);
-        let (refusal, _, _) = pick(first.clone(), near(0.30, 250));
+        let (_, refusal, _) = pick(first.clone(), near(0.30, 250));
         let why = refusal.expect_err("beyond the caps");
         assert!(
             why.contains("0.30 m") && why.contains("200 and 250 inliers") && why.contains("too uncertain"),
             "{why}"
         );
         // a held-out keyframe is not hedged: two places stay refused, one place is decided as above
-        let (held_out, _, _) = choose_at_pose(first.clone(), near(0.12, 250), &caps, false);
+        let (_, held_out, _) = choose_at_pose(first.clone(), on(2, near(0.12, 250)), &caps, false);
         assert!(held_out.expect_err("two places").contains("held-out"));
-        assert_eq!(choose_at_pose(first, same_place(201), &caps, false).1, 201);
+        assert_eq!(choose_at_pose(first, on(2, same_place(201)), &caps, false).2, 201);
     }
 
     /// One refused: the other; both refused: the union's reason.
