@@ -142,7 +142,7 @@ fn pose_covariances(map: &Map) -> String {
 /// ([`MapNoise::pose_covariance_at`]).
 fn map_noise(n: &MapNoise) -> String {
     if n.pose_covariance == Matrix6::zeros() {
-        return "not estimated (covariances are the measurement's alone)".to_string();
+        return n.description();
     }
     let sigma = |a: usize| n.pose_covariance[(a, a)].max(0.0).sqrt();
     format!(
@@ -196,7 +196,7 @@ mod tests {
 
     #[test]
     fn the_map_noise_line_says_sigma_source_and_support() {
-        assert_eq!(map_noise(&MapNoise::default()), "not estimated (covariances are the measurement's alone)");
+        assert_eq!(map_noise(&MapNoise::default()), "none: not estimated, covariances are the measurement's alone");
         let deg = 1f64.to_radians();
         let c = Matrix6::from_diagonal(&Vector6::new(
             0.02f64.powi(2),

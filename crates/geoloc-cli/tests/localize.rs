@@ -225,7 +225,7 @@ fn info_describes_the_map_and_refuses_a_corrupt_one() {
         "binary (32 bytes, Hamming)",
         "bag of words",
         "pose covariances  no",
-        "map noise         not estimated",
+        "map noise         none: not estimated",
         "fx 525 fy 525 cx 320 cy 240",
         "camera estimate   none (the given intrinsics are used as they are)",
         "pose labels       as given (not adjusted)",

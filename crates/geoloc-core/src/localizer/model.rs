@@ -286,7 +286,7 @@ impl Localizer {
         let t = Instant::now();
         let grid = KeypointGrid::new(frame.keypoints, self.options.guided_radius_px);
         let per_keyframe = self.retrieved_matches(frame, model, top, usable.as_deref())?;
-        timings.matching_ms = ms(t);
+        timings.matching_ms += ms(t);
         let union = one_to_one(per_keyframe.concat());
         if top.len() == 1 {
             let chosen = self.hypothesis(frame, model, union, usable.as_deref(), &excluded, &grid, timings)?;

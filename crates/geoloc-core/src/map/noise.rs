@@ -240,14 +240,14 @@ pub fn resolved_axes(samples: &[HoldoutSample]) -> Option<[bool; 6]> {
 /// Twist axis names, translation first (for the descriptions).
 const AXES: [&str; 6] = ["tx", "ty", "tz", "φx", "φy", "φz"];
 
-/// [`MapNoise::description`]: "none (…)" when C_map is zero; the default and why when too few
+/// [`MapNoise::description`]: "none: …" when C_map is zero; the default and why when too few
 /// held-out keyframes estimated it; else how many did, and the axes they do not resolve
 /// ([`resolved_axes`], when the samples are at hand); then, when n̄ > 0, the support rule of
 /// [`MapNoise::pose_covariance_at`]: a pose on n < n̄ inliers gets C_map·n̄/n.
 pub(super) fn describe(noise: &MapNoise) -> String {
     let c = &noise.pose_covariance;
     if *c == Matrix6::zeros() {
-        return "none (the map's noise was not estimated)".to_string();
+        return "none: not estimated, covariances are the measurement's alone".to_string();
     }
     let samples = noise.holdout_samples;
     let source = if samples < MIN_NOISE_SAMPLES {
@@ -417,7 +417,7 @@ mod tests {
 
     #[test]
     fn the_description_says_the_source_the_unresolved_axes_and_the_support() {
-        assert_eq!(MapNoise::default().description(), "none (the map's noise was not estimated)");
+        assert_eq!(MapNoise::default().description(), "none: not estimated, covariances are the measurement's alone");
         let default = MapNoise { pose_covariance: default_map_covariance(), holdout_samples: 3, ..MapNoise::default() };
         assert_eq!(
             default.description(),
