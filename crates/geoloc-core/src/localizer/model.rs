@@ -323,13 +323,21 @@ impl Localizer {
     ) -> Result<GeometricPose> {
         let mut retrieved = top.to_vec();
         retrieved.sort_unstable();
-        let mut confirmed = Vec::new();
-        for (place, inliers) in places {
+        // the two places are independent: solved side by side when threads are available,
+        // each with its own timings (summed below, as for the two hypotheses)
+        let solved = map_slice(&places, 2, |(place, _)| {
             let nearest = nearest_keyframes(self, &place.world_from_cam, top.len(), &(0..0));
             if nearest.is_empty() || nearest == retrieved {
-                continue;
+                return (Ok(None), Timings::default());
             }
-            let (at_place, _) = self.retrieved_pose(model, frame, &nearest, 0..0, timings)?;
+            let mut own = Timings::default();
+            (self.retrieved_pose(model, frame, &nearest, 0..0, &mut own).map(|(at, _)| Some(at)), own)
+        });
+        let mut confirmed = Vec::new();
+        for ((place, inliers), (at_place, own)) in places.into_iter().zip(solved) {
+            timings.matching_ms += own.matching_ms;
+            timings.pnp_ms += own.pnp_ms;
+            let Some(at_place) = at_place? else { continue };
             if let Ok(e) = &at_place.1
                 && apart(&place, e).is_none()
             {
