@@ -90,9 +90,9 @@
 //!     nearest the wrong one do not. Single image against the SfM reference, the seven folds
 //!     and the paper's split: 19 refused frames answered, 17 within 5 cm / 5°, two 15 and
 //!     20 cm off outside their 99.9 % region (the seven folds: 3 of 694 answers outside it,
-//!     was 1 of 677);
-//!     recall 300–399 93 → 99 %, 400–499 83 → 87 %, 500–599 97 → 99 %, 0–99, 100–199,
-//!     600–699 and the paper's split +1 to +2 points. It costs two solves on such frames only.
+//!     was 1 of 677); recall 300–399 93 → 99 %, 400–499 83 → 87 %, 500–599 97 → 99 %, 0–99,
+//!     100–199, 600–699 and the paper's split +1 to +2 points. It costs two solves, side by
+//!     side when threads are available, on such frames only.
 //!
 //! Held-out keyframes (`excluded`, for the map's noise estimate): retrieval and guided
 //! matching skip the excluded keyframes, and a point observed by any excluded keyframe is
@@ -812,7 +812,6 @@ mod tests {
         assert_eq!(choose_at_pose(first, on(2, same_place(201)), &caps, false).2, 201);
     }
 
-    /// One refused: the other; both refused: the union's reason.
     /// Step 10 in closed form: one confirmed place is the answer; none or both leave the
     /// refusal, which says which.
     #[test]
@@ -833,6 +832,7 @@ mod tests {
         }
     }
 
+    /// One refused: the other; both refused: the union's reason.
     #[test]
     fn a_refused_hypothesis_leaves_the_other() {
         let ok = accepted([1.0, 0.0, 0.0], 0.0, 0.01, 90);
