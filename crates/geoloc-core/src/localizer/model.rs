@@ -188,7 +188,7 @@ fn apart(a: &Estimate, b: &Estimate) -> Option<(f64, f64)> {
 /// and none at the other; None when they do not decide (none accepted, or some at each).
 /// The answer's covariance holds both places, C + δδᵀ with δ = log(T⁻¹ T_other)^∨: the vote
 /// makes one place likelier, it does not rule out the other.
-fn vote_between(places: [(Estimate, usize); 2], others: &[Estimate]) -> Option<(Estimate, usize)> {
+fn vote_between(places: Places, others: &[Estimate]) -> Option<(Estimate, usize)> {
     let [(a, _), (b, _)] = &places;
     let sides =
         |x: &Estimate, y: &Estimate| others.iter().filter(|o| apart(o, x).is_none() && apart(o, y).is_some()).count();
@@ -268,6 +268,13 @@ fn one_confirmed(refusal: GeometricPose, confirmed: Vec<GeometricPose>) -> Geome
     }
 }
 
+/// Adds the matching and PnP times of a solve that ran side by side with others (with its
+/// own [`Timings`]) to the frame's: the stage times are sums over every solve, not wall time.
+fn add_solve_times(timings: &mut Timings, own: &Timings) {
+    timings.matching_ms += own.matching_ms;
+    timings.pnp_ms += own.pnp_ms;
+}
+
 /// Candidate points below which guided matching stays on the calling thread.
 const GUIDED_PARALLEL_MIN_POINTS: usize = 2048;
 
@@ -297,15 +304,30 @@ impl Localizer {
         }
         // step 9: the keyframes nearest the answer, retrieved by its pose
         let Ok(answer) = &first.1 else { return Ok(first) };
-        let nearest = nearest_keyframes(self, &answer.world_from_cam, top.len(), &excluded);
+        let hedge = excluded.is_empty();
+        let pose = answer.world_from_cam;
+        let Some(at_pose) = self.solved_at(model, frame, &pose, top, excluded, timings)? else { return Ok(first) };
+        Ok(choose_at_pose(first, at_pose, &self.options.acceptance, hedge))
+    }
+
+    /// Steps 2–8 from the `top.len()` keyframes nearest `pose` outside `excluded` (steps 9 and
+    /// 10), or None when those are the retrieved keyframes `top` — solved already — or none.
+    fn solved_at(
+        &self,
+        model: &SceneModel,
+        frame: &Frame<'_>,
+        pose: &SE3,
+        top: &[usize],
+        excluded: Range<usize>,
+        timings: &mut Timings,
+    ) -> Result<Option<GeometricPose>> {
+        let nearest = nearest_keyframes(self, pose, top.len(), &excluded);
         let mut retrieved = top.to_vec();
         retrieved.sort_unstable();
         if nearest.is_empty() || nearest == retrieved {
-            return Ok(first);
+            return Ok(None);
         }
-        let hedge = excluded.is_empty();
-        let (at_pose, _) = self.retrieved_pose(model, frame, &nearest, excluded, timings)?;
-        Ok(choose_at_pose(first, at_pose, &self.options.acceptance, hedge))
+        Ok(Some(self.retrieved_pose(model, frame, &nearest, excluded, timings)?.0))
     }
 
     /// Step 10: each of two `places` (refused as `refusal`) solved again (steps 2–8) from the
@@ -321,22 +343,15 @@ impl Localizer {
         top: &[usize],
         timings: &mut Timings,
     ) -> Result<GeometricPose> {
-        let mut retrieved = top.to_vec();
-        retrieved.sort_unstable();
         // the two places are independent: solved side by side when threads are available,
         // each with its own timings (summed below, as for the two hypotheses)
         let solved = map_slice(&places, 2, |(place, _)| {
-            let nearest = nearest_keyframes(self, &place.world_from_cam, top.len(), &(0..0));
-            if nearest.is_empty() || nearest == retrieved {
-                return (Ok(None), Timings::default());
-            }
             let mut own = Timings::default();
-            (self.retrieved_pose(model, frame, &nearest, 0..0, &mut own).map(|(at, _)| Some(at)), own)
+            (self.solved_at(model, frame, &place.world_from_cam, top, 0..0, &mut own), own)
         });
         let mut confirmed = Vec::new();
         for ((place, inliers), (at_place, own)) in places.into_iter().zip(solved) {
-            timings.matching_ms += own.matching_ms;
-            timings.pnp_ms += own.pnp_ms;
+            add_solve_times(timings, &own);
             let Some(at_place) = at_place? else { continue };
             if let Ok(e) = &at_place.1
                 && apart(&place, e).is_none()
@@ -384,8 +399,7 @@ impl Localizer {
         let (alone, alone_timings) = solved.pop().expect("invariant: two hypotheses");
         let (union, union_timings) = solved.pop().expect("invariant: two hypotheses");
         for own in [union_timings, alone_timings] {
-            timings.matching_ms += own.matching_ms;
-            timings.pnp_ms += own.pnp_ms;
+            add_solve_times(timings, &own);
         }
         let (union, alone) = (union?, alone?);
         let neither = union.0.is_err() && alone.0.is_err();
