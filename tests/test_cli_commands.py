@@ -195,6 +195,39 @@ def test_localize_a_folder_of_images(room_map: Path, tmp_path: Path) -> None:
     assert np.allclose([[float(v) for v in r[1:4]] for r in rows], room.poses[[33, 36, 39], :3, 3], atol=SYNTHETIC_MEDIAN_M)
 
 
+def test_localize_to_standard_output_writes_what_a_file_would_get(room_map: Path, tmp_path: Path) -> None:
+    """``--out -`` wrote a file named ``-``; ``geoloc-rs`` takes ``-`` as standard output."""
+    import cv2
+
+    room = datasets.synthetic_room(n_frames=ROOM_FRAMES)
+    images = tmp_path / "images"
+    images.mkdir()
+    for i in (33, 36):
+        cv2.imwrite(str(images / f"{room.timestamps[i]:.6f}.png"), room[i].image)
+    out = tmp_path / "poses.txt"
+    to_file = _run("localize", "--map", str(room_map), "--images", str(images), "--out", str(out))
+    to_stdout = _run("localize", "--map", str(room_map), "--images", str(images), "--out", "-", cwd=tmp_path)
+    assert to_file.returncode == 0 and to_stdout.returncode == 0, to_stdout.stderr
+    assert to_stdout.stdout == out.read_text() and to_stdout.stdout.count("\n") == 3
+    assert "-> standard output" in to_stdout.stderr
+    assert not (tmp_path / "-").exists()
+
+
+def test_a_run_that_loses_every_frame_fails_with_exit_1_and_writes_nothing(room_map: Path, tmp_path: Path) -> None:
+    """Losing every frame is a failed run (exit 1), not a usage or input error (exit 2)."""
+    import cv2
+
+    images = tmp_path / "black"
+    images.mkdir()
+    for i in range(2):
+        cv2.imwrite(str(images / f"{i}.png"), np.zeros((480, 640, 3), np.uint8))
+    result = _run("localize", "--map", str(room_map), "--images", str(images), "--out", str(tmp_path / "p.txt"))
+    assert result.returncode == 1, result.stdout + result.stderr
+    assert "Traceback" not in result.stderr
+    assert "every one of the 2 frames was lost; nothing written to" in result.stderr
+    assert not (tmp_path / "p.txt").exists()
+
+
 def test_images_of_another_size_are_refused(room_map: Path, tmp_path: Path) -> None:
     import cv2
 

@@ -221,6 +221,45 @@ def test_tum_bad_input(tum_folder: tuple[Path, datasets.Sequence], tmp_path: Pat
         datasets.load_tum(copy)
 
 
+def test_repeated_timestamps_are_refused_naming_both_entries(tum_folder: tuple[Path, datasets.Sequence],
+                                                              tmp_path: Path) -> None:
+    """A second ground-truth row at a frame's time, 5 m off, silently became that frame's label
+    (the later row won), in ``load_tum``, ``build-map`` and ``evaluate --reference``."""
+    from geoloc.reference import load_reference
+
+    root, _ = tum_folder
+    copy = tmp_path / "room"
+    shutil.copytree(root, copy)
+    gt = [line for line in (copy / "groundtruth.txt").read_text().splitlines() if not line.startswith("#")]
+    t, *pose = gt[8].split()
+    (copy / "groundtruth.txt").write_text("\n".join([*gt, " ".join([t, str(float(pose[0]) + 5), *pose[1:]])]) + "\n")
+    with pytest.raises(geoloc.DatasetError, match=rf"groundtruth.txt'.*pose 11 has the timestamp {t} of pose 9"):
+        datasets.load_tum(copy)
+    with pytest.raises(geoloc.DatasetError, match="pose 11 has the timestamp"):
+        load_reference(copy / "groundtruth.txt", fmt="tum")
+    shutil.copy(root / "groundtruth.txt", copy / "groundtruth.txt")
+    rgb = [line for line in (copy / "rgb.txt").read_text().splitlines() if not line.startswith("#")]
+    (copy / "rgb.txt").write_text("\n".join([*rgb, f"{rgb[2].split()[0]} {rgb[3].split()[1]}"]) + "\n")
+    with pytest.raises(geoloc.DatasetError, match="rgb.txt'.*entry 11 has the timestamp .* of entry 3"):
+        datasets.load_tum(copy)
+
+
+def test_two_image_names_of_one_timestamp_are_refused_naming_both(tmp_path: Path) -> None:
+    """``63.png`` and ``063.png`` reached the localizer as one time twice ("timestamp: must
+    increase, got 63", naming no file)."""
+    for name in ("63.png", "063.png", "64.png"):
+        cv2.imwrite(str(tmp_path / name), np.zeros((48, 64, 3), np.uint8))
+    with pytest.raises(geoloc.DatasetError, match=r"image names in .*: '63.png' has the timestamp 63.0 of '063.png'"):
+        datasets.load_folder(tmp_path, intrinsics=(50, 50, 32, 24))
+
+
+def test_associate_gives_a_tie_to_the_earlier_reference() -> None:
+    from geoloc.datasets.tum import associate
+
+    reference = np.array([0.9, 1.0, 1.0, 1.1])
+    assert associate(np.array([1.0000001, 0.95, 1.05, 2.0]), reference, 0.5).tolist() == [1, 0, 1, -1]
+
+
 # ---------------------------------------------------------------------------- folder
 
 

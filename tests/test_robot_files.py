@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import stat
 import subprocess
 import sys
 import threading
@@ -205,6 +206,62 @@ def test_json_writers_from_threads_leave_one_complete_version(tmp_path: Path) ->
     assert not errors
     assert json.loads(target.read_text()) in versions
     assert os.listdir(tmp_path) == ["r.json"]
+
+
+# ------------------------------------------------------------------ what an output file is
+
+
+def _plain_create_mode(folder: Path) -> int:
+    """The permission bits a plain ``open(path, "w")`` gives a new file in ``folder``."""
+    probe = folder / "plain-create-probe"
+    probe.write_text("x")
+    mode = stat.S_IMODE(probe.stat().st_mode)
+    probe.unlink()
+    return mode
+
+
+@pytest.mark.skipif(not hasattr(os, "fchmod"), reason="POSIX permission bits")
+def test_outputs_get_a_plain_creates_permissions_or_keep_the_replaced_files(tmp_path: Path,
+                                                                            small_map: geoloc.Map) -> None:
+    """Text outputs came out 0600 (mkstemp's mode): a viewer running as another user could
+    not read the poses a robot wrote."""
+    plain = _plain_create_mode(tmp_path)
+    write_json_atomic(tmp_path / "new.json", {"a": 1})
+    small_map.save(tmp_path / "new.geoloc")
+    assert stat.S_IMODE((tmp_path / "new.json").stat().st_mode) == plain
+    assert stat.S_IMODE((tmp_path / "new.geoloc").stat().st_mode) == plain
+    for name, write in (("old.json", lambda p: write_json_atomic(p, {"b": 2})), ("old.geoloc", small_map.save)):
+        target = tmp_path / name
+        target.write_text("old")
+        target.chmod(0o640)
+        write(target)
+        assert stat.S_IMODE(target.stat().st_mode) == 0o640, name
+
+
+def test_outputs_are_written_through_a_symlink_and_refused_through_a_dangling_one(tmp_path: Path,
+                                                                                  small_map: geoloc.Map) -> None:
+    for name, write in (("r.json", lambda p: write_json_atomic(p, {"b": 2})), ("m.geoloc", small_map.save)):
+        real, link = tmp_path / f"real-{name}", tmp_path / f"link-{name}"
+        real.write_text("old")
+        link.symlink_to(real.name)
+        write(link)
+        assert link.is_symlink() and real.read_bytes() != b"old", name
+        dangling = tmp_path / f"dangling-{name}"
+        dangling.symlink_to(f"nowhere-{name}")
+        with pytest.raises(geoloc.InvalidInputError, match="dangling"):
+            write(dangling)
+        assert not (tmp_path / f"nowhere-{name}").exists()
+    assert not [n for n in os.listdir(tmp_path) if n.endswith(".tmp")]
+
+
+def test_outputs_with_names_of_the_file_systems_full_length_are_written(tmp_path: Path, small_map: geoloc.Map) -> None:
+    """The core's temp name repeated the whole target name and overflowed 255 bytes."""
+    json_path, map_path = tmp_path / ("j" * 250 + ".json"), tmp_path / ("m" * 248 + ".geoloc")
+    write_json_atomic(json_path, {"a": 1})
+    small_map.save(map_path)
+    assert json.loads(json_path.read_text()) == {"a": 1}
+    assert len(geoloc.Map.load(map_path)) == len(small_map)
+    assert sorted(os.listdir(tmp_path)) == sorted([json_path.name, map_path.name])
 
 
 # ------------------------------------------------------------------ damaged map headers

@@ -6,7 +6,11 @@ run) and name the argument and the path (its ``repr``, so odd bytes show). Paths
 libraries only as bytes read by Python: OpenCV gets :func:`read_bytes`' data, never a path.
 
 Outputs: a temp file in the same folder (a unique ``mkstemp`` name), fsync, then rename, so an
-interrupted write never leaves a half-written file and never destroys the previous one.
+interrupted write never leaves a half-written file and never destroys the previous one. The
+new file keeps the permissions of the one it replaces; a new file gets those of a plain
+``open(path, "w")`` (0666 less the umask), as the core's writer gives them. An output that is
+a symlink is written through (the file it points to is replaced, the link kept); a dangling
+one is refused.
 Missing parent folders are **not** created: a path in a folder that does not exist is a
 mistake the user should hear about, not a directory tree silently made for them. A path
 ending in a separator means a folder and is refused as a file to write. :func:`refuse_alias`
@@ -124,7 +128,7 @@ def read_bytes(path: Any, name: str = "path", error: type[InvalidInputError] = I
 def check_output_path(path: Any, name: str = "path") -> Path:
     """``path`` as a Path to a file whose parent folder exists and is writable; else
     InvalidInputError naming ``name``. A path ending in a separator names a folder and is
-    refused; so is a name longer than the file system allows."""
+    refused; so is a name longer than the file system allows, and a symlink to nothing."""
     target = as_path(path, name)
     text = os.fspath(path)
     if text.endswith(os.sep) or (os.altsep is not None and text.endswith(os.altsep)):
@@ -137,6 +141,10 @@ def check_output_path(path: Any, name: str = "path") -> Path:
     size = len(os.fsencode(target.name))
     if size > name_max:
         raise InvalidInputError(f"{name}: the file name {target.name[:40]!r}… is {size} bytes; the folder allows {name_max}")
+    if os.path.islink(target) and not os.path.exists(target):
+        raise InvalidInputError(
+            f"{name}: {str(target)!r} is a symlink to a file that does not exist (not written through a dangling link)"
+        )
     try:
         mode = os.stat(target).st_mode
     except FileNotFoundError:
@@ -186,6 +194,35 @@ def refuse_alias(output: Any, output_name: str, inputs: Iterable[tuple[str, Any]
             )
 
 
+def _umask() -> int:
+    """The process's umask, read without changing it where Linux shows it (``os.umask``
+    sets it to read it, which races with other threads creating files)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def _mode_for(target: Path) -> int:
+    """The permission bits the file written to ``target`` gets: the replaced file's, or
+    0666 less the umask for a new one."""
+    try:
+        return stat.S_IMODE(os.stat(target).st_mode)
+    except OSError:
+        return 0o666 & ~_umask()
+
+
+def _written_through(target: Path, name: str) -> Path:
+    """The file a write to the checked output ``target`` replaces: ``target``, or the file
+    a symlink there points to (checked as an output in turn)."""
+    return check_output_path(os.path.realpath(target), name) if os.path.islink(target) else target
+
+
 def _temp(target: Path, name: str, text: bool) -> tuple[int, str]:
     try:
         return tempfile.mkstemp(dir=target.parent, prefix=f".{target.name[:_TEMP_STEM]}.", suffix=".tmp", text=text)
@@ -194,9 +231,12 @@ def _temp(target: Path, name: str, text: bool) -> tuple[int, str]:
 
 
 def _write_atomic(path: Any, name: str, write: Callable[[Any], object], binary: bool = False) -> None:
-    target = check_output_path(path, name)
+    target = _written_through(check_output_path(path, name), name)
+    mode = _mode_for(target)
     fd, tmp = _temp(target, name, not binary)
     try:
+        if hasattr(os, "fchmod"):
+            os.fchmod(fd, mode)
         f: Any = os.fdopen(fd, "wb") if binary else os.fdopen(fd, "w", encoding="utf-8", newline="\n")
         with f:
             write(f)

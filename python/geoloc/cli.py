@@ -15,6 +15,8 @@ import traceback
 from typing import Callable, Sequence
 
 from .commands._options import (
+    EXIT_FAILURE,
+    EXIT_USAGE,
     MAX_SEED,
     MAX_SYNTHETIC_FRAMES,
     bounded_int,
@@ -23,15 +25,11 @@ from .commands._options import (
     frame_range,
     new_folder,
     output_file,
+    output_file_or_stdout,
     retrieval,
 )
 from .exceptions import GeolocError, InvalidInputError
 from .reference import REFERENCE_FORMATS
-
-#: Exit status of a usage or input error (argparse uses 2 too).
-EXIT_USAGE = 2
-#: Exit status of a run that failed for another reason (a check failed, I/O failed).
-EXIT_FAILURE = 1
 
 #: The largest trial / sample counts the commands accept (bounded run time and memory).
 MAX_TRIALS = 1_000_000
@@ -187,7 +185,10 @@ def _add_localize(commands: argparse._SubParsersAction[argparse.ArgumentParser])
         help="paper: one retrieved keyframe and its group; model: top-k retrieval against the map's 3D model "
         "(default: the core's, geoloc.Localizer.default_options())",
     )
-    loc.add_argument("--out", type=output_file, required=True, metavar="poses.txt", help="TUM trajectory to write (its folder must exist)")
+    loc.add_argument(
+        "--out", type=output_file_or_stdout, required=True, metavar="poses.txt",
+        help="TUM trajectory to write (its folder must exist); - writes it to standard output",
+    )
 
     def run(args: argparse.Namespace) -> int:
         from .commands import localize

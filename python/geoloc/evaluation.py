@@ -56,6 +56,7 @@ __all__ = [
     "summarize",
     "summarize_results",
     "tangent_errors",
+    "tum_trajectory_text",
     "write_tum_trajectory",
 ]
 
@@ -423,15 +424,20 @@ def format_tum_line(timestamp: float, pose: ArrayLike) -> str:
     return " ".join(repr(float(v)) for v in [t, *values])
 
 
-def write_tum_trajectory(path: str | os.PathLike[str], timestamps: ArrayLike, poses: ArrayLike) -> None:
-    """Write ``timestamps`` (N,) s and world_from_cam ``poses`` (N, 4, 4) as a TUM
-    trajectory (one :func:`format_tum_line` per pose), atomically: a temp file in the same
-    folder, fsync, rename. Missing parent folders are not created; an unwritable path raises
-    InvalidInputError naming it."""
+def tum_trajectory_text(timestamps: ArrayLike, poses: ArrayLike) -> str:
+    """``timestamps`` (N,) s and world_from_cam ``poses`` (N, 4, 4) as the text of a TUM
+    trajectory: a comment line, then one :func:`format_tum_line` per pose."""
     ts = as_float64(timestamps, "timestamps").reshape(-1)
     T = _poses(poses, "poses")
     if len(ts) != len(T):
         raise InvalidInputError(f"timestamps, poses: expected the same count, got {len(ts)} and {len(T)}")
     lines = ["# timestamp tx ty tz qx qy qz qw (world_from_cam; written by geoloc)"]
     lines += [format_tum_line(t, p) for t, p in zip(ts, T)]
-    write_text_atomic(path, "\n".join(lines) + "\n")
+    return "\n".join(lines) + "\n"
+
+
+def write_tum_trajectory(path: str | os.PathLike[str], timestamps: ArrayLike, poses: ArrayLike) -> None:
+    """Write :func:`tum_trajectory_text` to ``path`` atomically: a temp file in the same
+    folder, fsync, rename. Missing parent folders are not created; an unwritable path raises
+    InvalidInputError naming it."""
+    write_text_atomic(path, tum_trajectory_text(timestamps, poses))

@@ -7,7 +7,12 @@
 //!   target, and `fsync` of the folder. A reader of the target sees the previous file or the
 //!   new one, complete, never a mixture; of concurrent writers to one path the last rename
 //!   wins. On any failure, or when the writer is dropped uncommitted, the temp file is
-//!   removed and the target is left as it was.
+//!   removed and the target is left as it was. `NAME` is the target's name cut to
+//!   [`TEMP_STEM_BYTES`] (a target name of the file system's full length still gets a temp
+//!   name that fits). The new file keeps the permissions of the one it replaces; a new
+//!   target gets the permissions a plain create gives (0666 less the umask). A target that is
+//!   a symlink is written through: the file it points to is replaced and the link kept (a
+//!   dangling link is refused, as `cp` refuses it).
 //! * **Regular files only** ([`check_regular_file`], [`open_regular`]): opening a FIFO for
 //!   reading blocks until a writer appears, and a device can stream forever, so readers
 //!   refuse anything but a regular file (symlinks are followed) before opening it.
@@ -41,6 +46,33 @@ const TEMP_ATTEMPTS: u32 = 1000;
 /// The process-wide counter that makes each temp name unique within this process.
 static TEMP_COUNTER: AtomicU64 = AtomicU64::new(0);
 
+/// The longest part of the target's name a temp name repeats (bytes): `.NAME.PID.N.tmp` must
+/// fit the 255 bytes a file name may have wherever the target's name fits.
+pub const TEMP_STEM_BYTES: usize = 64;
+
+/// The first `TEMP_STEM_BYTES` bytes of `name`, cut at a character boundary.
+fn temp_stem(name: &str) -> &str {
+    let mut end = name.len().min(TEMP_STEM_BYTES);
+    while !name.is_char_boundary(end) {
+        end -= 1;
+    }
+    &name[..end]
+}
+
+/// The file a write to `path` replaces: `path` itself, or the file a symlink at `path`
+/// points to (followed to the end).
+///
+/// # Errors
+/// `Io` naming `path` when it is a symlink to nothing.
+fn written_through(path: &Path) -> Result<PathBuf> {
+    match fs::symlink_metadata(path) {
+        Ok(meta) if meta.file_type().is_symlink() => fs::canonicalize(path).map_err(|e| {
+            io_error(path, "a symlink to a file that does not exist (not written through a dangling link)", &e)
+        }),
+        _ => Ok(path.to_path_buf()),
+    }
+}
+
 fn io_error(path: &Path, what: &str, e: &std::io::Error) -> GeolocError {
     GeolocError::Io { path: path.display().to_string(), reason: format!("{what}: {e}") }
 }
@@ -64,6 +96,7 @@ impl AtomicFile {
     /// folder does not exist or is not writable, or `path` exists and is not a regular file
     /// (a folder, a FIFO, a device: replacing it by a regular file would be a surprise).
     pub fn create(path: &Path) -> Result<Self> {
+        let path = &written_through(path)?;
         let folder = match path.parent() {
             Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
             _ => PathBuf::from("."),
@@ -73,7 +106,8 @@ impl AtomicFile {
         if !folder.is_dir() {
             return Err(io_error(path, "folder does not exist", &std::io::Error::from(std::io::ErrorKind::NotFound)));
         }
-        if let Ok(meta) = fs::metadata(path)
+        let replaced = fs::metadata(path).ok();
+        if let Some(meta) = &replaced
             && !meta.is_file()
         {
             // renaming over /dev/null or a FIFO would replace it with a regular file
@@ -83,12 +117,21 @@ impl AtomicFile {
             });
         }
         let name = name.to_string_lossy();
+        let name = temp_stem(&name);
         let pid = std::process::id();
         for _ in 0..TEMP_ATTEMPTS {
             let n = TEMP_COUNTER.fetch_add(1, Ordering::Relaxed);
             let tmp = folder.join(format!(".{name}.{pid}.{n}.tmp"));
             match OpenOptions::new().write(true).create_new(true).open(&tmp) {
                 Ok(file) => {
+                    // the replaced file's permissions (a new one keeps the create's)
+                    if let Some(meta) = &replaced
+                        && let Err(e) = file.set_permissions(meta.permissions())
+                    {
+                        drop(file);
+                        let _ = fs::remove_file(&tmp);
+                        return Err(io_error(path, "cannot give the new file the old one's permissions", &e));
+                    }
                     return Ok(Self { out: Some(BufWriter::new(file)), tmp, path: path.to_path_buf(), folder });
                 }
                 Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {}
@@ -366,6 +409,57 @@ mod tests {
         }
         write_atomic(&path, b"fresh").expect("writes around the stale names");
         assert_eq!(fs::read(&path).expect("reads"), b"fresh");
+        fs::remove_dir_all(&dir).expect("cleanup");
+    }
+
+    #[test]
+    fn a_target_name_of_full_length_gets_a_temp_name_that_fits() {
+        let dir = temp_dir("long");
+        for name in ["a".repeat(255), format!("{}.geoloc", "é".repeat(124))] {
+            let path = dir.join(&name);
+            write_atomic(&path, b"long").expect("a 255-byte name is legal");
+            assert_eq!(fs::read(&path).expect("reads"), b"long");
+        }
+        assert_eq!(listing(&dir).len(), 2, "no temp files remain");
+        fs::remove_dir_all(&dir).expect("cleanup");
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn a_replaced_file_keeps_its_permissions_and_a_new_one_gets_a_plain_creates() {
+        use std::os::unix::fs::PermissionsExt;
+        let dir = temp_dir("mode");
+        let mode = |p: &Path| fs::metadata(p).expect("exists").permissions().mode() & 0o7777;
+        let kept = dir.join("kept.txt");
+        fs::write(&kept, b"old").expect("writes");
+        fs::set_permissions(&kept, fs::Permissions::from_mode(0o640)).expect("chmod");
+        write_atomic(&kept, b"new").expect("writes");
+        assert_eq!((fs::read(&kept).expect("reads"), mode(&kept)), (b"new".to_vec(), 0o640));
+        // a new target: what std's plain create gives in the same folder (0666 less the umask)
+        let plain = dir.join("plain.txt");
+        fs::write(&plain, b"x").expect("writes");
+        let fresh = dir.join("fresh.txt");
+        write_atomic(&fresh, b"x").expect("writes");
+        assert_eq!(mode(&fresh), mode(&plain));
+        fs::remove_dir_all(&dir).expect("cleanup");
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn a_symlinked_target_is_written_through_and_a_dangling_one_refused() {
+        let dir = temp_dir("link");
+        let real = dir.join("real.txt");
+        fs::write(&real, b"old").expect("writes");
+        let link = dir.join("link.txt");
+        std::os::unix::fs::symlink("real.txt", &link).expect("symlink");
+        write_atomic(&link, b"new").expect("writes through the link");
+        assert!(fs::symlink_metadata(&link).expect("exists").file_type().is_symlink(), "the link is kept");
+        assert_eq!(fs::read(&real).expect("reads"), b"new");
+        let dangling = dir.join("dangling.txt");
+        std::os::unix::fs::symlink("nowhere.txt", &dangling).expect("symlink");
+        let err = write_atomic(&dangling, b"new").expect_err("refused");
+        assert!(err.to_string().contains("dangling") && err.to_string().contains("dangling.txt"), "{err}");
+        assert_eq!(listing(&dir), ["dangling.txt", "link.txt", "real.txt"], "nothing else written");
         fs::remove_dir_all(&dir).expect("cleanup");
     }
 

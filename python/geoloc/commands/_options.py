@@ -18,6 +18,8 @@ from ..exceptions import GeolocError
 from ._common import FORMATS, FrameRange
 
 __all__ = [
+    "EXIT_FAILURE",
+    "EXIT_USAGE",
     "MAX_SEED",
     "MAX_SYNTHETIC_FRAMES",
     "bounded_int",
@@ -26,7 +28,9 @@ __all__ = [
     "frame_range",
     "intrinsics",
     "new_folder",
+    "STDOUT",
     "output_file",
+    "output_file_or_stdout",
     "positive_float",
     "retrieval",
 ]
@@ -89,6 +93,21 @@ def output_file(text: str) -> str:
     except GeolocError as e:
         raise argparse.ArgumentTypeError(str(e).removeprefix("path: ")) from None
     return text
+
+
+#: Exit status of a usage or input error (argparse uses 2 too).
+EXIT_USAGE = 2
+#: Exit status of a run that failed for another reason (a check failed, I/O failed, every
+#: frame lost).
+EXIT_FAILURE = 1
+
+#: The output name that means standard output.
+STDOUT = "-"
+
+
+def output_file_or_stdout(text: str) -> str:
+    """:func:`output_file`, or ``-`` for standard output."""
+    return text if text == STDOUT else output_file(text)
 
 
 def frame_range(text: str) -> FrameRange:

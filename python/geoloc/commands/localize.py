@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from ..exceptions import DatasetError, InvalidInputError
+from ._options import EXIT_FAILURE, STDOUT
 from ._common import (
     Progress,
     dataset_inputs,
@@ -62,10 +63,12 @@ def _images(args: argparse.Namespace, camera: Any) -> Any:
 def run(args: argparse.Namespace) -> int:
     """The ``localize`` command."""
     from .._io import refuse_alias, shown
-    from ..evaluation import write_tum_trajectory
+    from ..evaluation import tum_trajectory_text, write_tum_trajectory
     from ..localizer import Localizer
 
-    refuse_alias(args.out, "--out", [("--map", args.map), *model_input(args.retrieval)])
+    to_stdout = args.out == STDOUT
+    out = None if to_stdout else args.out
+    refuse_alias(out, "--out", [("--map", args.map), *model_input(args.retrieval)])
     the_map = _load_map(args.map)
     network = None
     if the_map.settings["retrieval"] != "bow":
@@ -91,20 +94,29 @@ def run(args: argparse.Namespace) -> int:
                 f"--intrinsics: {sequence.camera.intrinsics} differ from the map's {camera.intrinsics} "
                 "(queries must use the map's camera)"
             )
-    refuse_alias(args.out, "--out", dataset_inputs(sequence, "--images" if args.images is not None else "--dataset"))
+    refuse_alias(out, "--out", dataset_inputs(sequence, "--images" if args.images is not None else "--dataset"))
     sequence = select(sequence, args.frames, "--frames")
     results = localize_sequence(Localizer(the_map, global_descriptor=network, locator=args.locator), sequence, args.mode, Progress("localize"))
     kept = [k for k, r in enumerate(results) if r.pose is not None]
+    shown_out = "standard output" if to_stdout else shown(args.out)
     if not kept:
-        raise InvalidInputError(f"--out: every one of the {len(results)} frames was lost; nothing written to {str(args.out)!r}")
-    write_tum_trajectory(args.out, sequence.timestamps[kept], np.stack([results[k].pose for k in kept]))
+        # the run failed, the input was fine: exit 1, not the 2 of a usage or input error
+        print(f"geoloc localize: error: every one of the {len(results)} frames was lost; nothing written to {shown_out}",
+              file=sys.stderr)
+        return EXIT_FAILURE
+    timestamps, poses = sequence.timestamps[kept], np.stack([results[k].pose for k in kept])
+    if to_stdout:
+        sys.stdout.write(tum_trajectory_text(timestamps, poses))
+        sys.stdout.flush()
+    else:
+        write_tum_trajectory(args.out, timestamps, poses)
     sources = Counter(r.source for r in results)
     lost = len(results) - len(kept)
     counts = ", ".join(f"{k} {v}" for k, v in sorted(sources.items()))
     total_ms = float(np.median([r.timings["total"] for r in results]))
     print(
         f"geoloc localize: {len(kept)}/{len(results)} frames localized, {lost} lost ({counts}; "
-        f"{args.mode} mode, median {total_ms:.1f} ms/frame) -> {shown(args.out)}",
+        f"{args.mode} mode, median {total_ms:.1f} ms/frame) -> {shown_out}",
         file=sys.stderr,
     )
     return 0

@@ -168,7 +168,21 @@ def read_tum_trajectory(path: str | os.PathLike[str]) -> tuple[NDArray[np.float6
     poses = np.tile(np.eye(4), (len(rows), 1, 1))
     poses[:, :3, :3] = lie.so3_from_quaternion_wxyz(q_wxyz)
     poses[:, :3, 3] = values[:, 1:4]
+    refuse_repeated_times(values[:, 0], f"trajectory file {str(p)!r}")
     return values[:, 0].copy(), poses
+
+
+def refuse_repeated_times(times: NDArray[np.float64], what: str, labels: list[str] | None = None) -> None:
+    """DatasetError when two of ``times`` are equal: a timestamp names one moment, and of two
+    entries at one moment a lookup by time would silently take one. ``what`` names the source
+    (``"trajectory file 'x'"``), ``labels`` the entries (default ``pose k``, 1-based)."""
+    t = np.asarray(times, dtype=np.float64)
+    order = np.argsort(t, kind="stable")
+    same = np.flatnonzero(np.diff(t[order]) == 0)
+    if same.size:
+        first, again = int(order[same[0]]), int(order[same[0] + 1])
+        name = (lambda k: labels[k]) if labels is not None else (lambda k: f"pose {k + 1}")
+        raise DatasetError(f"{what}: {name(again)} has the timestamp {float(t[again])!r} of {name(first)} (timestamps must differ)")
 
 
 def associate(
@@ -184,6 +198,8 @@ def associate(
     left = np.clip(right - 1, 0, len(ref) - 1)
     take_left = np.abs(q - sorted_ref[left]) <= np.abs(sorted_ref[right] - q)
     nearest = np.where(take_left, left, right)
+    # of equal reference times the earliest (the stable sort keeps them in index order)
+    nearest = np.searchsorted(sorted_ref, sorted_ref[nearest], side="left")
     out = order[nearest].astype(np.int64)
     out[np.abs(sorted_ref[nearest] - q) > max_time_difference] = -1
     return out

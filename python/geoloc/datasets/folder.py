@@ -31,7 +31,7 @@ from .._validation import real_scalar
 from ..camera import Camera
 from ..exceptions import DatasetError, InvalidInputError
 from .._io import read_bytes
-from ._files import existing_folder, file_loader
+from ._files import existing_folder, file_loader, refuse_repeated_times
 from .sequence import Sequence
 from .tum import associate, read_tum_trajectory, resolve_camera
 
@@ -65,6 +65,8 @@ def load_folder(
     first = read_image(files[0], "path", gray=True, error=DatasetError)
     camera = resolve_camera(intrinsics, root, (first.shape[1], first.shape[0]))
     name_times = _name_timestamps(files)
+    if name_times is not None:
+        refuse_repeated_times(name_times, f"path: the image names in {str(root)!r}", [repr(f.name) for f in files])
 
     if trajectory is not None and not isinstance(trajectory, (str, os.PathLike)):
         raise InvalidInputError(f"trajectory: expected a file name or None, got {type(trajectory).__name__}")

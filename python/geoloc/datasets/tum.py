@@ -40,6 +40,7 @@ from ._files import (  # the TUM trajectory and camera file formats: defined in 
     floats,
     read_camera_file,
     read_tum_trajectory,
+    refuse_repeated_times,
     write_camera_file,
 )
 from .sequence import Sequence
@@ -104,6 +105,7 @@ def load_tum(
         if len(row) < 2:
             raise DatasetError(f"{str(rgb)!r}: entry {k + 1} has no file name (expected 'timestamp filename')")
     times = np.array([floats(r[:1], rgb, k + 1)[0] for k, r in enumerate(rows)])
+    refuse_repeated_times(times, repr(str(rgb)), [f"entry {k + 1}" for k in range(len(rows))])
     files = [root / " ".join(r[1:]) for r in rows]
     camera = _tum_camera(intrinsics, root)
     gt_file = root / "groundtruth.txt"
