@@ -18,11 +18,16 @@
 //! before anything is read or written. Inputs must be regular files (a FIFO would block the
 //! run: pipe into stdin with `--input -` instead); a record length beyond the input file's
 //! size is refused before anything is allocated.
+//!
+//! Signals: SIGINT (Ctrl-C), SIGTERM and SIGHUP end the run as the end of the stream does —
+//! the lines written so far stay, an `--output` file is renamed onto its path complete — and
+//! the exit status is 128 + the signal's number (130 for Ctrl-C), as a shell reports a
+//! process a signal stopped ([`end_on_signal`]). On a live stream a signal is how a run ends.
 
 use std::io::{BufRead, BufReader, Write};
 use std::num::NonZero;
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
 use std::time::Instant;
 
 use geoloc_core::GeolocError;
@@ -105,11 +110,58 @@ fn localize(args: &Args) -> Result<(), String> {
     let map = Arc::new(map);
     let mut localizer = Localizer::new(Arc::clone(&map), options(args)).map_err(|e| e.to_string())?;
     let records = open_input(&args.input, args.format)?;
-    let mut out = Output::open(&args.output)?;
+    // watched before the temp file exists: no signal can leave it behind
+    let out: SharedOutput = Arc::new(Mutex::new(None));
+    end_on_signal(Arc::clone(&out), if args.output == "-" { "stdout".into() } else { args.output.clone() })?;
+    *locked(&out) = Some(Output::open(&args.output)?);
     // what was written stays, also when a frame stops the run
-    let result = localize_frames(args, &map, &header, &mut localizer, records, &mut out, start);
-    let finished = out.finish().map_err(|e| format!("--output {e}"));
+    let result = localize_frames(args, &map, &header, &mut localizer, records, &out, start);
+    let finished = finish(&out).map_err(|e| format!("--output {e}"));
     result.and(finished)
+}
+
+/// The output, shared with the thread that ends the run on a signal; None once finished.
+type SharedOutput = Arc<Mutex<Option<Output>>>;
+
+fn locked(out: &Mutex<Option<Output>>) -> MutexGuard<'_, Option<Output>> {
+    out.lock().unwrap_or_else(PoisonError::into_inner)
+}
+
+/// Writes `line` and flushes it, under the lock: a signal ends the run between lines.
+fn write_line(out: &Mutex<Option<Output>>, line: &str) -> std::io::Result<()> {
+    let mut guard = locked(out);
+    let out = guard.as_mut().ok_or_else(|| std::io::Error::other("the output is finished"))?;
+    writeln!(out, "{line}")?;
+    out.flush()
+}
+
+/// [`Output::finish`], unless finished already.
+fn finish(out: &Mutex<Option<Output>>) -> geoloc_core::Result<()> {
+    locked(out).take().map_or(Ok(()), Output::finish)
+}
+
+/// Watches for SIGINT, SIGTERM and SIGHUP on a thread of its own; the first one finishes
+/// `out` (the line being written completes first) and exits with 128 + its number. The lock
+/// is held until the exit, so the run writes nothing after the output is finished. (Before,
+/// the signal killed the process and left the poses in a temp file beside `--output`.)
+fn end_on_signal(out: SharedOutput, shown: String) -> Result<(), String> {
+    use signal_hook::consts::{SIGHUP, SIGINT, SIGTERM};
+    let mut signals = signal_hook::iterator::Signals::new([SIGINT, SIGTERM, SIGHUP])
+        .map_err(|e| format!("cannot watch for signals: {e}"))?;
+    std::thread::spawn(move || {
+        if let Some(signal) = signals.forever().next() {
+            let mut guard = locked(&out);
+            match guard.take().map(Output::finish) {
+                Some(Ok(())) => {
+                    eprintln!("geoloc-rs: stopped by signal {signal}; the lines written so far are in {shown}")
+                }
+                Some(Err(e)) => eprintln!("geoloc-rs: stopped by signal {signal}; error: --output {e}"),
+                None => eprintln!("geoloc-rs: stopped by signal {signal}"),
+            }
+            std::process::exit(128 + signal);
+        }
+    });
+    Ok(())
 }
 
 fn localize_frames(
@@ -118,11 +170,11 @@ fn localize_frames(
     header: &MapHeader,
     localizer: &mut Localizer,
     records: Records,
-    out: &mut Output,
+    out: &Mutex<Option<Output>>,
     start: Instant,
 ) -> Result<(), String> {
     let write_err = |e: std::io::Error| format!("--output {}: {e}", args.output);
-    writeln!(out, "{}", output::HEADER).and_then(|()| out.flush()).map_err(write_err)?;
+    write_line(out, output::HEADER).map_err(write_err)?;
     let loaded = start.elapsed();
     let loop_start = Instant::now();
     let mut stats = Stats::default();
@@ -141,7 +193,7 @@ fn localize_frames(
         let result = localizer.localize(&frame).map_err(|e| format!("{}: frame {index}: {e}", args.input))?;
         // in the labels' convention, as the Python Localizer returns it
         let result = map.to_label_convention(result);
-        writeln!(out, "{}", output::line(record.timestamp, &result)).and_then(|()| out.flush()).map_err(write_err)?;
+        write_line(out, &output::line(record.timestamp, &result)).map_err(write_err)?;
         stats.push(result.timings, result.source);
     }
     if args.stats {

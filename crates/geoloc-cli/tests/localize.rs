@@ -276,6 +276,62 @@ fn bad_frames_stop_with_the_frame_named_and_earlier_lines_kept() {
     }
 }
 
+/// On a live stream a signal is how a run ends: SIGINT, SIGTERM and SIGHUP end it as the end
+/// of the stream does — the lines so far in `--output`, no temp file left — with the exit
+/// status 128 + the signal (the signal used to kill it, leaving the poses in a temp file).
+#[cfg(unix)]
+#[test]
+fn a_signal_ends_a_live_run_with_its_lines_written() {
+    let d = dir("signal");
+    let (map, records) = scene(&d, 3);
+    let map_s = map.to_str().expect("utf-8");
+    for (signal, status) in [("INT", 130), ("TERM", 143), ("HUP", 129)] {
+        let out_path = d.join("poses.txt");
+        std::fs::write(&out_path, "the previous run\n").expect("writes");
+        let mut child = Command::new(env!("CARGO_BIN_EXE_geoloc-rs"))
+            .args(["localize", "--map", map_s, "--input", "-", "--output", out_path.to_str().expect("utf-8")])
+            .env("GEOLOC_NUM_THREADS", "1")
+            .stdin(Stdio::piped())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("binary runs");
+        // the camera keeps the stream open: every frame sent, no end of stream
+        let mut pipe = child.stdin.take().expect("piped");
+        pipe.write_all(&stream(&records)).expect("writes");
+        pipe.flush().expect("flushes");
+        // wait until the three lines are in the temp file (header + frames)
+        let start = Instant::now();
+        let written = || {
+            std::fs::read_dir(&d)
+                .expect("lists")
+                .filter_map(|e| e.ok())
+                .filter(|e| e.file_name().to_string_lossy().starts_with(".poses.txt."))
+                .any(|e| std::fs::read_to_string(e.path()).is_ok_and(|t| t.lines().count() == 1 + records.len()))
+        };
+        while !written() {
+            assert!(start.elapsed() < HANG, "the frames were never written");
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        let sent =
+            Command::new("kill").args([format!("-{signal}"), child.id().to_string()]).status().expect("kill runs");
+        assert!(sent.success());
+        let out = child.wait_with_output().expect("exits");
+        drop(pipe);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(status), "SIG{signal}: {err}");
+        assert!(err.contains("the lines written so far are in"), "{err}");
+        let kept = std::fs::read_to_string(&out_path).expect("output");
+        assert_eq!(kept.lines().count(), 1 + records.len(), "SIG{signal}: {kept}");
+        let names: Vec<String> = std::fs::read_dir(&d)
+            .expect("lists")
+            .filter_map(|e| e.ok())
+            .map(|e| e.file_name().to_string_lossy().into_owned())
+            .collect();
+        assert!(!names.iter().any(|n| n.ends_with(".tmp")), "SIG{signal}: {names:?}");
+    }
+}
+
 #[test]
 fn mutated_streams_never_panic_or_hang() {
     let d = dir("fuzz");
