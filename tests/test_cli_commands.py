@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -155,6 +156,7 @@ def room_map(tmp_path_factory: pytest.TempPathFactory) -> Path:
     result = _run("build-map", "--format", "synthetic", "--synthetic-frames", str(ROOM_FRAMES), "--frames", f"0:{ROOM_FRAMES // 2}", "--out", str(path))
     assert result.returncode == 0, result.stdout + result.stderr
     assert path.is_file() and "30 keyframes" in result.stdout
+    assert re.search(r"^3D model: \d+ points$", result.stdout, re.MULTILINE), result.stdout
     return path
 
 

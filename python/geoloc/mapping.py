@@ -315,7 +315,10 @@ class Map:
     @property
     def labels(self) -> dict[str, Any] | None:
         """The labels' correction by bundle adjustment (``adjust_labels``), or None when the
-        labels were not adjusted: ``label_sigma_m`` / ``label_sigma_deg`` (the labels' σ the
+        labels were not adjusted: ``applied`` (whether the map uses the adjusted poses),
+        ``state`` (that in words: "adjusted", "kept (the images agree with them)", or "kept
+        (not checked: …)" when no track linked the keyframes), ``label_sigma_m`` /
+        ``label_sigma_deg`` (the labels' σ the
         adjustment estimated), the label-to-camera offset (``label_from_cam_translation_m``,
         ``label_from_cam_rotation_deg`` and their σ), the median correction, ``rms_px`` (the
         tracks' reprojection error with the labels and after), ``observations`` (used,

@@ -36,6 +36,7 @@ fn summary(path: &Path, bytes: u64, map: &Map, h: &MapHeader) -> String {
     let _ = writeln!(s, "descriptors       {} ({} {metric})", h.descriptor_kind, h.descriptor_width);
     let _ = writeln!(s, "features          {}", features(f));
     let _ = writeln!(s, "retrieval         {}", retrieval(h));
+    let _ = writeln!(s, "3D model          {}", model(map));
     let _ = writeln!(s, "pose covariances  {}", pose_covariances(map));
     let _ = writeln!(s, "map noise         {}", map_noise(&map.noise));
     if let Some(src) = f.get("source") {
@@ -45,6 +46,19 @@ fn summary(path: &Path, bytes: u64, map: &Map, h: &MapHeader) -> String {
     }
     let _ = writeln!(s, "frontend          {}", compact_frontend(f));
     s
+}
+
+/// The 3D model's size; a model too small for the model locator to place a frame says so
+/// (`geoloc-rs localize` refuses that locator on it).
+fn model(map: &Map) -> String {
+    let needed = geoloc_core::localizer::LocalizerOptions::default().min_correspondences;
+    match map.model.as_ref().map(geoloc_core::map::SceneModel::len) {
+        None => "none stored (the model locator builds it when it starts)".to_string(),
+        Some(n) if n < needed => {
+            format!("{n} points: too few for the model locator (a pose needs {needed}); use --locator paper")
+        }
+        Some(n) => format!("{n} points"),
+    }
 }
 
 fn image_size(f: &Value) -> String {

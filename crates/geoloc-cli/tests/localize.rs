@@ -229,6 +229,7 @@ fn info_describes_the_map_and_refuses_a_corrupt_one() {
         "fx 525 fy 525 cx 320 cy 240",
         "camera estimate   none (the given intrinsics are used as they are)",
         "pose labels       as given (not adjusted)",
+        "3D model          none stored (the model locator builds it when it starts)",
         "synthetic",
     ] {
         assert!(text.contains(want), "{want:?} not in\n{text}");

@@ -406,9 +406,23 @@ impl Localizer {
     /// `gate_sigma`, `pixel_sigma` (of PnP or triangulation), `max_residual` or
     /// `epipolar_px` not finite and > 0, `top_k` 0; with the model locator on a map without a
     /// model, the errors of building one ([`SceneModel::build`], which it then does here);
-    /// those of triangulating the paper locator's groups.
+    /// the model locator on a model of fewer points than `min_correspondences` (no frame
+    /// could ever be placed: named `locator`); those of triangulating the paper locator's
+    /// groups.
     pub fn new(map: Arc<Map>, options: LocalizerOptions) -> Result<Self> {
         let mut localizer = Self::unprepared(map, options)?;
+        let points = localizer.model().map_or(0, SceneModel::len);
+        if localizer.options.locator == Locator::Model && points < localizer.options.min_correspondences {
+            return Err(GeolocError::invalid(
+                "locator",
+                format!(
+                    "the map's 3D model has {points} points, fewer than the {} correspondences a pose needs (its \
+                     keyframes are too close together to triangulate from), so the model locator could place no \
+                     frame: use the paper's locator or map a longer recording",
+                    localizer.options.min_correspondences
+                ),
+            ));
+        }
         if localizer.options.locator == Locator::Paper && localizer.prepared_matches {
             localizer.prepare_groups()?;
         }

@@ -260,7 +260,7 @@ def describe_labels(found: dict[str, Any] | None) -> str:
     """One line on what the map's bundle adjustment found about its pose labels (``Map.labels``)."""
     if found is None:
         return "labels: kept as the keyframes' truth (--keep-labels)"
-    state = "corrected" if found["applied"] else "kept (the images agree with them)"
+    state = found["state"]
     runs = ", ".join(f"{r['start']}-{r['end'] - 1}" for r in found["runs"]) or "none"
     before, after = found["rms_px"]
     return (
@@ -269,6 +269,21 @@ def describe_labels(found: dict[str, Any] | None) -> str:
         f"{100 * float(np.linalg.norm(found['label_from_cam_translation_m'])):.1f} cm / {found['label_from_cam_rotation_deg']:.2f}°; "
         f"track residuals {before:.2f} -> {after:.2f} px rms; runs of significant corrections (keyframes): {runs}"
     )
+
+
+def describe_model(the_map: Any) -> str:
+    """One line on the map's 3D model (``Map.model_points``): its size and, when the model
+    locator could place no frame with it (the core refuses such a localizer), why."""
+    from ..localizer import Localizer
+
+    points = the_map.model_points
+    if points is None:
+        return "3D model: none stored (the model locator builds it when it starts)"
+    try:
+        Localizer(the_map, locator="model")
+    except InvalidInputError as e:
+        return f"3D model: {points} points; {str(e).removeprefix('locator: ')}"
+    return f"3D model: {points} points"
 
 
 def describe_map_noise(noise: dict[str, Any]) -> str:

@@ -12,6 +12,7 @@ from ._common import (
     dataset_inputs,
     describe_labels,
     describe_map_noise,
+    describe_model,
     describe_self_calibration,
     load_dataset,
     model_input,
@@ -55,5 +56,6 @@ def run(args: argparse.Namespace) -> int:
     )
     print(describe_self_calibration(the_map.self_calibration))
     print(describe_labels(the_map.labels))
+    print(describe_model(the_map))
     print(describe_map_noise(the_map.map_noise))
     return 0

@@ -896,6 +896,30 @@ mod scene_tests {
         crate::stats::median(&mut v, crate::stats::EvenMedian::Upper).expect("not empty")
     }
 
+    /// Keyframes too close together to triangulate from give a model of no points: a model
+    /// localizer is refused at once, naming the locator, instead of losing every frame; the
+    /// paper's locator still serves the map (it triangulates nothing either, but localizes a
+    /// keyframe's own view against its group).
+    #[test]
+    fn a_model_too_small_to_place_a_frame_refuses_the_model_locator() {
+        let (_, map, _) = fixture::scene(40, false);
+        let still: Vec<crate::map::Keyframe> = map
+            .keyframes
+            .iter()
+            .take(6)
+            .map(|k| crate::map::Keyframe { world_from_cam: map.keyframes[0].world_from_cam, ..k.clone() })
+            .collect();
+        let kind = crate::map::RetrievalKind::Bow { branching: 4, depth: 2 };
+        let still = crate::map::Map::build(map.camera, still, None, kind, 0).expect("valid map");
+        let still = still.with_model(&crate::map::ModelOptions::default()).expect("builds");
+        assert!(still.model.as_ref().is_some_and(|m| m.len() < LocalizerOptions::default().min_correspondences));
+        let still = Arc::new(still);
+        let err = Localizer::new(Arc::clone(&still), LocalizerOptions::default()).err().expect("refused");
+        assert!(err.to_string().starts_with("locator: the map's 3D model has"), "{err}");
+        let paper = LocalizerOptions { locator: Locator::Paper, ..LocalizerOptions::default() };
+        assert!(Localizer::new(still, paper).is_ok());
+    }
+
     /// On the synthetic scene the model locator is at least as accurate as the paper's, with
     /// more inliers; the map's stored model and one built by the localizer give the same poses.
     #[test]

@@ -137,7 +137,7 @@ impl LabelAdjustment {
     pub fn summary(&self) -> String {
         let (mt, mr) = self.median_correction();
         let x = self.offset.log();
-        let state = if self.applied { "adjusted" } else { "kept (the images agree with them)" };
+        let state = self.state();
         format!(
             "{state}: label σ {:.1} mm / {:.2}°, offset label_from_cam {:.1} cm / {:.2}°, median correction {:.1} mm / \
              {:.2}°, {} run(s) of significant corrections, reprojection {:.2} -> {:.2} px rms",
@@ -159,6 +159,20 @@ impl LabelAdjustment {
         camera_poses.iter().map(|t| self.to_label(t)).collect()
     }
 
+    /// What became of the labels, in words: "adjusted", "kept (the images agree with them)",
+    /// or — when no observation linked the keyframes — "kept (not checked: no tracks between
+    /// the keyframes)": an adjustment without observations has only the priors and confirms
+    /// nothing.
+    pub fn state(&self) -> &'static str {
+        if self.applied {
+            "adjusted"
+        } else if self.observations.0 == 0 {
+            "kept (not checked: no tracks between the keyframes)"
+        } else {
+            "kept (the images agree with them)"
+        }
+    }
+
     /// The report as JSON: σ, offset (translation m, rotation deg, their σ), medians, runs.
     pub fn report_json(&self) -> serde_json::Value {
         let (mt, mr) = self.median_correction();
@@ -166,6 +180,7 @@ impl LabelAdjustment {
         let sd = |i: usize| self.offset_covariance[(i, i)].max(0.0).sqrt();
         serde_json::json!({
             "applied": self.applied,
+            "state": self.state(),
             "label_sigma_m": self.label_sigma.translation_m,
             "label_sigma_deg": self.label_sigma.rotation_rad.to_degrees(),
             "correlation_keyframes": [self.correlation_keyframes.0, self.correlation_keyframes.1],
@@ -251,6 +266,20 @@ mod tests {
         let x = SIGNIFICANT_CORRECTION_CHI2;
         let cdf = 1.0 - (-x / 2.0).exp() * (1.0 + x / 2.0 + x * x / 8.0);
         assert!((cdf - 0.999).abs() < 1e-12, "{cdf}");
+    }
+
+    /// Labels kept after an adjustment that had no observation are not "agreed with" by the
+    /// images: nothing checked them.
+    #[test]
+    fn the_state_says_whether_anything_checked_the_labels() {
+        let adjusted = record(vec![0.0]);
+        let agreed = LabelAdjustment { applied: false, observations: (500, 3), ..adjusted.clone() };
+        let unchecked = LabelAdjustment { applied: false, observations: (0, 0), ..adjusted.clone() };
+        assert_eq!(adjusted.state(), "adjusted");
+        assert_eq!(agreed.state(), "kept (the images agree with them)");
+        assert_eq!(unchecked.state(), "kept (not checked: no tracks between the keyframes)");
+        assert!(unchecked.summary().starts_with("kept (not checked"));
+        assert_eq!(unchecked.report_json()["state"], unchecked.state());
     }
 
     /// Runs against a brute-force scan of every window.

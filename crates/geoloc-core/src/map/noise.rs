@@ -86,7 +86,8 @@ pub struct NoiseOptions {
     /// The localizer used for the held-out keyframes ...
     pub localizer: LocalizerOptions,
     /// ... with this locator; None (default): the one the map is built for — the model
-    /// locator when the map holds a map-level model, the paper's otherwise (C_map is the
+    /// locator when the map holds a map-level model that can place a frame (at least
+    /// `min_correspondences` points), the paper's otherwise (C_map is the
     /// noise the queries will see, so it is measured with the locator they will use).
     pub locator: Option<Locator>,
 }
@@ -135,7 +136,9 @@ impl Map {
         };
         let map = Arc::new(self);
         let samples = {
-            let default_locator = if map.model.is_some() { Locator::Model } else { Locator::Paper };
+            // the model locator where the map's model can place a frame at all
+            let serves = map.model.as_ref().is_some_and(|m| m.len() >= options.localizer.min_correspondences);
+            let default_locator = if serves { Locator::Model } else { Locator::Paper };
             let localizer =
                 LocalizerOptions { locator: options.locator.unwrap_or(default_locator), ..options.localizer };
             let mut loc = Localizer::unprepared(Arc::clone(&map), localizer)?;
