@@ -61,7 +61,8 @@ pub struct Args {
     output: String,
     /// Threads of the core's parallel loops (1: sequential). Default: the environment's
     /// GEOLOC_NUM_THREADS / GEOLOC_PARALLELISM, else all cores. Results are identical either way.
-    #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
+    /// At most 256.
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=geoloc_core::parallel::MAX_THREADS as i64))]
     threads: Option<u32>,
     /// Print a summary on stderr at the end: frames, frames/s, median ms per stage, peak RSS.
     #[arg(long)]

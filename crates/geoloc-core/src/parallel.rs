@@ -11,7 +11,9 @@
 //!   (`N = 1` is the calling thread plus nothing: it runs sequentially).
 //! * Neither: rayon's global pool (which itself honours `RAYON_NUM_THREADS`).
 //!
-//! Values that do not parse are ignored (the default applies). A call made from inside a
+//! Values that do not parse are ignored (the default applies); counts above [`MAX_THREADS`]
+//! run on [`MAX_THREADS`] (results are the same with any count; a pool of 100 000 threads
+//! took longer to start than the run). A call made from inside a
 //! rayon worker (a caller's own pool, or a nested geoloc loop) runs on that pool.
 //! [`with_parallelism`] overrides the setting for one closure on the calling thread (tests
 //! and benchmarks use it to compare thread counts within one process).
@@ -30,6 +32,10 @@ use crate::error::{GeolocError, Result};
 /// the work (an SE(3) exp is ~30 ns).
 pub const PARALLEL_MIN_ITEMS: usize = 2048;
 
+/// The most threads a pool gets: more than any machine geoloc runs on has cores to give a
+/// loop, few enough that starting the pool costs milliseconds.
+pub const MAX_THREADS: usize = 256;
+
 /// How parallel loops run.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub enum Parallelism {
@@ -37,7 +43,7 @@ pub enum Parallelism {
     Off,
     /// On rayon's global pool.
     Global,
-    /// On a pool of this many threads.
+    /// On a pool of this many threads (at most [`MAX_THREADS`]: a larger count gets that).
     Threads(NonZero<usize>),
 }
 
@@ -69,7 +75,7 @@ fn runner_for(p: &Parallelism) -> Runner {
         Parallelism::Off => Runner::Sequential,
         Parallelism::Global => Runner::Pool(None),
         Parallelism::Threads(n) => rayon::ThreadPoolBuilder::new()
-            .num_threads(n.get())
+            .num_threads(n.get().min(MAX_THREADS))
             .thread_name(|i| format!("geoloc-{i}"))
             .build()
             .map_or(Runner::Sequential, |pool| Runner::Pool(Some(Arc::new(pool)))),
@@ -239,6 +245,21 @@ mod tests {
         });
         let here = std::thread::current().name().unwrap_or("").to_owned();
         assert!(names.iter().all(|n| *n == here));
+    }
+
+    /// A thread count far beyond any machine's runs on a pool of [`MAX_THREADS`] (a pool of
+    /// 100 000 threads never finished starting within a minute): the items still run, on at
+    /// most that many distinct threads, with the same results.
+    #[test]
+    fn a_huge_thread_count_gets_a_pool_of_max_threads() {
+        let p = Parallelism::Threads(NonZero::new(100_000).expect("positive"));
+        let names: Vec<String> = with_parallelism(&p, || {
+            map_indices(4 * MAX_THREADS, 1, |_| std::thread::current().name().unwrap_or("").to_owned())
+        });
+        let distinct: std::collections::BTreeSet<&String> = names.iter().collect();
+        assert!(names.iter().all(|n| n.starts_with("geoloc-")) && distinct.len() <= MAX_THREADS, "{}", distinct.len());
+        let squares = |_: &()| map_indices(1000, 1, |i| (i * i) as u64);
+        assert_eq!(with_parallelism(&p, || squares(&())), with_parallelism(&Parallelism::Off, || squares(&())));
     }
 
     /// Several items fail: the error is the lowest failing item's, sequentially and on 1–4
