@@ -170,6 +170,47 @@ def test_alignment_is_exact_without_noise_and_apply_is_s_r_x() -> None:
     np.testing.assert_allclose(sim[:3, :3], s * rs, atol=EXACT)
 
 
+def test_alignment_uncertainty_is_the_spread_of_refits_to_fresh_noise() -> None:
+    """Monte Carlo: 12 fitting frames, 300 fits to fresh Gaussian noise of per-axis σ
+    (0.25 of the Huber scales, so every residual stays in the quadratic part); the empirical
+    RMS spread of the aligned test poses matches :meth:`uncertainty` (which assumes residuals
+    of the Huber scales' size) times 0.25, within the Monte-Carlo error."""
+    rng = np.random.default_rng(3)
+    ref = lie.se3_exp(np.concatenate([rng.normal(0, 0.3, (12, 3)), rng.normal(0, 0.3, (12, 3))], axis=1))
+    test = lie.se3_exp(np.concatenate([rng.normal(0, 1.5, (5, 3)), rng.normal(0, 0.5, (5, 3))], axis=1))
+    truth = _compose(*_true_s_and_x(), ref)
+    aligned_truth = _compose(*_true_s_and_x(), test)
+    fraction = 0.25
+    sigma_p, sigma_r = fraction * 0.02, fraction * math.radians(1.0)
+    dp, dr = [], []
+    for _ in range(300):
+        target = truth.copy()
+        target[:, :3, 3] += rng.normal(0, sigma_p, (12, 3))
+        target[:, :3, :3] = target[:, :3, :3] @ lie.so3_exp(rng.normal(0, sigma_r, (12, 3)))
+        aligned = align_reference(ref, target).apply(test)
+        dp.append(aligned[:, :3, 3] - aligned_truth[:, :3, 3])
+        dr.append(np.stack([lie.so3_log(a.T @ b) for a, b in zip(aligned_truth[:, :3, :3], aligned[:, :3, :3])]))
+    empirical_p = np.sqrt((np.stack(dp) ** 2).sum(axis=2).mean(axis=0))
+    empirical_r = np.degrees(np.sqrt((np.stack(dr) ** 2).sum(axis=2).mean(axis=0)))
+    predicted_p, predicted_r = align_reference(ref, truth).uncertainty(test)
+    # 300 samples of a sum of three squares: the RMS is known to about ±7 %
+    assert empirical_p == pytest.approx(fraction * predicted_p, rel=0.15)
+    assert empirical_r == pytest.approx(fraction * predicted_r, rel=0.15)
+
+
+def test_alignment_from_frames_that_cannot_determine_it_says_so() -> None:
+    """Three frames 7 mm apart fit S and X to a few micrometres and leave a frame half a
+    metre away uncertain by metres; the fitted frames themselves stay well determined."""
+    rng = np.random.default_rng(4)
+    ref = lie.se3_exp(np.concatenate([rng.normal(0, 0.004, (3, 3)), rng.normal(0, 0.002, (3, 3))], axis=1))
+    target = _compose(*_true_s_and_x(), ref)
+    far = lie.se3_exp(np.array([[0.5, 0.0, 0.0, 0.0, 0.3, 0.0]]))
+    a = align_reference(ref, target)
+    assert a.uncertainty(far)[0][0] > 1.0
+    many = _random_poses(rng, 40)
+    assert align_reference(many, _compose(*_true_s_and_x(), many)).uncertainty(far)[0][0] < 0.01
+
+
 def test_huber_scales_matter_a_least_squares_fit_is_pulled_by_outliers() -> None:
     rng = np.random.default_rng(3)
     ref, target, _ = _noisy_map(rng)
@@ -408,6 +449,9 @@ def test_evaluate_reference_errors_are_one_line(tmp_path: Path) -> None:
     partial = _room_reference(tmp_path, "7scenes-reference", slice(0, 40))
     _one_line_error(_run(*room, "--reference", str(partial)), "--reference", "no pose for 6 of the 10 test frames", "42")
     _one_line_error(_run(*room, "--reference", str(partial), "--reference-format", "kitti"), "--reference-format")
+    # three training frames: a similarity fits them exactly, and determines nothing 30 frames on
+    few = _room_reference(tmp_path, "7scenes-reference", np.r_[0:3, 30:60])  # type: ignore[arg-type]
+    _one_line_error(_run(*room, "--reference", str(few)), "--reference", "do not determine its alignment")
 
 
 def test_map_keyframe_poses_prefers_the_maps_own() -> None:

@@ -27,6 +27,14 @@ by iteratively reweighted Gauss–Newton (Levenberg–Marquardt safeguarded) on 
 closed-form start: Umeyama's similarity on the camera centres (Huber-reweighted) and the
 chordal mean rotation for R_X, t_X = 0.
 
+How well the fitted frames determine S and X: at the solution, the parameters' covariance
+Σ = H⁻¹, H the Gauss–Newton Hessian of the cost with each frame's residual of the Huber scales'
+size (δ_p, δ_r: what agreement means), propagated to an aligned pose A_j = S · R_j · X to first
+order, σ_p,j = √tr(J_p,j Σ J_p,jᵀ), σ_r,j = √tr(J_r,j Σ J_r,jᵀ)
+(:meth:`ReferenceAlignment.uncertainty`). Three frames 7 mm apart leave the aligned poses of
+frames half a metre away uncertain by metres: no score against them means anything, and
+``geoloc evaluate --reference`` refuses such an alignment.
+
 Reference files (:func:`load_reference`): ``7scenes-reference`` — per line ``index`` then the
 12 numbers of the top 3×4 of the camera-to-world pose, row-major (rotation blocks must be near
 orthonormal, ‖RᵀR − I‖_F ≤ 1e-2, and are projected onto SO(3)) — and ``tum`` —
@@ -223,6 +231,23 @@ class ReferenceAlignment:
     rotation_scale_deg: float
     iterations: int
     converged: bool
+    #: Covariance (13×13) of the parameters (log s, R_S's left increment, t_S, R_X's right
+    #: increment, t_X) with residuals of the Huber scales' size (see the module doc); ∞ on
+    #: the diagonal where the fitted frames do not determine them.
+    covariance: Array
+
+    def uncertainty(self, reference_poses: ArrayLike) -> tuple[Array, Array]:
+        """The alignment's own uncertainty at the aligned poses S · R_j · X of
+        ``reference_poses`` (N, 4, 4): σ_p (N,) in map units (√ of the position covariance's
+        trace) and σ_r (N,) in degrees (likewise), propagated from :attr:`covariance`."""
+        ref = _poses(reference_poses, "reference_poses")
+        jp, jr = _aligned_jacobians(self.scale, self.rotation, self.offset[:3, :3], self.offset[:3, 3], ref)
+        if not np.isfinite(self.covariance).all():
+            inf = np.full(len(ref), np.inf)
+            return inf, inf
+        var_p = np.einsum("nki,ij,nkj->n", jp, self.covariance, jp)
+        var_r = np.einsum("nki,ij,nkj->n", jr, self.covariance, jr)
+        return np.sqrt(np.maximum(var_p, 0.0)), np.degrees(np.sqrt(np.maximum(var_r, 0.0)))
 
     @property
     def similarity(self) -> Array:
@@ -324,6 +349,22 @@ class _State:
         )
 
 
+def _aligned_jacobians(s: float, rs: Array, rx: Array, tx: Array, ref: Array) -> tuple[Array, Array]:
+    """∂ of the aligned poses' positions (N, 3, 13) and rotations (N, 3, 13; right
+    perturbation of A_j) with respect to the 13 parameters (the state's increments)."""
+    r_rot, r_pos = ref[:, :3, :3], ref[:, :3, 3]
+    uq = (r_pos + np.einsum("nij,j->ni", r_rot, tx)) @ rs.T  # R_S (t_j + R_j t_X)
+    jp = np.zeros((len(ref), 3, 13))
+    jp[:, :, 0] = s * uq
+    jp[:, :, 1:4] = -s * lie.so3_hat(uq)
+    jp[:, :, 4:7] = np.eye(3)
+    jp[:, :, 10:13] = s * np.einsum("ij,njk->nik", rs, r_rot)
+    jr = np.zeros((len(ref), 3, 13))
+    jr[:, :, 1:4] = np.einsum("ij,njk,kl->nli", rs, r_rot, rx)  # A_jᵀ (R_S's left increment)
+    jr[:, :, 7:10] = np.eye(3)
+    return jp, jr
+
+
 def align_reference(
     reference_poses: ArrayLike,
     map_poses: ArrayLike,
@@ -383,19 +424,8 @@ def align_reference(
     iterations = 0
     for iterations in range(1, max_iterations + 1):
         rp, rr = residuals(state)
-        s = math.exp(state.log_s)
-        q = r_pos + np.einsum("nij,j->ni", r_rot, state.tx)  # t_i + R_i t_X
-        uq = q @ state.rs.T  # R_S q
-        jp = np.zeros((len(ref), 3, 13))
-        jp[:, :, 0] = s * uq
-        jp[:, :, 1:4] = -s * lie.so3_hat(uq)
-        jp[:, :, 4:7] = np.eye(3)
-        jp[:, :, 10:13] = s * np.einsum("ij,njk->nik", state.rs, r_rot)
-        jinv = np.asarray(lie.so3_right_jacobian_inv(rr)).reshape(-1, 3, 3)
-        aligned_rot = np.einsum("ij,njk,kl->nil", state.rs, r_rot, state.rx)
-        jr = np.zeros((len(ref), 3, 13))
-        jr[:, :, 1:4] = np.einsum("nij,nkj->nik", jinv, aligned_rot)  # J_r⁻¹ A_iᵀ
-        jr[:, :, 7:10] = jinv
+        jp, ja = _aligned_jacobians(math.exp(state.log_s), state.rs, state.rx, state.tx, ref)
+        jr = np.einsum("nij,njk->nik", np.asarray(lie.so3_right_jacobian_inv(rr)).reshape(-1, 3, 3), ja)
         up = np.linalg.norm(rp, axis=1) / dp
         ur = np.linalg.norm(rr, axis=1) / dr
         wp = np.where(up <= 1.0, 1.0, 1.0 / np.maximum(up, 1.0)) / dp**2
@@ -430,6 +460,13 @@ def align_reference(
     rp, rr = residuals(state)
     x = np.eye(4)
     x[:3, :3], x[:3, 3] = state.rx, state.tx
+    # Σ = H⁻¹ with every frame's residual of the Huber scales' size (full weights 1/δ²)
+    jp, jr = _aligned_jacobians(math.exp(state.log_s), state.rs, state.rx, state.tx, ref)
+    jr = np.einsum("nij,njk->nik", np.asarray(lie.so3_right_jacobian_inv(rr)).reshape(-1, 3, 3), jr)
+    information = np.einsum("nki,nkj->ij", jp, jp) / dp**2 + np.einsum("nki,nkj->ij", jr, jr) / dr**2
+    e = np.linalg.eigvalsh(information)
+    determined = e[0] > 1e-12 * e[-1] and e[-1] > 0
+    covariance = np.linalg.inv(information) if determined else np.full((13, 13), np.inf)
     return ReferenceAlignment(
         scale=math.exp(state.log_s),
         rotation=state.rs,
@@ -441,4 +478,5 @@ def align_reference(
         rotation_scale_deg=dr_deg,
         iterations=iterations,
         converged=converged,
+        covariance=covariance,
     )

@@ -126,6 +126,25 @@ def _reference_rows(reference: dict[str, Any], seq: Any, what: str) -> NDArray[n
     return rows
 
 
+def _refuse_undetermined_alignment(alignment: Any, test_reference: NDArray[np.float64], file: Any) -> None:
+    """InvalidInputError naming --reference when the alignment alone leaves the test frames'
+    aligned reference poses (median) more uncertain than the first recall threshold a pose is
+    scored at (5 cm / 5°): the training frames it shares with the dataset do not determine S
+    and X, and a score against that reference means nothing. (Three frames 7 mm apart: ±18 m;
+    60 frames of 7-Scenes for the next 30: ±3 cm / 0.7°, at 2 cm / 1° per frame.)"""
+    from ..evaluation import RECALL_THRESHOLDS
+
+    sigma_p, sigma_r = alignment.uncertainty(test_reference)
+    p, r = float(np.median(sigma_p)), float(np.median(sigma_r))
+    max_m, max_deg = RECALL_THRESHOLDS[0]
+    if not (p <= max_m and r <= max_deg):
+        raise InvalidInputError(
+            f"--reference: the training frames of {str(file)!r} do not determine its alignment: it alone leaves the test "
+            f"frames' reference poses ±{100 * p:.3g} cm / ±{r:.3g}° (median), more than the {100 * max_m:g} cm / "
+            f"{max_deg:g}° a pose is scored at; give reference poses for more, or more spread-out, training frames"
+        )
+
+
 def evaluate_split(
     sequence: Any,
     train: FrameRange,
@@ -169,9 +188,11 @@ def evaluate_split(
             file=sys.stderr,
         )
     train_seq, test_seq = sequence[train_slice], sequence[test_slice]
-    if reference is not None:  # checked before the map is built
+    if reference is not None:  # checked before the map is built (the alignment on the labels)
         train_rows = _reference_rows(reference, train_seq, "train")
         test_reference = reference["poses"][_reference_rows(reference, test_seq, "test")]
+        on_labels = align_reference(reference["poses"][train_rows[train_rows >= 0]], train_seq.poses[train_rows >= 0])
+        _refuse_undetermined_alignment(on_labels, test_reference, reference["file"])
     start = time.perf_counter()
     network = open_retrieval(retrieval)
     the_map = Map.build(
@@ -190,11 +211,13 @@ def evaluate_split(
         fitted = train_rows >= 0
         targets = map_keyframe_poses(the_map, train_seq.poses)
         alignment = align_reference(reference["poses"][train_rows[fitted]], targets[fitted])
+        _refuse_undetermined_alignment(alignment, test_reference, reference["file"])
         against = {
             "file": reference["file"],
             "format": reference["format"],
             "fitted_to": "labels" if targets is train_seq.poses else "map keyframe poses",
             "alignment": alignment,
+            "alignment_sigma": tuple(float(np.median(v)) for v in alignment.uncertainty(test_reference)),
             "summaries": {},
         }
     summaries: dict[str, Any] = {}
@@ -300,6 +323,7 @@ def report(
             "format": against["format"],
             "fitted_to": against["fitted_to"],
             "alignment": against["alignment"].as_dict(),
+            "alignment_sigma_at_test_frames": {"position_m": against["alignment_sigma"][0], "rotation_deg": against["alignment_sigma"][1]},
             "modes": against["summaries"],
         }
     return result
@@ -315,7 +339,8 @@ def describe_alignment(against: dict[str, Any]) -> str:
         f"{against['fitted_to']} (Huber {a.position_scale_m * 100:g} cm / {a.rotation_scale_deg:g}°): scale {a.scale:.4f}, "
         f"offset X {d['offset_rotation_deg']:.2f}° / {d['offset_translation'] * 100:.1f} cm; training residuals median "
         f"{st['median_position_m'] * 100:.1f} cm / {st['median_rotation_deg']:.2f}°, 90 % {st['p90_position_m'] * 100:.1f} cm / "
-        f"{st['p90_rotation_deg']:.2f}°"
+        f"{st['p90_rotation_deg']:.2f}°; the alignment's own uncertainty at the test frames ±{100 * against['alignment_sigma'][0]:.2g} cm / "
+        f"±{against['alignment_sigma'][1]:.2g}° (median)"
     )
 
 
