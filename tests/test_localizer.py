@@ -150,7 +150,7 @@ def test_global_descriptor_shape_and_name() -> None:
     poses, kps, descs = _tiny_map_inputs()
     g = np.random.default_rng(5).normal(size=(3, 4)).astype(np.float32)
     m = Map.from_features(CAM, poses, kps, descs, global_descriptors=g, retrieval="global", estimate_noise=False, refine_intrinsics=False, adjust_labels=False)
-    loc = Localizer(m)
+    loc = Localizer(m, locator="paper")  # random keypoints: no 3D model for the model locator
     with pytest.raises(geoloc.InvalidInputError, match=r"^global_descriptor: expected shape \(D,\)"):
         loc.localize_features(0.0, kps[0], descs[0], np.zeros((2, 2), np.float32))
     with pytest.raises(geoloc.InvalidInputError, match=r"^global_descriptor: expected 4 values, got 3"):
@@ -163,11 +163,46 @@ def test_integer_like_options() -> None:
     """Localizer(history=np.int64(5)) was refused."""
     poses, kps, descs = _tiny_map_inputs()
     m = Map.from_features(CAM, poses, kps, descs, branching=np.int64(2), depth=np.int32(2), seed=np.uint64(1), estimate_noise=False, refine_intrinsics=False, adjust_labels=False)
-    Localizer(m, history=np.int64(5))
+    Localizer(m, history=np.int64(5), locator="paper")  # random keypoints: no 3D model for the model locator
     with pytest.raises(geoloc.InvalidInputError, match=r"^history: "):
         Localizer(m, history=-3)
     with pytest.raises(geoloc.InvalidInputError, match=r"^history: "):
         Localizer(m, history=2**70)
+    with pytest.raises(geoloc.InvalidInputError, match=r"^locator: the map's 3D model has 0 points"):
+        Localizer(m)
+
+
+def test_descriptors_of_an_integer_type_other_than_uint8_are_named_as_such(feature_map: tuple[Map, np.ndarray, np.ndarray]) -> None:
+    """int64 descriptors (a plain list of ints) were read as float rows and refused as "the
+    vocabulary is for binary descriptors of width 32": the width was right, the type was not."""
+    m, pts, desc = feature_map
+    kp, d = _observe(np.random.default_rng(3), _walk(0.5, 0.1), pts, desc)
+    loc = Localizer(m)
+    for wrong in (d.astype(np.int64), d.tolist(), d.astype(bool)):
+        with pytest.raises(geoloc.InvalidInputError, match=r"^descriptors: expected uint8 rows .* got (int64|bool)"):
+            loc.localize_features(0.5, kp, wrong)
+    assert loc.localize_features(0.5, kp, d).source == "geometric"
+
+
+def test_a_sequence_error_names_the_frame() -> None:
+    """A timestamp that does not increase was "timestamp: must be finite and increase, got
+    63", naming no frame of the sequence."""
+    room = geoloc.datasets.synthetic_room(n_frames=12, seed=0)
+    m = Map.build(room[:10], n_features=300, branching=4, depth=2)
+
+    class Backwards:
+        """Frames 10 and 11 of the room, their times swapped."""
+
+        name, indices, timestamps = "room", np.array([10, 11]), room.timestamps[[11, 10]]
+
+        def __len__(self) -> int:
+            return 2
+
+        def gray(self, i: int) -> np.ndarray:
+            return room.gray(10 + i)
+
+    with pytest.raises(geoloc.InvalidInputError, match=r"^timestamp: must be finite and increase.*\(frame 11 of 'room', position 1\)$"):
+        Localizer(m).localize_sequence(Backwards(), "sequential")
 
 
 def test_result_is_a_typed_class(feature_map: tuple[Map, np.ndarray, np.ndarray]) -> None:

@@ -254,6 +254,23 @@ def test_outputs_are_written_through_a_symlink_and_refused_through_a_dangling_on
     assert not [n for n in os.listdir(tmp_path) if n.endswith(".tmp")]
 
 
+def test_a_map_of_featureless_images_says_so(tmp_path: Path) -> None:
+    """Black images gave "descriptors: 0 descriptors cannot make 10 clusters", naming
+    neither the images nor n_features."""
+    root = datasets.synthetic_room(n_frames=6, seed=0)[:4].write_tum(tmp_path / "dark")
+    for image in (root / "rgb").iterdir():
+        write_image(image, np.zeros((480, 640, 3), np.uint8))
+    with pytest.raises(geoloc.InvalidInputError, match=r"^sequence: its 4 keyframes' images gave 0 orb features in all \(n_features="):
+        geoloc.Map.build(datasets.load_tum(root))
+
+
+def test_a_path_with_a_nul_byte_is_named_for_it(tmp_path: Path, small_map: geoloc.Map) -> None:
+    """It was "expected a file path (str or os.PathLike), got str" — for a str."""
+    for call in (lambda: small_map.save(str(tmp_path / "x\x00y.geoloc")), lambda: geoloc.Map.load("x\x00y.geoloc")):
+        with pytest.raises(geoloc.InvalidInputError, match="contains a NUL byte"):
+            call()
+
+
 def test_outputs_with_names_of_the_file_systems_full_length_are_written(tmp_path: Path, small_map: geoloc.Map) -> None:
     """The core's temp name repeated the whole target name and overflowed 255 bytes."""
     json_path, map_path = tmp_path / ("j" * 250 + ".json"), tmp_path / ("m" * 248 + ".geoloc")

@@ -57,8 +57,10 @@ _KINDS = (
 def as_path(path: Any, name: str = "path") -> Path:
     """``path`` (a str or os.PathLike) as a Path; anything else (a number, an array, None, a
     string with a NUL byte) is an InvalidInputError naming ``name`` rather than a TypeError."""
-    if not isinstance(path, (str, os.PathLike)) or not isinstance(os.fspath(path), str) or "\x00" in os.fspath(path):
+    if not isinstance(path, (str, os.PathLike)) or not isinstance(os.fspath(path), str):
         raise InvalidInputError(f"{name}: expected a file path (str or os.PathLike), got {type(path).__name__}")
+    if "\x00" in os.fspath(path):
+        raise InvalidInputError(f"{name}: {os.fspath(path)!r} contains a NUL byte, which no file name can hold")
     return Path(path)
 
 

@@ -238,7 +238,10 @@ class Localizer:
             start = time.perf_counter()
             gray = sequence.gray(i)
             decode_ms = 1e3 * (time.perf_counter() - start)
-            r = self.localize(gray, float(sequence.timestamps[i]))
+            try:
+                r = self.localize(gray, float(sequence.timestamps[i]))
+            except InvalidInputError as e:  # which frame: the core knows only this one's values
+                raise type(e)(f"{e} (frame {int(sequence.indices[i])} of {sequence.name!r}, position {i})") from None
             r.timings["total"] = r.timings.get("total", 0.0) - r.timings.get("decode", 0.0) + decode_ms
             r.timings["decode"] = decode_ms
             results.append(r)

@@ -223,10 +223,21 @@ class Map:
                 progress(done, len(indices))
         global_descriptors = None if isinstance(retrieval, str) else np.asarray(retrieval(images), dtype=np.float32)
         options["retrieval"] = "bow" if isinstance(retrieval, str) else "fused"
-        core = _core_map(
-            camera, sequence.poses[indices], keypoints, descriptors, global_descriptors, None,
-            _increasing(sequence.timestamps[indices]), options,
-        )
+        try:
+            core = _core_map(
+                camera, sequence.poses[indices], keypoints, descriptors, global_descriptors, None,
+                _increasing(sequence.timestamps[indices]), options,
+            )
+        except InvalidInputError as e:
+            if not str(e).startswith("descriptors:"):
+                raise
+            # the features were extracted here: say from what, not only what the core got
+            total = sum(len(d) for d in descriptors)
+            raise InvalidInputError(
+                f"sequence: its {len(indices)} keyframes' images gave {total} {extractor.kind} features in all "
+                f"(n_features={extractor.n_features}), too few for a map — images without texture, or n_features too "
+                f"small? ({e})"
+            ) from None
         frontend = {
             "version": FRONTEND_VERSION,
             "features": {"kind": extractor.kind, "n_features": extractor.n_features, "root_sift": extractor.root_sift},

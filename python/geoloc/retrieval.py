@@ -74,12 +74,18 @@ class DescriptorIndex:
 
 
 def _local_descriptors(x: ArrayLike, name: str) -> NDArray[np.uint8] | NDArray[np.float32]:
-    """(N, W) uint8 rows as they are (binary), anything real as C-contiguous float32 rows."""
+    """(N, W) uint8 rows as they are (binary), floating rows as C-contiguous float32 rows;
+    other integer or boolean rows are refused: binary descriptors are bytes, and read as
+    floats they would be compared as another kind."""
     arr = np.asarray(x)
     if arr.ndim != 2 or arr.shape[1] == 0:
         raise InvalidInputError(f"{name}: expected shape (N, W), got {arr.shape}")
     if arr.dtype == np.uint8:
         return np.ascontiguousarray(arr)
+    if arr.dtype.kind in "biu":
+        raise InvalidInputError(
+            f"{name}: expected uint8 rows (binary descriptors, e.g. ORB) or floating rows (e.g. SIFT), got {arr.dtype}"
+        )
     return _f32_rows(arr, name)
 
 

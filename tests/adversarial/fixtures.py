@@ -37,16 +37,22 @@ def small_dataset_dir(tmp: Path) -> str:
 
 
 def feature_map(tmp: Path) -> Any:
-    from geoloc import Map
-
-    from geoloc import Camera
+    """Three keyframes 15 cm apart seeing the same 40 landmarks 3–5 m away (each landmark keeps
+    its descriptor): a map whose 3D model has points, so the default (model) locator serves it."""
+    from geoloc import Camera, Map
 
     rng = np.random.default_rng(0)
+    camera = Camera(525, 525, 320, 240)
     poses = np.repeat(np.eye(4)[None], 3, axis=0)
-    poses[:, 0, 3] = [0.0, 0.1, 0.2]
-    kps = [rng.uniform(0, 480, size=(40, 2)) for _ in range(3)]
-    descs = [rng.integers(0, 256, size=(40, 32), dtype=np.uint8) for _ in range(3)]
-    return Map.from_features(Camera(525, 525, 320, 240), poses, kps, descs, branching=3, depth=2, estimate_noise=False, refine_intrinsics=False, adjust_labels=False)
+    poses[:, 0, 3] = [0.0, 0.15, 0.3]
+    depth = rng.uniform(3.0, 5.0, 40)
+    landmarks = np.stack([rng.uniform(-0.4, 0.4, 40) * depth, rng.uniform(-0.3, 0.3, 40) * depth, depth], axis=1)
+    descs = rng.integers(0, 256, size=(40, 32), dtype=np.uint8)
+    kps = []
+    for pose in poses:
+        cam = landmarks - pose[:3, 3]  # the keyframes look along +z, unrotated
+        kps.append(np.stack([525 * cam[:, 0] / cam[:, 2] + 320, 525 * cam[:, 1] / cam[:, 2] + 240], axis=1))
+    return Map.from_features(camera, poses, kps, [descs] * 3, branching=3, depth=2, estimate_noise=False, refine_intrinsics=False, adjust_labels=False)
 
 
 def onnx_model(tmp: Path) -> str:
