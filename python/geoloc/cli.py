@@ -10,7 +10,9 @@ are written atomically and missing folders are never created.
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
+import threading
 import traceback
 from typing import Callable, Sequence
 
@@ -361,11 +363,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command is None:
         parser.print_help(sys.stderr)
         return EXIT_USAGE
+    restore = _stop_on_termination()
     try:
         return handlers[args.command](args)
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as e:
+        signum = e.args[0] if e.args and isinstance(e.args[0], int) else signal.SIGINT
         print(f"geoloc {args.command}: interrupted", file=sys.stderr)
-        return 130
+        return 128 + int(signum)
     except (GeolocError, ValueError, OSError) as e:
         if args.debug:
             traceback.print_exc()
@@ -381,3 +385,27 @@ def main(argv: Sequence[str] | None = None) -> int:
             file=sys.stderr,
         )
         return EXIT_FAILURE
+    finally:
+        restore()
+
+
+def _stop_on_termination() -> Callable[[], None]:
+    """SIGTERM and SIGHUP (a service stopped, an ssh session dropped) end a command as Ctrl-C
+    does — a KeyboardInterrupt carrying the signal's number, so that writers remove their
+    temp files and keep the previous output — instead of killing the process with a temp
+    file left behind. A native call (the core writing a map) finishes first. Returns the
+    function that puts the previous handlers back (main thread only; elsewhere nothing)."""
+    if threading.current_thread() is not threading.main_thread():
+        return lambda: None
+
+    def stop(signum: int, frame: object) -> None:
+        raise KeyboardInterrupt(signum)
+
+    watched = [signal.SIGTERM, *([signal.SIGHUP] if hasattr(signal, "SIGHUP") else [])]
+    previous = {s: signal.signal(s, stop) for s in watched}
+
+    def restore() -> None:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+
+    return restore

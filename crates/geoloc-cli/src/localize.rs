@@ -27,8 +27,9 @@
 use std::io::{BufRead, BufReader, Write};
 use std::num::NonZero;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use geoloc_core::GeolocError;
 use geoloc_core::files::{self, AtomicFile};
@@ -113,13 +114,32 @@ fn localize(args: &Args) -> Result<(), String> {
     let records = open_input(&args.input, args.format)?;
     // watched before the temp file exists: no signal can leave it behind
     let out: SharedOutput = Arc::new(Mutex::new(None));
-    end_on_signal(Arc::clone(&out), if args.output == "-" { "stdout".into() } else { args.output.clone() })?;
+    let stopping =
+        end_on_signal(Arc::clone(&out), if args.output == "-" { "stdout".into() } else { args.output.clone() })?;
     *locked(&out) = Some(Output::open(&args.output)?);
     // what was written stays, also when a frame stops the run
     let result = localize_frames(args, &map, &header, &mut localizer, records, &out, start);
+    // a Ctrl-C on `camera | geoloc-rs` also ends the stream (the camera dies with it): a run
+    // that ended with a signal on its way is the signal's to end (exit 128 + it, the output
+    // named), not an input error's
+    if result.is_err() {
+        let since = Instant::now();
+        while !stopping.load(Ordering::SeqCst) && since.elapsed() < SIGNAL_GRACE {
+            std::thread::sleep(Duration::from_millis(5));
+        }
+    }
+    if stopping.load(Ordering::SeqCst) {
+        loop {
+            std::thread::park(); // the signal's thread finishes the output and exits
+        }
+    }
     let finished = finish(&out).map_err(|e| format!("--output {e}"));
     result.and(finished)
 }
+
+/// How long a run that ended with an input error waits for a signal that may have ended the
+/// stream too before it reports the error.
+const SIGNAL_GRACE: Duration = Duration::from_millis(200);
 
 /// The output, shared with the thread that ends the run on a signal; None once finished.
 type SharedOutput = Arc<Mutex<Option<Output>>>;
@@ -145,10 +165,17 @@ fn finish(out: &Mutex<Option<Output>>) -> geoloc_core::Result<()> {
 /// `out` (the line being written completes first) and exits with 128 + its number. The lock
 /// is held until the exit, so the run writes nothing after the output is finished. (Before,
 /// the signal killed the process and left the poses in a temp file beside `--output`.)
-fn end_on_signal(out: SharedOutput, shown: String) -> Result<(), String> {
+///
+/// Returns a flag the signal handler itself sets, at delivery, before the thread wakes: the run
+/// reads it to leave the ending to that thread.
+fn end_on_signal(out: SharedOutput, shown: String) -> Result<Arc<AtomicBool>, String> {
     use signal_hook::consts::{SIGHUP, SIGINT, SIGTERM};
-    let mut signals = signal_hook::iterator::Signals::new([SIGINT, SIGTERM, SIGHUP])
-        .map_err(|e| format!("cannot watch for signals: {e}"))?;
+    let watch_error = |e: std::io::Error| format!("cannot watch for signals: {e}");
+    let stopping = Arc::new(AtomicBool::new(false));
+    for signal in [SIGINT, SIGTERM, SIGHUP] {
+        signal_hook::flag::register(signal, Arc::clone(&stopping)).map_err(watch_error)?;
+    }
+    let mut signals = signal_hook::iterator::Signals::new([SIGINT, SIGTERM, SIGHUP]).map_err(watch_error)?;
     std::thread::spawn(move || {
         if let Some(signal) = signals.forever().next() {
             let mut guard = locked(&out);
@@ -162,7 +189,7 @@ fn end_on_signal(out: SharedOutput, shown: String) -> Result<(), String> {
             std::process::exit(128 + signal);
         }
     });
-    Ok(())
+    Ok(stopping)
 }
 
 fn localize_frames(
