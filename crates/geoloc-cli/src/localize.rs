@@ -52,14 +52,14 @@ pub struct Args {
     map: PathBuf,
     /// The frame stream (from `geoloc.export_frames`), or `-` for stdin.
     #[arg(long)]
-    input: String,
+    input: PathBuf,
     /// Encoding of the frame stream.
     #[arg(long, value_enum, default_value_t = InputFormat::Auto)]
     format: InputFormat,
     /// Where the pose lines go (`-`: stdout); an existing file is replaced atomically when the
     /// run ends. Must not be one of the inputs.
     #[arg(long, default_value = "-")]
-    output: String,
+    output: PathBuf,
     /// Threads of the core's parallel loops (1: sequential). Default: the environment's
     /// GEOLOC_NUM_THREADS / GEOLOC_PARALLELISM, else all cores. Results are identical either way.
     /// At most 256.
@@ -115,7 +115,7 @@ fn localize(args: &Args) -> Result<(), String> {
     // watched before the temp file exists: no signal can leave it behind
     let out: SharedOutput = Arc::new(Mutex::new(None));
     let stopping =
-        end_on_signal(Arc::clone(&out), if args.output == "-" { "stdout".into() } else { args.output.clone() })?;
+        end_on_signal(Arc::clone(&out), if is_dash(&args.output) { "stdout".into() } else { shown(&args.output) })?;
     *locked(&out) = Some(Output::open(&args.output)?);
     // what was written stays, also when a frame stops the run
     let result = localize_frames(args, &map, &header, &mut localizer, records, &out, start);
@@ -201,7 +201,7 @@ fn localize_frames(
     out: &Mutex<Option<Output>>,
     start: Instant,
 ) -> Result<(), String> {
-    let write_err = |e: std::io::Error| format!("--output {}: {e}", args.output);
+    let write_err = |e: std::io::Error| format!("--output {}: {e}", shown(&args.output));
     write_line(out, output::HEADER).map_err(write_err)?;
     let loaded = start.elapsed();
     let loop_start = Instant::now();
@@ -209,7 +209,7 @@ fn localize_frames(
     let mut previous: Option<f64> = None;
     for (index, record) in records.enumerate() {
         let record = record.map_err(|e| input_error(&args.input, e))?;
-        check_record(&record, header, previous, index).map_err(|e| format!("{}: {e}", args.input))?;
+        check_record(&record, header, previous, index).map_err(|e| format!("{}: {e}", shown(&args.input)))?;
         previous = Some(record.timestamp);
         let frame = Frame {
             timestamp: record.timestamp,
@@ -218,7 +218,7 @@ fn localize_frames(
             global: record.global.as_deref(),
             pixel_sigmas: Some(&record.pixel_sigmas),
         };
-        let result = localizer.localize(&frame).map_err(|e| format!("{}: frame {index}: {e}", args.input))?;
+        let result = localizer.localize(&frame).map_err(|e| format!("{}: frame {index}: {e}", shown(&args.input)))?;
         // in the labels' convention, as the Python Localizer returns it
         let result = map.to_label_convention(result);
         write_line(out, &output::line(record.timestamp, &result)).map_err(write_err)?;
@@ -233,20 +233,19 @@ fn localize_frames(
 /// Refuses an `--output` that is one of the inputs (see the module doc); stdin counts as the
 /// file it is redirected from, where the system names it (`/dev/stdin`).
 fn refuse_aliased_output(args: &Args) -> Result<(), String> {
-    let out = Path::new(&args.output);
-    if args.output == "-" || !out.is_file() {
+    let out = args.output.as_path();
+    if is_dash(out) || !out.is_file() {
         return Ok(()); // stdout, a device or a new file cannot destroy an input
     }
     let stdin = Path::new("/dev/stdin");
     let inputs: [(&str, &Path); 2] =
-        [("--map", args.map.as_path()), ("--input", if args.input == "-" { stdin } else { Path::new(&args.input) })];
+        [("--map", args.map.as_path()), ("--input", if is_dash(&args.input) { stdin } else { args.input.as_path() })];
     for (flag, input) in inputs {
         if files::same_file(out, input) {
-            let shown =
-                if args.input == "-" && flag == "--input" { "- (stdin)".into() } else { input.display().to_string() };
+            let which = if is_dash(&args.input) && flag == "--input" { "- (stdin)".into() } else { shown(input) };
             return Err(format!(
-                "--output {}: is the same file as {flag} {shown}; refusing to overwrite an input",
-                args.output
+                "--output {}: is the same file as {flag} {which}; refusing to overwrite an input",
+                shown(&args.output)
             ));
         }
     }
@@ -267,8 +266,19 @@ fn options(args: &Args) -> LocalizerOptions {
 
 /// A reader error, prefixed with the input (the reader names the frame: `frame N: …`, or the
 /// stream header).
-fn input_error(input: &str, e: GeolocError) -> String {
-    format!("{input}: {e}")
+fn input_error(input: &Path, e: GeolocError) -> String {
+    format!("{}: {e}", shown(input))
+}
+
+/// Whether a path argument is `-` (stdin or stdout).
+fn is_dash(path: &Path) -> bool {
+    path.as_os_str() == "-"
+}
+
+/// A path for messages (bytes that are not UTF-8 shown as U+FFFD): paths are taken as the
+/// system gives them, whatever their bytes.
+fn shown(path: &Path) -> String {
+    path.display().to_string()
 }
 
 /// What the map needs of a frame that the reader cannot know: the descriptor kind and width,
@@ -305,25 +315,24 @@ fn check_record(record: &FrameRecord, header: &MapHeader, previous: Option<f64>,
     Ok(())
 }
 
-fn open_input(input: &str, format: InputFormat) -> Result<Records, String> {
-    let (mut reader, size): (Box<dyn BufRead>, Option<u64>) = if input == "-" {
+fn open_input(input: &Path, format: InputFormat) -> Result<Records, String> {
+    let (mut reader, size): (Box<dyn BufRead>, Option<u64>) = if is_dash(input) {
         (Box::new(BufReader::new(std::io::stdin())), None)
     } else {
-        let (file, len) =
-            files::open_regular(Path::new(input), "the frame stream").map_err(|e| format!("--input {e}"))?;
+        let (file, len) = files::open_regular(input, "the frame stream").map_err(|e| format!("--input {e}"))?;
         (Box::new(BufReader::new(file)), Some(len))
     };
     let format = match format {
         InputFormat::Auto => {
-            let first = reader.fill_buf().map_err(|e| format!("--input {input}: {e}"))?;
+            let first = reader.fill_buf().map_err(|e| format!("--input {}: {e}", shown(input)))?;
             if first.first() == Some(&b'{') { InputFormat::Jsonl } else { InputFormat::Binary }
         }
         other => other,
     };
     Ok(match (format, size) {
         (InputFormat::Jsonl, _) => Box::new(read_json_records(reader)),
-        (_, Some(len)) => Box::new(FrameReader::with_size(reader, len).map_err(|e| format!("{input}: {e}"))?),
-        (_, None) => Box::new(FrameReader::new(reader).map_err(|e| format!("{input}: {e}"))?),
+        (_, Some(len)) => Box::new(FrameReader::with_size(reader, len).map_err(|e| input_error(input, e))?),
+        (_, None) => Box::new(FrameReader::new(reader).map_err(|e| input_error(input, e))?),
     })
 }
 
@@ -351,13 +360,12 @@ fn is_char_device(path: &Path) -> bool {
 }
 
 impl Output {
-    fn open(output: &str) -> Result<Self, String> {
-        let path = Path::new(output);
-        if output == "-" {
+    fn open(path: &Path) -> Result<Self, String> {
+        if is_dash(path) {
             Ok(Self::Stdout(std::io::stdout()))
         } else if is_char_device(path) {
             let device = std::fs::OpenOptions::new().write(true).open(path);
-            device.map(Self::Device).map_err(|e| format!("--output {output}: {e}"))
+            device.map(Self::Device).map_err(|e| format!("--output {}: {e}", shown(path)))
         } else {
             AtomicFile::create(path).map(Self::File).map_err(|e| format!("--output {e}"))
         }

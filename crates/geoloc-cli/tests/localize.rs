@@ -368,6 +368,33 @@ fn a_signal_with_the_end_of_the_stream_is_the_signals() {
     }
 }
 
+/// File names are bytes on Linux: `--input` and `--output` of bytes that are not UTF-8 (a
+/// folder a Python tool made) are taken as they are, like `--map` — they were refused as
+/// "invalid UTF-8 was detected in one or more arguments".
+#[cfg(unix)]
+#[test]
+fn paths_that_are_not_utf8_are_taken_as_they_are() {
+    use std::os::unix::ffi::OsStrExt;
+    let d = dir("bytes");
+    let (map, records) = scene(&d, 2);
+    let odd = |ext: &str| d.join(std::ffi::OsStr::from_bytes(&[b'x', 0xff, b'.', ext.as_bytes()[0]]));
+    let (input, output) = (odd("b"), odd("t"));
+    std::fs::write(&input, stream(&records)).expect("writes");
+    let out = Command::new(env!("CARGO_BIN_EXE_geoloc-rs"))
+        .arg("localize")
+        .arg("--map")
+        .arg(&map)
+        .arg("--input")
+        .arg(&input)
+        .arg("--output")
+        .arg(&output)
+        .env("GEOLOC_NUM_THREADS", "1")
+        .output()
+        .expect("binary runs");
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert_eq!(std::fs::read_to_string(&output).expect("written").lines().count(), 1 + records.len());
+}
+
 #[test]
 fn mutated_streams_never_panic_or_hang() {
     let d = dir("fuzz");
