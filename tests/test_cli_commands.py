@@ -197,6 +197,24 @@ def test_localize_a_folder_of_images(room_map: Path, tmp_path: Path) -> None:
     assert np.allclose([[float(v) for v in r[1:4]] for r in rows], room.poses[[33, 36, 39], :3, 3], atol=SYNTHETIC_MEDIAN_M)
 
 
+def test_a_plot_folder_that_cannot_be_made_is_refused_before_any_work(tmp_path: Path) -> None:
+    """A file named like a mode's plot folder failed demo and evaluate after the results were
+    written, naming an internal "directory"; now the option is named and nothing is written."""
+    out = tmp_path / "demo"
+    out.mkdir()
+    (out / "single").write_text("in the way")
+    result = _run("demo", "--out", str(out))
+    _one_line_error(result, "--out", "single", "is a file, where the plots' folder goes")
+    assert sorted(p.name for p in out.iterdir()) == ["single"]
+    plots = tmp_path / "plots"
+    plots.mkdir()
+    (plots / "sequential").write_text("in the way")
+    result = _run("evaluate", "--format", "synthetic", "--synthetic-frames", "40", "--json", str(tmp_path / "r.json"),
+                  "--plots", str(plots))
+    _one_line_error(result, "--plots", "sequential")
+    assert not (tmp_path / "r.json").exists()
+
+
 def test_localize_to_standard_output_writes_what_a_file_would_get(room_map: Path, tmp_path: Path) -> None:
     """``--out -`` wrote a file named ``-``; ``geoloc-rs`` takes ``-`` as standard output."""
     import cv2

@@ -13,7 +13,7 @@ from pathlib import Path
 
 from ..exceptions import InvalidInputError
 from ._common import MODES, FrameRange
-from .evaluate import evaluate_split, report, write_plots
+from .evaluate import evaluate_split, plot_folders, report, write_plots
 
 __all__ = ["DEFAULT_FRAMES", "run", "split"]
 
@@ -49,6 +49,8 @@ def run(args: argparse.Namespace) -> int:
             raise InvalidInputError(f"--out: cannot create {str(out)!r} ({e.strerror})") from None
     elif not out.is_dir():
         raise InvalidInputError(f"--out: {str(out)!r} is a file, expected a folder")
+    if not args.no_plots:
+        plot_folders(str(out), MODES, "--out")
     sequence = synthetic_room(n_frames=args.frames)
     train, test = split(args.frames)
     result = evaluate_split(sequence, train, test, MODES)

@@ -353,17 +353,28 @@ def plot_files(directory: str | None, modes: tuple[str, ...]) -> list[Path]:
     return [Path(directory) / mode / name for mode in modes for name in PLOT_FILES.values()]
 
 
+def plot_folders(directory: str, modes: tuple[str, ...], option: str) -> None:
+    """Makes ``directory`` and ``directory/<mode>/`` for every mode before any work is done
+    (``directory``'s parent must exist): a folder that cannot be made — a file in the way,
+    no permission — is an InvalidInputError naming ``option`` before anything is computed or
+    written, not after the results are."""
+    root = Path(directory)
+    for folder in (root, *(root / mode for mode in modes)):
+        if folder.exists() and not folder.is_dir():
+            raise InvalidInputError(f"{option}: {str(folder)!r} is a file, where the plots' folder goes")
+        try:
+            folder.mkdir(exist_ok=True)
+        except OSError as e:
+            raise InvalidInputError(f"{option}: cannot create {str(folder)!r} ({e.strerror})") from None
+
+
 def write_plots(directory: str, summaries: dict[str, dict[str, Any]]) -> list[Path]:
-    """The four PNGs of each mode into ``directory/<mode>/`` (``directory`` is created if its
-    parent exists)."""
+    """The four PNGs of each mode into ``directory/<mode>/`` (:func:`plot_folders` made the
+    folders)."""
     from ..plots import write_all
 
     root = Path(directory)
-    if not root.exists():
-        try:
-            root.mkdir()
-        except OSError as e:
-            raise InvalidInputError(f"--plots: cannot create {str(root)!r} ({e.strerror})") from None
+    plot_folders(directory, tuple(summaries), "--plots")
     written: list[Path] = []
     for mode, summary in summaries.items():
         written.extend(write_all(summary, root / mode).values())
@@ -384,6 +395,8 @@ def run(args: argparse.Namespace) -> int:
     refuse_alias(args.json, "--json", inputs)
     for plot in plot_files(args.plots, _modes(args.mode)):
         refuse_alias(plot, "--plots", inputs)
+    if args.plots:
+        plot_folders(args.plots, _modes(args.mode), "--plots")
     default_train, default_test = default_split(len(sequence), args.format)
     train = args.train or default_train
     test = args.test or default_test
