@@ -107,6 +107,10 @@ def test_7scenes_bad_input(tmp_path: Path) -> None:
         datasets.load_7scenes(folder)
     with pytest.raises(geoloc.DatasetError, match="camera-intrinsics.txt"):
         datasets.load_7scenes(folder, intrinsics="file")
+    # one frame under two names: both named (it guessed "png and jpg?" and named neither)
+    shutil.copy(folder / "frame-000150.color.png", folder / "frame-0000150.color.png")
+    with pytest.raises(geoloc.DatasetError, match=r"has frame 150 twice: 'frame-0000150.color.png' and 'frame-000150.color.png'"):
+        datasets.load_7scenes(folder)
 
 
 def test_images_of_another_size_or_unreadable_are_named(tmp_path: Path) -> None:

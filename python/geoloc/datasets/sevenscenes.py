@@ -92,7 +92,8 @@ def load_7scenes(
     numbers = [n for n, _ in frames]
     if len(set(numbers)) != len(numbers):
         dup = next(n for n in numbers if numbers.count(n) > 1)
-        raise DatasetError(f"path: {str(root)!r} has frame {dup:06d} twice (png and jpg?)")
+        names = " and ".join(repr(p.name) for n, p in frames if n == dup)
+        raise DatasetError(f"path: {str(root)!r} has frame {dup} twice: {names}")
     if intrinsics == "file":
         camera = read_7scenes_intrinsics(root / INTRINSICS_FILE)
     else:
