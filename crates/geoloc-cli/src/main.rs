@@ -58,7 +58,11 @@ enum Command {
 }
 
 fn main() -> ExitCode {
-    let result = match Cli::parse().command {
+    let cli = Cli::parse();
+    if let Some(warning) = geoloc_core::parallel::environment_warning() {
+        eprintln!("geoloc-rs: warning: {warning}");
+    }
+    let result = match cli.command {
         Command::Info { map } => info::run(&map),
         Command::Localize(args) => localize::run(&args),
         Command::Selfcheck { samples } => return selfcheck::run(samples),

@@ -63,6 +63,28 @@ impl Parallelism {
     }
 }
 
+/// What is wrong with a `GEOLOC_NUM_THREADS` value, if anything: not a whole number ≥ 1
+/// (ignored: the default applies, every core) or above [`MAX_THREADS`] (capped). Unset or
+/// empty is no setting, not a wrong one. A front end prints it, so that a robot capping its
+/// CPU use with a typo learns that it did not.
+pub fn num_threads_warning(value: Option<&str>) -> Option<String> {
+    let v = value.map(str::trim).filter(|v| !v.is_empty())?;
+    match v.parse::<usize>() {
+        Ok(n) if n > MAX_THREADS => {
+            Some(format!("GEOLOC_NUM_THREADS={n} is above {MAX_THREADS}: {MAX_THREADS} threads run"))
+        }
+        Ok(n) if n >= 1 => None,
+        _ => Some(format!(
+            "GEOLOC_NUM_THREADS={v:?} is not a thread count (a whole number ≥ 1): ignored, the default applies"
+        )),
+    }
+}
+
+/// [`num_threads_warning`] of this process's environment.
+pub fn environment_warning() -> Option<String> {
+    num_threads_warning(std::env::var("GEOLOC_NUM_THREADS").ok().as_deref())
+}
+
 /// A resolved setting: sequential, or a pool (None: rayon's global one).
 #[derive(Clone)]
 enum Runner {
@@ -245,6 +267,20 @@ mod tests {
         });
         let here = std::thread::current().name().unwrap_or("").to_owned();
         assert!(names.iter().all(|n| *n == here));
+    }
+
+    /// Unparsable, zero and negative counts are ignored and said so; too many are capped and
+    /// said so; a count in range, unset or empty says nothing.
+    #[test]
+    fn a_wrong_thread_count_is_named() {
+        for bad in ["abc", "0", "-1", "1.5", "two"] {
+            let w = num_threads_warning(Some(bad)).expect("a warning");
+            assert!(w.contains(&format!("{bad:?}")) && w.contains("ignored"), "{w}");
+        }
+        assert!(num_threads_warning(Some("100000")).expect("a warning").contains("256 threads run"));
+        for fine in [None, Some(""), Some("  "), Some("1"), Some(" 8 "), Some("256")] {
+            assert_eq!(num_threads_warning(fine), None, "{fine:?}");
+        }
     }
 
     /// A thread count far beyond any machine's runs on a pool of [`MAX_THREADS`] (a pool of
