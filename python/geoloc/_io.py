@@ -34,6 +34,7 @@ from .exceptions import InvalidInputError
 __all__ = [
     "check_input_file",
     "check_output_path",
+    "file_identity",
     "read_bytes",
     "refuse_alias",
     "shown",
@@ -166,7 +167,9 @@ def check_output_path(path: Any, name: str = "path") -> Path:
     return target
 
 
-def _identity(path: Any) -> tuple[int, int] | None:
+def file_identity(path: Any) -> tuple[int, int] | None:
+    """(device, inode) of the file at ``path`` (symlinks followed), None when there is none:
+    two paths of one file share it, and a replaced file gets another."""
     try:
         st = os.stat(path)
     except (OSError, ValueError):
@@ -181,14 +184,14 @@ def refuse_alias(output: Any, output_name: str, inputs: Iterable[tuple[str, Any]
     that does not exist yet is never the same file as an input."""
     if output is None:
         return
-    out = _identity(output)
+    out = file_identity(output)
     if out is None:
         return
     real = os.path.realpath(output)
     for name, path in inputs:
         if path is None:
             continue
-        if _identity(path) == out or os.path.realpath(path) == real:
+        if file_identity(path) == out or os.path.realpath(path) == real:
             alias = "" if os.fspath(path) == os.fspath(output) else f" ({str(path)!r})"
             raise InvalidInputError(
                 f"{output_name}: {str(output)!r} is the same file as the input {name}{alias}; writing it would "

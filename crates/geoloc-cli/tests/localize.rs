@@ -80,16 +80,21 @@ fn dir(name: &str) -> PathBuf {
     d
 }
 
-/// Runs `geoloc-rs args…` with `stdin` piped in, killed (and reported) after [`HANG`].
-fn run(args: &[&str], stdin: &[u8]) -> (Output, bool) {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_geoloc-rs"))
+/// `geoloc-rs args…` started on one thread with stdin, stdout and stderr piped.
+fn spawn(args: &[&str]) -> std::process::Child {
+    Command::new(env!("CARGO_BIN_EXE_geoloc-rs"))
         .args(args)
         .env("GEOLOC_NUM_THREADS", "1")
         .stdin(Stdio::piped())
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .spawn()
-        .expect("binary runs");
+        .expect("binary runs")
+}
+
+/// Runs `geoloc-rs args…` with `stdin` piped in, killed (and reported) after [`HANG`].
+fn run(args: &[&str], stdin: &[u8]) -> (Output, bool) {
+    let mut child = spawn(args);
     let mut pipe = child.stdin.take().expect("piped");
     let data = stdin.to_vec();
     let feeder = std::thread::spawn(move || {
@@ -277,6 +282,17 @@ fn bad_frames_stop_with_the_frame_named_and_earlier_lines_kept() {
     }
 }
 
+/// `geoloc-rs localize --input - --output out_path` on a live stream: `sent` written and
+/// flushed, stdin left open (the child and its stdin).
+#[cfg(unix)]
+fn live_run(map: &str, out_path: &Path, sent: &[u8]) -> (std::process::Child, std::process::ChildStdin) {
+    let mut child = spawn(&["localize", "--map", map, "--input", "-", "--output", out_path.to_str().expect("utf-8")]);
+    let mut pipe = child.stdin.take().expect("piped");
+    pipe.write_all(sent).expect("writes");
+    pipe.flush().expect("flushes");
+    (child, pipe)
+}
+
 /// On a live stream a signal is how a run ends: SIGINT, SIGTERM and SIGHUP end it as the end
 /// of the stream does — the lines so far in `--output`, no temp file left — with the exit
 /// status 128 + the signal (the signal used to kill it, leaving the poses in a temp file).
@@ -289,18 +305,8 @@ fn a_signal_ends_a_live_run_with_its_lines_written() {
     for (signal, status) in [("INT", 130), ("TERM", 143), ("HUP", 129)] {
         let out_path = d.join("poses.txt");
         std::fs::write(&out_path, "the previous run\n").expect("writes");
-        let mut child = Command::new(env!("CARGO_BIN_EXE_geoloc-rs"))
-            .args(["localize", "--map", map_s, "--input", "-", "--output", out_path.to_str().expect("utf-8")])
-            .env("GEOLOC_NUM_THREADS", "1")
-            .stdin(Stdio::piped())
-            .stdout(Stdio::piped())
-            .stderr(Stdio::piped())
-            .spawn()
-            .expect("binary runs");
         // the camera keeps the stream open: every frame sent, no end of stream
-        let mut pipe = child.stdin.take().expect("piped");
-        pipe.write_all(&stream(&records)).expect("writes");
-        pipe.flush().expect("flushes");
+        let (child, pipe) = live_run(map_s, &out_path, &stream(&records));
         // wait until the three lines are in the temp file (header + frames)
         let start = Instant::now();
         let written = || {
@@ -346,17 +352,7 @@ fn a_signal_with_the_end_of_the_stream_is_the_signals() {
     let bytes = stream(&records);
     for round in 0..4 {
         let out_path = d.join("poses.txt");
-        let mut child = Command::new(env!("CARGO_BIN_EXE_geoloc-rs"))
-            .args(["localize", "--map", map_s, "--input", "-", "--output", out_path.to_str().expect("utf-8")])
-            .env("GEOLOC_NUM_THREADS", "1")
-            .stdin(Stdio::piped())
-            .stdout(Stdio::piped())
-            .stderr(Stdio::piped())
-            .spawn()
-            .expect("binary runs");
-        let mut pipe = child.stdin.take().expect("piped");
-        pipe.write_all(&bytes[..bytes.len() - 100]).expect("writes"); // the last record cut short
-        pipe.flush().expect("flushes");
+        let (child, pipe) = live_run(map_s, &out_path, &bytes[..bytes.len() - 100]); // the last record cut short
         std::thread::sleep(Duration::from_millis(300)); // the whole records localized
         let kill = Command::new("kill").args(["-INT", &child.id().to_string()]).spawn().expect("kill runs");
         drop(pipe); // the end of the stream, with the signal

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import time
 
@@ -25,19 +24,9 @@ from ._common import (
 __all__ = ["run"]
 
 
-def _identity(path: str) -> tuple[int, int] | None:
-    """(device, inode) of the file at ``path``, None when there is none: a replaced file has
-    another inode."""
-    try:
-        st = os.stat(path)
-    except OSError:
-        return None
-    return (st.st_dev, st.st_ino)
-
-
 def run(args: argparse.Namespace) -> int:
     """The ``build-map`` command."""
-    from .._io import refuse_alias, shown
+    from .._io import file_identity, refuse_alias, shown
     from ..mapping import Map
 
     dataset = load_dataset(args)
@@ -59,13 +48,13 @@ def run(args: argparse.Namespace) -> int:
         progress=Progress("map", then=MAP_DONE),
     )
     built = time.perf_counter() - start
-    before = _identity(args.out)
+    before = file_identity(args.out)
     try:
         the_map.save(args.out)
     except KeyboardInterrupt:
         # the core's write is not interrupted: a signal during it is handled when it returns,
         # with the new map in place — say so rather than only "interrupted"
-        if _identity(args.out) != before:
+        if file_identity(args.out) != before:
             print(f"geoloc build-map: the map was written to {shown(args.out)} before the interrupt", file=sys.stderr)
         raise
     cam = the_map.camera

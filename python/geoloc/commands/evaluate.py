@@ -126,10 +126,10 @@ def _reference_rows(reference: dict[str, Any], seq: Any, what: str) -> NDArray[n
     return rows
 
 
-def _refuse_undetermined_alignment(alignment: Any, test_reference: NDArray[np.float64], file: Any) -> None:
-    """InvalidInputError naming --reference when the alignment alone leaves the test frames'
-    aligned reference poses (median) more uncertain than the first recall threshold a pose is
-    scored at (5 cm / 5°): the training frames it shares with the dataset do not determine S
+def _checked_alignment_uncertainty(alignment: Any, test_reference: NDArray[np.float64], file: Any) -> tuple[float, float]:
+    """The alignment's own uncertainty at the test frames' aligned reference poses (median
+    position m, rotation deg); InvalidInputError naming --reference when it is beyond the
+    first recall threshold a pose is scored at (5 cm / 5°): the training frames it shares with the dataset do not determine S
     and X, and a score against that reference means nothing. (Three frames 7 mm apart: ±18 m;
     60 frames of 7-Scenes for the next 30: ±3 cm / 0.7°, at 2 cm / 1° per frame.)"""
     from ..evaluation import RECALL_THRESHOLDS
@@ -143,6 +143,7 @@ def _refuse_undetermined_alignment(alignment: Any, test_reference: NDArray[np.fl
             f"frames' reference poses ±{100 * p:.3g} cm / ±{r:.3g}° (median), more than the {100 * max_m:g} cm / "
             f"{max_deg:g}° a pose is scored at; give reference poses for more, or more spread-out, training frames"
         )
+    return p, r
 
 
 def evaluate_split(
@@ -192,7 +193,7 @@ def evaluate_split(
         train_rows = _reference_rows(reference, train_seq, "train")
         test_reference = reference["poses"][_reference_rows(reference, test_seq, "test")]
         on_labels = align_reference(reference["poses"][train_rows[train_rows >= 0]], train_seq.poses[train_rows >= 0])
-        _refuse_undetermined_alignment(on_labels, test_reference, reference["file"])
+        _checked_alignment_uncertainty(on_labels, test_reference, reference["file"])
     start = time.perf_counter()
     network = open_retrieval(retrieval)
     the_map = Map.build(
@@ -211,13 +212,13 @@ def evaluate_split(
         fitted = train_rows >= 0
         targets = map_keyframe_poses(the_map, train_seq.poses)
         alignment = align_reference(reference["poses"][train_rows[fitted]], targets[fitted])
-        _refuse_undetermined_alignment(alignment, test_reference, reference["file"])
+        alignment_sigma = _checked_alignment_uncertainty(alignment, test_reference, reference["file"])
         against = {
             "file": reference["file"],
             "format": reference["format"],
             "fitted_to": "labels" if targets is train_seq.poses else "map keyframe poses",
             "alignment": alignment,
-            "alignment_sigma": tuple(float(np.median(v)) for v in alignment.uncertainty(test_reference)),
+            "alignment_sigma": alignment_sigma,
             "summaries": {},
         }
     summaries: dict[str, Any] = {}
