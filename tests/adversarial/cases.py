@@ -492,6 +492,8 @@ def evaluation_specs() -> list[Spec]:
         Spec(m, "geoloc.evaluation.chi2_6_quantile", {"p": a(np.array([0.1, 0.5, 0.95]))}, ("p",), "finite"),
         Spec(m, "geoloc.evaluation.format_tum_line", {"timestamp": ("float", 1.5), "pose": a(EST[1])},
              ("timestamp", "pose"), "str"),
+        Spec(m, "geoloc.evaluation.tum_trajectory_text", {"timestamps": a(np.arange(5.0)), "poses": a(EST)},
+             ("timestamps", "poses"), "str", aliases={"timestamps": ["poses"], "poses": ["timestamps"]}),
         Spec(m, "geoloc.evaluation.write_tum_trajectory",
              {"path": ("any", ("path", "fresh")), "timestamps": a(np.arange(5.0)), "poses": a(EST)},
              ("path", "timestamps", "poses"), "any", aliases={"timestamps": ["poses"], "poses": ["timestamps"]}),
