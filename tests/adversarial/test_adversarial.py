@@ -65,3 +65,12 @@ def test_adversarial(worker: Worker, target: str) -> None:
 
     run()
 
+
+
+@pytest.mark.parametrize("command", COMMANDS)
+def test_the_base_command_lines_succeed(worker: Worker, command: str) -> None:
+    """Every command line the CLI cases start from exits 0 as it is: a base that fails on its
+    own turns every case that reaches the failure into a false "wrong-name" report."""
+    base, _ = cases.CLI[command]
+    out = worker.run({"module": "cli", "cli": [command, *base], "names": [], "timeout": 90, "watch": []})
+    assert out["kind"] == "ok", f"{command} {base}: {out}"
