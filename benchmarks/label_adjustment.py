@@ -10,6 +10,13 @@ the part of the difference the whole block shares — a systematic disagreement 
 map and the reference, not scatter), the build times and the labels' report.
 
     PYTHONPATH=python python benchmarks/label_adjustment.py [--frames 0:600:1] [--json out.json]
+        [--write-poses FILE]
+
+``--write-poses`` writes the corrected map's keyframe poses in the reference's own format
+(``index`` and the row-major top 3×4, one line per frame): a second image-consistent
+reference to score against (``benchmarks/calibration.py --reference FILE``). It is this
+project's adjustment, not an independent one: where it and the SfM reference disagree, the
+difference shows how far a block-level number rests on the reference chosen.
 """
 
 from __future__ import annotations
@@ -40,11 +47,23 @@ def differences(poses: np.ndarray, aligned: np.ndarray) -> tuple[np.ndarray, np.
     return dt, angle
 
 
-def measure(seq: Any, frames: np.ndarray, reference: np.ndarray, adjust: bool) -> dict[str, Any]:
+def write_reference(path: Path, frames: np.ndarray, poses: np.ndarray) -> None:
+    """``poses`` (N, 4, 4) of dataset frames ``frames`` in the 7scenes-reference format that
+    :func:`geoloc.reference.load_reference` reads (exact: ``repr`` of each float)."""
+    if len(frames) != len(poses):
+        raise ValueError(f"{len(poses)} keyframe poses for {len(frames)} frames: the map did not keep every frame")
+    lines = [" ".join([str(int(i)), *(repr(float(x)) for x in p[:3, :4].ravel())]) for i, p in zip(frames, poses)]
+    path.write_text("\n".join(lines) + "\n")
+
+
+def measure(seq: Any, frames: np.ndarray, reference: np.ndarray, adjust: bool, write_poses: Path | None = None
+            ) -> dict[str, Any]:
     start = time.perf_counter()
     m = geoloc.Map.build(seq, adjust_labels=adjust, estimate_noise=False)
     build_s = time.perf_counter() - start
     poses = m.keyframe_poses
+    if write_poses is not None:
+        write_reference(write_poses, frames, poses)
     aligned = align_reference(reference[frames], poses).apply(reference[frames])
     dt, angle = differences(poses, aligned)
     delta = se3_log(se3_inverse(aligned) @ poses)
@@ -69,6 +88,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", default="0:600:1", help="A:B:K, the map's frames (default 0:600:1)")
     ap.add_argument("--json", help="write the results here")
+    ap.add_argument("--write-poses", type=Path, help="write the corrected map's keyframe poses here (reference format)")
     args = ap.parse_args()
     if not (SEQUENCE.is_dir() and REFERENCE.is_file()):
         print(f"no shared data at {SEQUENCE} / {REFERENCE}")
@@ -81,7 +101,7 @@ def main() -> int:
     seq = geoloc.datasets.load_7scenes(SEQUENCE)[a:b:k]
     report = {"frames": args.frames}
     for name, adjust in (("labels kept", False), ("labels corrected", True)):
-        r = measure(seq, frames, reference, adjust)
+        r = measure(seq, frames, reference, adjust, args.write_poses if adjust else None)
         report[name] = r
         (mt, mr), (pt, pr) = r["median"], r["p95"]
         print(f"{name:<17} median {100 * mt:.2f} cm / {mr:.2f}°   p95 {100 * pt:.2f} cm / {pr:.2f}°   build {r['build_s']:.1f} s")

@@ -85,3 +85,25 @@ def test_the_paper_split_is_refused_with_per_fold_network_descriptors(tmp_path: 
     result = subprocess.run([sys.executable, str(script), "--folds", "", "--paper-split", "--network", str(tmp_path / "net")],
                             capture_output=True, text=True, timeout=120)
     assert result.returncode == 2 and "--paper-split: the saved network descriptors are per fold" in result.stderr, result.stderr
+
+
+def test_the_written_keyframe_poses_read_back_as_a_reference(tmp_path: Path) -> None:
+    """label_adjustment.py --write-poses: the file load_reference reads, with the frame
+    indices as keys and the poses bit for bit (a second reference for calibration.py)."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import label_adjustment
+
+    from geoloc.lie import se3_exp
+    from geoloc.reference import load_reference
+
+    rng = np.random.default_rng(3)
+    poses = np.stack([se3_exp(rng.normal(size=6)) for _ in range(5)])
+    frames = np.array([4, 7, 9, 20, 21])
+    path = tmp_path / "poses.txt"
+    label_adjustment.write_reference(path, frames, poses)
+    keys, read = load_reference(path, "7scenes-reference")
+    assert keys.tolist() == frames.tolist()
+    # the reader projects each rotation block onto SO(3): exact rotations come back within rounding
+    np.testing.assert_allclose(read, poses, rtol=0, atol=1e-14)
+    with pytest.raises(ValueError, match="did not keep every frame"):
+        label_adjustment.write_reference(path, frames[:3], poses)
