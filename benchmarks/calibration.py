@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 import time
@@ -207,8 +208,24 @@ def common_frame_medians(frames: dict[str, list[dict[str, Any]]], key: str) -> s
     both = [i for i, (a, b) in enumerate(zip(frames["single"], frames["sequential"])) if a[key] is not None and b[key] is not None]
     if not both:
         return "no frame localized in both modes"
-    med = {mode: 100 * float(np.median([np.linalg.norm(frames[mode][i][key][:3]) for i in both])) for mode in frames}
-    return f"{len(both)} frames: single {med['single']:.2f} cm, sequential {med['sequential']:.2f} cm"
+    errors = {mode: [float(np.linalg.norm(frames[mode][i][key][:3])) for i in both] for mode in frames}
+    med = {mode: 100 * float(np.median(e)) for mode, e in errors.items()}
+    farther = sum(q > s for s, q in zip(errors["single"], errors["sequential"]))
+    closer = sum(q < s for s, q in zip(errors["single"], errors["sequential"]))
+    return (f"{len(both)} frames: single {med['single']:.2f} cm, sequential {med['sequential']:.2f} cm "
+            f"(sequential farther on {farther}, closer on {closer}: sign test p = {sign_test(farther, closer):.2f})")
+
+
+def sign_test(k: int, m: int) -> float:
+    """Two-sided exact sign test: the probability, were each of k + m paired differences
+    equally likely either sign, of a split at least as uneven as k : m,
+    min(1, 2·Σ_{i ≤ min(k, m)} C(n, i) / 2ⁿ) with n = k + m (1 for n = 0). A median gap between
+    the modes with p well above 0.05 is one the frames do not tell from chance."""
+    n = k + m
+    if n == 0:
+        return 1.0
+    tail = sum(math.comb(n, i) for i in range(min(k, m) + 1))
+    return min(1.0, 2 * tail / 2**n)
 
 
 def map_noise_scale_for_coverage(frames: list[dict[str, Any]], key: str, c_map: Any, per_axis: bool = False,

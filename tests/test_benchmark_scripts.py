@@ -74,7 +74,9 @@ def test_the_modes_are_compared_on_the_frames_both_localized() -> None:
         "sequential": [{"d": [0.02, 0, 0]}, {"d": [0.9, 0, 0]}, {"d": None}, {"d": [0.04, 0, 0]}],
     }
     # frames 0 and 3: single 1 and 5 cm (median 3), sequential 2 and 4 cm (median 3)
-    assert cal.common_frame_medians(frames, "d") == "2 frames: single 3.00 cm, sequential 3.00 cm"
+    assert cal.common_frame_medians(frames, "d") == (
+        "2 frames: single 3.00 cm, sequential 3.00 cm (sequential farther on 1, closer on 1: sign test p = 1.00)"
+    )
     assert cal.common_frame_medians({"single": [{"d": None}], "sequential": [{"d": [1, 0, 0]}]}, "d") == (
         "no frame localized in both modes"
     )
@@ -85,6 +87,14 @@ def test_the_paper_split_is_refused_with_per_fold_network_descriptors(tmp_path: 
     result = subprocess.run([sys.executable, str(script), "--folds", "", "--paper-split", "--network", str(tmp_path / "net")],
                             capture_output=True, text=True, timeout=120)
     assert result.returncode == 2 and "--paper-split: the saved network descriptors are per fold" in result.stderr, result.stderr
+
+
+@pytest.mark.parametrize(("k", "m"), [(0, 0), (0, 1), (3, 0), (52, 46), (55, 43), (58, 40), (10, 90), (50, 50)])
+def test_the_sign_test_is_scipys_exact_binomial_test(k: int, m: int) -> None:
+    stats = pytest.importorskip("scipy.stats")
+    cal = _calibration_module()
+    expected = 1.0 if k + m == 0 else stats.binomtest(k, k + m, 0.5).pvalue
+    assert cal.sign_test(k, m) == pytest.approx(expected, rel=1e-12)
 
 
 def test_the_written_keyframe_poses_read_back_as_a_reference(tmp_path: Path) -> None:
