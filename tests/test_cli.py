@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -34,6 +35,25 @@ def test_selfcheck_fails_when_a_check_fails(monkeypatch) -> None:  # type: ignor
 
     monkeypatch.setattr(selfcheck, "EXP_LOG_TOL", 0.0)  # no implementation is exact
     assert selfcheck.main(per_regime=5) == 1
+
+
+@pytest.mark.parametrize(
+    ("value", "warned"),
+    [("abc", "is not a thread count"), ("0", "is not a thread count"), ("100000", "is above 256"), ("2", None), ("", None)],
+)
+def test_a_thread_count_the_core_ignores_or_caps_is_named(value: str, warned: str | None) -> None:
+    """GEOLOC_NUM_THREADS that is not a count ≥ 1 (ignored) or above the cap (capped): one
+    warning line naming it, and the command still runs; a good or empty one: no warning."""
+    env = {**os.environ, "GEOLOC_NUM_THREADS": value}
+    result = subprocess.run([sys.executable, "-m", "geoloc", "selfcheck", "--samples", "2"],
+                            capture_output=True, text=True, env=env)
+    assert result.returncode == 0, result.stderr
+    lines = result.stderr.splitlines()
+    if warned is None:
+        assert lines == []
+    else:
+        assert len(lines) == 1 and lines[0].startswith("geoloc selfcheck: warning: GEOLOC_NUM_THREADS="), lines
+        assert warned in lines[0]
 
 
 def test_no_command_prints_help_and_fails() -> None:

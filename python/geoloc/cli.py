@@ -10,6 +10,7 @@ are written atomically and missing folders are never created.
 from __future__ import annotations
 
 import argparse
+import os
 import signal
 import sys
 import threading
@@ -30,6 +31,7 @@ from .commands._options import (
     output_file_or_stdout,
     retrieval,
 )
+from . import _core
 from .exceptions import GeolocError, InvalidInputError
 from .reference import REFERENCE_FORMATS
 
@@ -363,6 +365,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command is None:
         parser.print_help(sys.stderr)
         return EXIT_USAGE
+    # a robot capping its CPU use with a typo must learn that the cap did not apply
+    threads_warning = _core.num_threads_warning(os.environ.get("GEOLOC_NUM_THREADS"))
+    if threads_warning:
+        print(f"geoloc {args.command}: warning: {threads_warning}", file=sys.stderr)
     restore = _stop_on_termination()
     try:
         return handlers[args.command](args)

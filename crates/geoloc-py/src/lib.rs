@@ -12,6 +12,7 @@ mod lie;
 mod localizer;
 mod matching;
 mod options;
+mod parallel;
 mod retrieval;
 mod stats;
 mod temporal;
@@ -33,6 +34,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     localizer::register(m)?;
     frames::register(m)?;
     options::register(m)?;
+    parallel::register(m)?;
     stats::register(m)?;
     Ok(())
 }
