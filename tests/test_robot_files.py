@@ -333,3 +333,110 @@ def test_numbered_images_are_in_number_order_and_their_times_agree(tmp_path: Pat
     assert [p.name for p in seq.files] == ["9.png", "10.png", "11.png"]
     assert seq.timestamps.tolist() == [9.0, 10.0, 11.0]
     np.testing.assert_array_equal(seq[0].image, room[0].image)
+
+
+def test_a_huge_file_that_is_not_a_map_is_refused_from_its_first_bytes(tmp_path: Path) -> None:
+    """A mistaken --map (a 4 GiB file of zeros here, sparse) is refused from its header, not
+    read whole into memory first: under a 1.5 GiB address-space limit the loader answers with a
+    FileFormatError (it aborted on the 4 GiB allocation before)."""
+    big = tmp_path / "big.geoloc"
+    with open(big, "wb") as f:
+        f.truncate(4 << 30)
+    result = _python(
+        "import resource, sys, geoloc\n"
+        "resource.setrlimit(resource.RLIMIT_AS, (3 << 29, 3 << 29))\n"
+        "try:\n"
+        "    geoloc.Map.load(sys.argv[1])\n"
+        "except geoloc.FileFormatError as e:\n"
+        "    print('refused:', e)\n",
+        str(big),
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert "refused:" in result.stdout and "header" in result.stdout, result.stdout
+
+
+def test_a_map_with_bytes_appended_is_refused_naming_both_sizes(tmp_path: Path, small_map: geoloc.Map) -> None:
+    path = tmp_path / "m.geoloc"
+    small_map.save(path)
+    size = path.stat().st_size
+    with open(path, "ab") as f:
+        f.write(b"\0" * 10)
+    with pytest.raises(geoloc.FileFormatError, match=f"describes {size} bytes but the file holds {size + 10}"):
+        geoloc.Map.load(path)
+
+
+@pytest.mark.parametrize("threads", ["2", None])
+def test_a_child_forked_after_the_pool_started_localizes(threads: str | None) -> None:
+    """multiprocessing's fork start method copies the thread pool but not its threads: a child
+    forked after the parent ran a parallel loop used to wait forever on it. It now runs its
+    loops on its own thread and gets the parent's answer bit for bit."""
+    env = {k: v for k, v in os.environ.items() if k != "GEOLOC_NUM_THREADS"}
+    if threads is not None:
+        env["GEOLOC_NUM_THREADS"] = threads
+    env["PYTHONPATH"] = os.pathsep.join([str(Path(geoloc.__file__).parents[1]), env.get("PYTHONPATH", "")])
+    code = (
+        "import multiprocessing as mp, sys, geoloc\n"
+        "room = geoloc.datasets.synthetic_room(n_frames=80, seed=0)\n"
+        "m = geoloc.Map.build(room[:40], keyframe_step=2, n_features=500)\n"
+        "fr = room[50]\n"
+        "def pose():\n"
+        "    r = geoloc.Localizer(m).localize(fr.image, fr.timestamp)\n"
+        "    return None if r.pose is None else r.pose.tobytes()\n"
+        "parent = pose()\n"
+        "assert parent is not None\n"
+        "def child(q):\n"
+        "    q.put(pose())\n"
+        "ctx = mp.get_context('fork'); q = ctx.Queue(); p = ctx.Process(target=child, args=(q,))\n"
+        "p.start(); p.join(60)\n"
+        "if p.is_alive():\n"
+        "    p.kill(); print('child hung'); sys.exit(1)\n"
+        "print('same' if q.get() == parent else 'different', p.exitcode)\n"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=240)
+    assert result.returncode == 0, result.stdout + result.stderr[-2000:]
+    assert result.stdout.strip() == "same 0"
+
+
+def test_reset_waits_for_another_threads_frame_without_the_gil(small_map: geoloc.Map) -> None:
+    """reset() while another thread is inside localize waits for that frame; it must wait as
+    localize does, without the GIL — holding it stalled every Python thread of the process for
+    the frame's length (a robot's watchdog and I/O threads among them). The main thread keeps
+    running Python while a reset waits: it records times the whole test through."""
+    import time
+
+    room = datasets.synthetic_room(n_frames=12, seed=0)
+    features = [small_map.features(room.gray(i), small_map.camera) for i in range(10, 12)]
+    loc = geoloc.Localizer(small_map)
+    done = threading.Event()
+    waits: list[tuple[float, float]] = []
+
+    def localizing() -> None:
+        k = 0
+        while not done.is_set():
+            f = features[k % 2]
+            loc.localize_features(float(k), f.keypoints, f.descriptors, pixel_sigmas=f.pixel_sigmas)
+            k += 1
+
+    def resetting() -> None:
+        for _ in range(400):
+            start = time.perf_counter()
+            loc.reset()
+            waits.append((start, time.perf_counter()))
+            time.sleep(0.0005)
+        done.set()
+
+    threads = [threading.Thread(target=localizing), threading.Thread(target=resetting)]
+    for t in threads:
+        t.start()
+    ticks = []
+    while not done.is_set():
+        ticks.append(time.perf_counter())
+    for t in threads:
+        t.join()
+    ticks_array = np.array(ticks)
+    # resets that waited for a frame (a reset alone takes microseconds)
+    long_waits = [(a, b) for a, b in waits if b - a > 2e-3]
+    assert len(long_waits) >= 5, f"the localizing thread held the lock in only {len(long_waits)} resets"
+    # inside each such wait (less a margin for taking the GIL back), the main thread ran
+    ran = [np.any((ticks_array > a) & (ticks_array < b - 1e-3)) for a, b in long_waits]
+    assert np.mean(ran) > 0.5, f"the main thread ran during {sum(ran)} of {len(long_waits)} waiting resets"

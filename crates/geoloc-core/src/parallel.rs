@@ -14,7 +14,9 @@
 //! Values that do not parse are ignored (the default applies); counts above [`MAX_THREADS`]
 //! run on [`MAX_THREADS`] (results are the same with any count; a pool of 100 000 threads
 //! took longer to start than the run). A call made from inside a
-//! rayon worker (a caller's own pool, or a nested geoloc loop) runs on that pool.
+//! rayon worker (a caller's own pool, or a nested geoloc loop) runs on that pool. A process
+//! forked after the setting was resolved runs its loops on the calling thread: the pool's
+//! threads are not copied by a fork.
 //! [`with_parallelism`] overrides the setting for one closure on the calling thread (tests
 //! and benchmarks use it to compare thread counts within one process).
 
@@ -104,10 +106,20 @@ fn runner_for(p: &Parallelism) -> Runner {
     }
 }
 
-/// The process-wide setting, from the environment, resolved once.
-fn process_runner() -> &'static Runner {
-    static RUNNER: OnceLock<Runner> = OnceLock::new();
-    RUNNER.get_or_init(|| runner_for(&Parallelism::from_env()))
+/// The process-wide setting, from the environment, resolved once, with the id of the process
+/// that resolved it.
+fn process_runner() -> &'static (u32, Runner) {
+    static RUNNER: OnceLock<(u32, Runner)> = OnceLock::new();
+    RUNNER.get_or_init(|| (std::process::id(), runner_for(&Parallelism::from_env())))
+}
+
+/// The process-wide runner for this process: the resolved one, or sequential in a child
+/// forked after it was resolved (Python's multiprocessing `fork`, a robot's supervisor). A
+/// fork copies the pool but not its threads, and a loop handed to it would wait forever; on
+/// the calling thread it gives the same results (see the module doc).
+fn runner_here() -> Runner {
+    let (pid, runner) = process_runner();
+    if *pid == std::process::id() { runner.clone() } else { Runner::Sequential }
 }
 
 thread_local! {
@@ -143,7 +155,7 @@ fn pool_for(n_items: usize, min_items: usize) -> Option<Option<Arc<rayon::Thread
     if rayon::current_thread_index().is_some() {
         return Some(None); // already on a pool's worker: stay there
     }
-    match OVERRIDE.with(|o| o.borrow().clone()).unwrap_or_else(|| process_runner().clone()) {
+    match OVERRIDE.with(|o| o.borrow().clone()).unwrap_or_else(runner_here) {
         Runner::Sequential => None,
         Runner::Pool(pool) => Some(pool),
     }

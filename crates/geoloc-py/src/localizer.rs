@@ -415,9 +415,11 @@ impl FeatureLocalizer {
         Ok(Localization { camera: self.map.labels.as_ref().and(camera), inner })
     }
 
-    fn reset(&self) -> PyResult<()> {
-        self.inner.lock().map_err(|_| invalid("localizer", "a previous call panicked"))?.reset();
-        Ok(())
+    fn reset(&self, py: Python<'_>) -> PyResult<()> {
+        // waits for a localize of another thread without the GIL, as localize itself does:
+        // holding it here stalled every Python thread for the length of that frame
+        py.detach(|| self.inner.lock().ok().map(|mut loc| loc.reset()))
+            .ok_or_else(|| invalid("localizer", "a previous call panicked; create a new localizer"))
     }
 }
 

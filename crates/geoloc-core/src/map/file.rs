@@ -287,12 +287,77 @@ pub fn read(path: &Path) -> Result<MapFile> {
             reason: format!("{len} bytes is larger than a map may be ({MAX_FILE_BYTES})"),
         });
     }
-    let mut bytes = Vec::with_capacity(usize::try_from(len).unwrap_or(0));
-    file.take(MAX_FILE_BYTES + 1).read_to_end(&mut bytes).map_err(|e| io_error(path, "cannot read the map", &e))?;
-    MapFile::from_bytes(&bytes).map_err(|e| match e {
+    let named = |e: GeolocError| match e {
         GeolocError::Format { reason } => GeolocError::Format { reason: format!("{}: {reason}", path.display()) },
         other => other,
-    })
+    };
+    let mut file = file.take(MAX_FILE_BYTES + 1);
+    // the header first: a file that is not a map (a video, a sparse or zero-filled file) is
+    // refused from its first bytes, before its whole length is read into memory
+    let mut head = Vec::new();
+    (&mut file).take(8).read_to_end(&mut head).map_err(|e| io_error(path, "cannot read the map", &e))?;
+    if let Some(field) = head.first_chunk::<8>() {
+        let claimed = u64::from_le_bytes(*field);
+        let header_len = checked_header_length(claimed, len).map_err(named)?;
+        let mut header = Vec::with_capacity(header_len);
+        (&mut file).take(claimed).read_to_end(&mut header).map_err(|e| io_error(path, "cannot read the map", &e))?;
+        check_array_extent(&header, len).map_err(named)?;
+        head.extend_from_slice(&header);
+    }
+    let mut bytes = Vec::with_capacity(usize::try_from(len).unwrap_or(0));
+    bytes.extend_from_slice(&head);
+    file.read_to_end(&mut bytes).map_err(|e| io_error(path, "cannot read the map", &e))?;
+    MapFile::from_bytes(&bytes).map_err(named)
+}
+
+/// The largest JSON header [`read`] accepts (bytes): the safetensors crate's own limit.
+pub const MAX_HEADER_BYTES: u64 = 100_000_000;
+
+/// The header length field `claimed` of a file of `len` bytes, checked before the header is
+/// read: at most [`MAX_HEADER_BYTES`] and within the bytes that follow the field.
+fn checked_header_length(claimed: u64, len: u64) -> Result<usize> {
+    let left = len.saturating_sub(8);
+    if claimed > left {
+        return Err(format_error(format!(
+            "header length field claims {claimed} bytes, but only {left} follow it (truncated or corrupt)"
+        )));
+    }
+    if claimed > MAX_HEADER_BYTES {
+        return Err(format_error(format!(
+            "header length field claims {claimed} bytes, more than a map's header may be ({MAX_HEADER_BYTES})"
+        )));
+    }
+    usize::try_from(claimed).map_err(|_| format_error("header length does not fit in memory"))
+}
+
+/// Whether the arrays a safetensors `header` (JSON) describes end exactly where a file of
+/// `len` bytes ends: the largest `data_offsets` end, plus the 8-byte field and the header, is
+/// `len` (the layout safetensors itself requires). Checked before the arrays are read, so a
+/// file whose first bytes are not a map header costs its header, not its length.
+fn check_array_extent(header: &[u8], len: u64) -> Result<()> {
+    let parsed: BTreeMap<String, serde_json::Value> = serde_json::from_slice(header).map_err(|e| {
+        format_error(format!("not a valid safetensors file (truncated or corrupt): invalid JSON header: {e}"))
+    })?;
+    let mut end = 0u64;
+    for (name, entry) in parsed.iter().filter(|(name, _)| name.as_str() != "__metadata__") {
+        let offsets = entry.get("data_offsets").and_then(serde_json::Value::as_array);
+        let bounds: Option<Vec<u64>> = offsets.map(|o| o.iter().filter_map(serde_json::Value::as_u64).collect());
+        match bounds.as_deref() {
+            Some(&[begin, stop]) if begin <= stop => end = end.max(stop),
+            _ => {
+                return Err(format_error(format!(
+                    "not a valid safetensors file: array {name:?} has no valid data_offsets"
+                )));
+            }
+        }
+    }
+    let expected = 8 + header.len() as u64 + end;
+    if expected != len {
+        return Err(format_error(format!(
+            "the header describes {expected} bytes but the file holds {len} (truncated, extended or corrupt)"
+        )));
+    }
+    Ok(())
 }
 
 #[cfg(test)]
@@ -402,6 +467,42 @@ mod tests {
         bytes[..8].copy_from_slice(&(1u64 << 40).to_le_bytes());
         let err = MapFile::from_bytes(&bytes).expect_err("claims a terabyte of header");
         assert!(err.to_string().contains("header length field claims 1099511627776 bytes"), "{err}");
+    }
+
+    #[test]
+    fn read_checks_the_header_before_the_arrays() {
+        let dir = std::env::temp_dir().join(format!("geoloc-mapfile-extent-{}", std::process::id()));
+        fs::create_dir_all(&dir).expect("temp dir");
+        let bytes = sample().to_bytes().expect("serializes");
+        let path = dir.join("m.geoloc");
+        fs::write(&path, &bytes).expect("writes");
+        assert_eq!(read(&path).expect("a whole map reads"), sample());
+        // the arrays' extent, by the safetensors crate (an independent reader): 8 + header + data
+        let (header_len, _) = SafeTensors::read_metadata(&bytes).expect("valid");
+        assert_eq!(check_array_extent(&bytes[8..8 + header_len], bytes.len() as u64).ok(), Some(()));
+        let mut longer = bytes.clone();
+        longer.extend_from_slice(&[0; 3]);
+        fs::write(&path, &longer).expect("writes");
+        let n = bytes.len();
+        let err = read(&path).expect_err("bytes appended");
+        assert!(err.to_string().contains(&format!("describes {n} bytes but the file holds {}", n + 3)), "{err}");
+        fs::write(&path, &bytes[..n - 1]).expect("writes");
+        let err = read(&path).expect_err("cut in the arrays");
+        assert!(err.to_string().contains(&format!("describes {n} bytes but the file holds {}", n - 1)), "{err}");
+        // zeros: an empty header, refused from the first 8 bytes
+        fs::write(&path, vec![0u8; 4096]).expect("writes");
+        let err = read(&path).expect_err("zeros");
+        assert!(err.to_string().contains("invalid JSON header"), "{err}");
+        fs::remove_dir_all(&dir).expect("cleans up");
+    }
+
+    #[test]
+    fn a_header_length_beyond_the_limit_is_refused_unread() {
+        assert!(checked_header_length(MAX_HEADER_BYTES, MAX_HEADER_BYTES + 8).is_ok());
+        let err = checked_header_length(MAX_HEADER_BYTES + 1, u64::MAX).expect_err("over the limit");
+        assert!(err.to_string().contains("more than a map's header may be"), "{err}");
+        let err = checked_header_length(10, 17).expect_err("9 bytes follow the field");
+        assert!(err.to_string().contains("claims 10 bytes, but only 9 follow it"), "{err}");
     }
 
     #[test]
