@@ -43,7 +43,8 @@ class Localization:
     perturbation, translation first) or None when lost; ``source`` "geometric" / "fused" /
     "motion" / "lost"; ``reason`` says why; ``keyframe`` the keyframe whose group gave the
     geometric pose (the retrieved one, or the last frame's when the paper's locator
-    tracked); PnP ``inliers``; ``timings`` in ms per stage (the core's ``retrieval``,
+    tracked); PnP ``inliers`` of the frame's geometric pose (for a ``motion`` answer, those of
+    the refused or failed measurement, not support for the answered pose); ``timings`` in ms per stage (the core's ``retrieval``,
     ``keyframes``, ``map_points``, ``matching``, ``pnp``, ``motion_fusion``; from an image
     also ``decode`` and ``features``; ``total``). When the map adjusted its labels, ``pose`` is
     in the labels' convention (world_from_label, what the sequence's poses were) and

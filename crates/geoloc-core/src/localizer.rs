@@ -392,6 +392,11 @@ pub struct Localizer {
     prepared_matches: bool,
 }
 
+/// How far apart two poses are: ‖t_a − t_b‖ (m) and the angle of R_aᵀR_b (degrees).
+fn separation(a: &SE3, b: &SE3) -> (f64, f64) {
+    ((a.translation - b.translation).norm(), a.rotation.distance(&b.rotation).to_degrees())
+}
+
 fn ms(start: Instant) -> f64 {
     start.elapsed().as_secs_f64() * 1e3
 }
@@ -649,7 +654,22 @@ impl Localizer {
                         self.rejected.push((timestamp, g));
                         match self.reinitialize() {
                             Some(done) => done,
-                            None => self.coast(m, "geometric pose outside the motion gate".to_string()),
+                            None => {
+                                // the image says one place, the motion another: until the
+                                // images re-initialize the history (reinit_after), the
+                                // prediction is answered with a covariance that holds the
+                                // geometric pose too (C_M + δδᵀ) — after a jump of the
+                                // camera (a robot carried away) the prediction is the wrong
+                                // one, and its own σ claimed decimetres of error were
+                                // centimetres
+                                let (metres, degrees) = separation(&m.world_from_cam, &g.world_from_cam);
+                                let why = format!(
+                                    "geometric pose outside the motion gate ({metres:.2} m / {degrees:.1}° from the \
+                                     prediction, which is answered with a covariance that holds both)"
+                                );
+                                let (estimate, source, reason) = self.coast(m, why);
+                                (estimate.map(|e| model::widened_to_hold(&e, &g)), source, reason)
+                            }
                         }
                     }
                     Err(e) => {

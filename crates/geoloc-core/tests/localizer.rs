@@ -13,6 +13,7 @@ use geoloc_core::lie::SE3;
 use geoloc_core::localizer::{Frame, Localization, Localizer, LocalizerOptions, Locator, Source, Timings};
 use geoloc_core::map::{DescriptorSet, Keyframe, Map, MapNoise, RetrievalKind};
 use geoloc_core::matching::Descriptors;
+use geoloc_core::stats::chi2::CHI2_6_999;
 use geoloc_core::testing::{self, LandmarkScene, SplitMix64};
 use nalgebra::{Matrix6, Vector2};
 
@@ -174,6 +175,30 @@ fn the_map_noise_is_scaled_by_the_support_of_each_pose() {
         assert_eq!(a.estimate.map(|e| e.world_from_cam.matrix()), b.estimate.map(|e| e.world_from_cam.matrix()));
     }
     assert!(gated > 0, "no frame outside the gate: the comparison shows nothing");
+}
+
+/// After a jump the motion model did not predict (10 cm to the side), the images' poses lie
+/// outside the motion gate until they re-initialize the history; the prediction answered in
+/// the meantime is the wrong one, and its covariance must hold the image's pose — here the
+/// truth: every such answer covers it at 99.9 % (NEES of the true pose), where the
+/// prediction's own covariance (centimetres) did not.
+#[test]
+fn a_prediction_the_images_contradict_is_answered_with_a_covariance_that_holds_both() {
+    let run = run_with_jump(0.0, 40, MapNoise::default(), false, 20);
+    let mut contradicted = 0;
+    for (f, r) in run.results.iter().enumerate() {
+        if !r.reason.contains("outside the motion gate") {
+            continue;
+        }
+        contradicted += 1;
+        let e = r.estimate.expect("the prediction is answered");
+        let truth = walk(0.3 + f as f64 / 30.0, if f >= 20 { 0.25 } else { 0.15 });
+        let delta = (e.world_from_cam.inverse() * truth).log();
+        let nees = delta.dot(&(e.covariance.try_inverse().expect("invertible") * delta));
+        assert!(nees < CHI2_6_999, "frame {f}: NEES {nees} of the true pose ({})", r.reason);
+        assert!(r.reason.contains("holds both"), "{}", r.reason);
+    }
+    assert!(contradicted > 0, "no frame outside the gate: the test shows nothing");
 }
 
 fn median(v: &[f64]) -> f64 {

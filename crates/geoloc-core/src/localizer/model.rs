@@ -205,7 +205,7 @@ fn vote_between(places: Places, others: &[Estimate]) -> Option<(Estimate, usize)
 /// perturbation, translation first), so that its region holds `other` too (NEES of `other`
 /// m/(1 + m) < 1 with m = δᵀC⁻¹δ): an answer that makes one of two places likelier without
 /// ruling out the other (steps 8 and 9).
-fn widened_to_hold(estimate: &Estimate, other: &Estimate) -> Estimate {
+pub(super) fn widened_to_hold(estimate: &Estimate, other: &Estimate) -> Estimate {
     let (delta, _) = correction(&estimate.world_from_cam, &other.world_from_cam, &estimate.covariance);
     Estimate { covariance: estimate.covariance + delta * delta.transpose(), ..*estimate }
 }
