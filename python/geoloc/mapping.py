@@ -379,9 +379,9 @@ class Map:
         ``pose_covariance_source`` (which of the two and the support rule, in words) and, for a map built in this
         process (not stored in the file), ``holdout``: the held-out re-localizations
         (``keyframe`` (n,), ``delta`` (n, 6) = log(T_label⁻¹T_est), ``covariance`` (n, 6, 6) C_G,
-        ``inliers`` (n,), ``used`` (n,) bool), and ``resolved`` (6,) bool: per axis, whether those samples resolve
-        C_map (an axis they do not is floored, never zero; None for a loaded map or too few
-        samples)."""
+        ``inliers`` (n,), ``used`` (n,) bool); ``resolved`` (6,) bool: per axis, whether those samples resolve
+        C_map (an axis they do not is floored, never zero; stored in the map file, so a loaded
+        map says the same; None with too few samples or for a file saved before it was stored)."""
         cov, psd, velocity_mean, velocity_variance, samples, support = self._core.map_noise
         keyframes, deltas, covs, inliers, used = self._core.map_noise_holdout
         resolved = self._core.map_noise_resolved

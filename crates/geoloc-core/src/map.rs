@@ -144,6 +144,10 @@ pub struct MapNoise {
     /// The held-out re-localizations themselves (build-time diagnostics, not stored in the
     /// map file: a loaded map has none).
     pub holdout: Vec<HoldoutSample>,
+    /// Per axis (translation first), whether the held-out samples resolve C_map
+    /// ([`noise::resolved_axes`]), kept in the map file so that a loaded map says what the
+    /// built one did; None when they could not estimate it (or a file saved before it).
+    pub resolved: Option<[bool; 6]>,
 }
 
 impl MapNoise {
@@ -170,10 +174,11 @@ impl MapNoise {
         }
     }
 
-    /// Per axis, whether the held-out samples resolve C_map ([`noise::resolved_axes`]);
-    /// None when they cannot estimate it or were not kept (a loaded map).
+    /// Per axis, whether the held-out samples resolve C_map ([`noise::resolved_axes`], as
+    /// estimated at build and stored in the map file); None when they cannot estimate it, or
+    /// for a map saved before it was stored.
     pub fn resolved_axes(&self) -> Option<[bool; 6]> {
-        noise::resolved_axes(&self.holdout)
+        self.resolved
     }
 
     /// Where C_map came from and the support it was measured at, in words: the one wording

@@ -153,8 +153,15 @@ impl Map {
         }
         let holdout_samples = holdout.len();
         let holdout_inliers = typical_support(&holdout);
-        map.noise =
-            MapNoise { pose_covariance, acceleration_psd, velocity_prior, holdout_samples, holdout_inliers, holdout };
+        map.noise = MapNoise {
+            pose_covariance,
+            acceleration_psd,
+            velocity_prior,
+            holdout_samples,
+            holdout_inliers,
+            resolved: resolved_axes(&holdout),
+            holdout,
+        };
         Ok(map)
     }
 }
@@ -429,13 +436,19 @@ mod tests {
         let c = Matrix6::identity() * 1e-4;
         let loaded =
             MapNoise { pose_covariance: c, holdout_samples: 40, holdout_inliers: 531.5, ..MapNoise::default() };
-        // n̄ 531.5 is written as 532 in both places; a loaded map keeps no samples: nothing unresolved
+        // n̄ 531.5 is written as 532 in both places; no resolved axes recorded: nothing named
         assert_eq!(
             loaded.description(),
             "estimated from 40 held-out keyframes; a pose on n < 532 inliers (their median) gets C_map·532/n"
         );
         let holdout = over_explained();
-        let built = MapNoise { pose_covariance: c, holdout_samples: holdout.len(), holdout, ..MapNoise::default() };
+        let built = MapNoise {
+            pose_covariance: c,
+            holdout_samples: holdout.len(),
+            resolved: resolved_axes(&holdout),
+            holdout,
+            ..MapNoise::default()
+        };
         assert_eq!(
             built.description(),
             format!(

@@ -339,6 +339,10 @@ pub struct NoiseHeader {
     /// before it, and when C_map is the default: C_map then applies unscaled).
     #[serde(default, skip_serializing_if = "is_zero")]
     pub holdout_inliers: f64,
+    /// Per axis, whether the held-out samples resolve C_map (6 values; absent when they could
+    /// not estimate it, and in files saved before it).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub resolved: Vec<bool>,
 }
 
 /// Whether n̄ is 0 (then not written).
@@ -355,6 +359,7 @@ impl NoiseHeader {
             velocity_variance: six_or_none(&n.velocity_prior, &n.velocity_prior.variance),
             holdout_samples: n.holdout_samples,
             holdout_inliers: n.holdout_inliers,
+            resolved: n.resolved.map(|r| r.to_vec()).unwrap_or_default(),
         })
     }
 
@@ -385,6 +390,11 @@ impl NoiseHeader {
         if !(self.holdout_inliers.is_finite() && self.holdout_inliers >= 0.0) {
             return Err(format_error("map_noise.holdout_inliers: must be finite and ≥ 0"));
         }
+        let resolved = match self.resolved.len() {
+            0 => None,
+            6 => Some(std::array::from_fn(|a| self.resolved[a])),
+            n => return Err(format_error(format!("map_noise.resolved: expected 6 values, got {n}"))),
+        };
         Ok(MapNoise {
             pose_covariance: c,
             acceleration_psd: q,
@@ -392,6 +402,7 @@ impl NoiseHeader {
             holdout_samples: self.holdout_samples,
             holdout_inliers: self.holdout_inliers,
             holdout: vec![],
+            resolved,
         })
     }
 }
@@ -1099,6 +1110,7 @@ mod tests {
             holdout_samples: 57,
             holdout_inliers: 312.5,
             holdout: vec![],
+            resolved: Some([true, false, true, true, false, true]),
         };
         let file = original.to_map_file("{}").expect("serializes");
         let (back, header) = Map::from_map_file(&file).expect("valid");
@@ -1114,6 +1126,15 @@ mod tests {
         let (back, _) = Map::from_map_file(&old_support).expect("valid");
         assert_eq!(back.noise.holdout_inliers, 0.0);
         assert_eq!(back.noise.pose_covariance_at(Some(10)), a);
+        // the resolved axes: read back as written (above), absent in an older file, 6 or refused
+        assert!(file.header.contains(r#""resolved":[true,false,true,true,false,true]"#), "{}", file.header);
+        let mut old_resolved = file.clone();
+        old_resolved.header = old_resolved.header.replace(r#","resolved":[true,false,true,true,false,true]"#, "");
+        let (back, _) = Map::from_map_file(&old_resolved).expect("valid");
+        assert_eq!(back.noise.resolved_axes(), None);
+        let mut bad = file.clone();
+        bad.header = bad.header.replace(r#""resolved":[true,"#, r#""resolved":["#);
+        assert!(Map::from_map_file(&bad).expect_err("5 values").to_string().contains("map_noise.resolved"));
         let mut bad = file.clone();
         bad.header = bad.header.replace("0.25", "-0.25");
         assert!(Map::from_map_file(&bad).expect_err("negative q").to_string().contains("acceleration_psd"));
