@@ -33,14 +33,18 @@ def small_map() -> geoloc.Map:
     return geoloc.Map.build(room[:10], n_features=300, branching=4, depth=2)
 
 
-def _python(code: str, *args: str) -> subprocess.CompletedProcess[str]:
+def _python(code: str, *args: str, threads: str | None = "", timeout: float = FIFO_TIMEOUT_S
+            ) -> subprocess.CompletedProcess[str]:
     """``code`` in a fresh interpreter with this checkout's package (so a crash or a blocked
-    read is a failed assertion, not a dead or hung test run)."""
+    read is a failed assertion, not a dead or hung test run); ``threads`` sets
+    GEOLOC_NUM_THREADS (None: unset; "" the default: as this process has it)."""
     env = dict(os.environ)
+    if threads is None:
+        env.pop("GEOLOC_NUM_THREADS", None)
+    elif threads:
+        env["GEOLOC_NUM_THREADS"] = threads
     env["PYTHONPATH"] = os.pathsep.join([str(Path(geoloc.__file__).parents[1]), env.get("PYTHONPATH", "")])
-    return subprocess.run(
-        [sys.executable, "-c", code, *args], capture_output=True, text=True, env=env, timeout=FIFO_TIMEOUT_S
-    )
+    return subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, env=env, timeout=timeout)
 
 
 # ------------------------------------------------------------------ odd bytes in paths
@@ -370,10 +374,6 @@ def test_a_child_forked_after_the_pool_started_localizes(threads: str | None) ->
     """multiprocessing's fork start method copies the thread pool but not its threads: a child
     forked after the parent ran a parallel loop used to wait forever on it. It now runs its
     loops on its own thread and gets the parent's answer bit for bit."""
-    env = {k: v for k, v in os.environ.items() if k != "GEOLOC_NUM_THREADS"}
-    if threads is not None:
-        env["GEOLOC_NUM_THREADS"] = threads
-    env["PYTHONPATH"] = os.pathsep.join([str(Path(geoloc.__file__).parents[1]), env.get("PYTHONPATH", "")])
     code = (
         "import multiprocessing as mp, sys, geoloc\n"
         "room = geoloc.datasets.synthetic_room(n_frames=80, seed=0)\n"
@@ -392,7 +392,7 @@ def test_a_child_forked_after_the_pool_started_localizes(threads: str | None) ->
         "    p.kill(); print('child hung'); sys.exit(1)\n"
         "print('same' if q.get() == parent else 'different', p.exitcode)\n"
     )
-    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=240)
+    result = _python(code, threads=threads, timeout=240)
     assert result.returncode == 0, result.stdout + result.stderr[-2000:]
     assert result.stdout.strip() == "same 0"
 

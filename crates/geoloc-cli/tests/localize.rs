@@ -81,6 +81,15 @@ fn dir(name: &str) -> PathBuf {
 }
 
 /// `geoloc-rs args…` started on one thread with stdin, stdout and stderr piped.
+/// The names of the files in `dir` (lossy UTF-8).
+fn file_names(dir: &Path) -> Vec<String> {
+    std::fs::read_dir(dir)
+        .expect("lists")
+        .filter_map(Result::ok)
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .collect()
+}
+
 fn spawn(args: &[&str]) -> std::process::Child {
     Command::new(env!("CARGO_BIN_EXE_geoloc-rs"))
         .args(args)
@@ -310,11 +319,10 @@ fn a_signal_ends_a_live_run_with_its_lines_written() {
         // wait until the three lines are in the temp file (header + frames)
         let start = Instant::now();
         let written = || {
-            std::fs::read_dir(&d)
-                .expect("lists")
-                .filter_map(|e| e.ok())
-                .filter(|e| e.file_name().to_string_lossy().starts_with(".poses.txt."))
-                .any(|e| std::fs::read_to_string(e.path()).is_ok_and(|t| t.lines().count() == 1 + records.len()))
+            file_names(&d)
+                .iter()
+                .filter(|n| n.starts_with(".poses.txt."))
+                .any(|n| std::fs::read_to_string(d.join(n)).is_ok_and(|t| t.lines().count() == 1 + records.len()))
         };
         while !written() {
             assert!(start.elapsed() < HANG, "the frames were never written");
@@ -330,11 +338,7 @@ fn a_signal_ends_a_live_run_with_its_lines_written() {
         assert!(err.contains("the lines written so far are in"), "{err}");
         let kept = std::fs::read_to_string(&out_path).expect("output");
         assert_eq!(kept.lines().count(), 1 + records.len(), "SIG{signal}: {kept}");
-        let names: Vec<String> = std::fs::read_dir(&d)
-            .expect("lists")
-            .filter_map(|e| e.ok())
-            .map(|e| e.file_name().to_string_lossy().into_owned())
-            .collect();
+        let names = file_names(&d);
         assert!(!names.iter().any(|n| n.ends_with(".tmp")), "SIG{signal}: {names:?}");
     }
 }
@@ -545,11 +549,7 @@ fn an_output_that_is_an_input_is_refused_and_the_inputs_kept() {
     let (out, _) = run(&["localize", "--map", &s(&map), "--input", &s(&symlink), "--output", &s(&poses)], b"");
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     assert_eq!(std::fs::read_to_string(&poses).expect("written").lines().count(), 1 + records.len());
-    let temps: Vec<_> = std::fs::read_dir(&d)
-        .expect("lists")
-        .filter_map(Result::ok)
-        .filter(|e| e.file_name().to_string_lossy().ends_with(".tmp"))
-        .collect();
+    let temps: Vec<String> = file_names(&d).into_iter().filter(|n| n.ends_with(".tmp")).collect();
     assert!(temps.is_empty(), "{temps:?}");
     // a device is written as it is, never replaced
     let (out, _) = run(&["localize", "--map", &s(&map), "--input", &s(&input), "--output", "/dev/null"], b"");

@@ -207,13 +207,7 @@ impl MapFile {
     /// not a geoloc map, another format version, a checksum mismatch.
     pub fn from_bytes(bytes: &[u8]) -> Result<Self> {
         if let Some(field) = bytes.first_chunk::<8>() {
-            let claimed = u64::from_le_bytes(*field);
-            let left = bytes.len() as u64 - 8;
-            if claimed > left {
-                return Err(format_error(format!(
-                    "header length field claims {claimed} bytes, but only {left} follow it (truncated or corrupt)"
-                )));
-            }
+            check_header_length(u64::from_le_bytes(*field), bytes.len() as u64)?;
         }
         let st = SafeTensors::deserialize(bytes)
             .map_err(|e| format_error(format!("not a valid safetensors file (truncated or corrupt): {e}")))?;
@@ -292,21 +286,21 @@ pub fn read(path: &Path) -> Result<MapFile> {
         other => other,
     };
     let mut file = file.take(MAX_FILE_BYTES + 1);
+    let mut read_more = |bytes: &mut Vec<u8>, limit: u64| {
+        (&mut file).take(limit).read_to_end(bytes).map_err(|e| io_error(path, "cannot read the map", &e))
+    };
     // the header first: a file that is not a map (a video, a sparse or zero-filled file) is
     // refused from its first bytes, before its whole length is read into memory
-    let mut head = Vec::new();
-    (&mut file).take(8).read_to_end(&mut head).map_err(|e| io_error(path, "cannot read the map", &e))?;
-    if let Some(field) = head.first_chunk::<8>() {
+    let mut bytes = Vec::new();
+    read_more(&mut bytes, 8)?;
+    if let Some(field) = bytes.first_chunk::<8>() {
         let claimed = u64::from_le_bytes(*field);
-        let header_len = checked_header_length(claimed, len).map_err(named)?;
-        let mut header = Vec::with_capacity(header_len);
-        (&mut file).take(claimed).read_to_end(&mut header).map_err(|e| io_error(path, "cannot read the map", &e))?;
-        check_array_extent(&header, len).map_err(named)?;
-        head.extend_from_slice(&header);
+        check_header_length(claimed, len).map_err(named)?;
+        read_more(&mut bytes, claimed)?;
+        check_array_extent(&bytes[8..], len).map_err(named)?;
     }
-    let mut bytes = Vec::with_capacity(usize::try_from(len).unwrap_or(0));
-    bytes.extend_from_slice(&head);
-    file.read_to_end(&mut bytes).map_err(|e| io_error(path, "cannot read the map", &e))?;
+    bytes.reserve_exact(usize::try_from(len).unwrap_or(0).saturating_sub(bytes.len()));
+    read_more(&mut bytes, u64::MAX)?;
     MapFile::from_bytes(&bytes).map_err(named)
 }
 
@@ -315,7 +309,7 @@ pub const MAX_HEADER_BYTES: u64 = 100_000_000;
 
 /// The header length field `claimed` of a file of `len` bytes, checked before the header is
 /// read: at most [`MAX_HEADER_BYTES`] and within the bytes that follow the field.
-fn checked_header_length(claimed: u64, len: u64) -> Result<usize> {
+fn check_header_length(claimed: u64, len: u64) -> Result<()> {
     let left = len.saturating_sub(8);
     if claimed > left {
         return Err(format_error(format!(
@@ -327,7 +321,7 @@ fn checked_header_length(claimed: u64, len: u64) -> Result<usize> {
             "header length field claims {claimed} bytes, more than a map's header may be ({MAX_HEADER_BYTES})"
         )));
     }
-    usize::try_from(claimed).map_err(|_| format_error("header length does not fit in memory"))
+    Ok(())
 }
 
 /// Whether the arrays a safetensors `header` (JSON) describes end exactly where a file of
@@ -498,10 +492,10 @@ mod tests {
 
     #[test]
     fn a_header_length_beyond_the_limit_is_refused_unread() {
-        assert!(checked_header_length(MAX_HEADER_BYTES, MAX_HEADER_BYTES + 8).is_ok());
-        let err = checked_header_length(MAX_HEADER_BYTES + 1, u64::MAX).expect_err("over the limit");
+        assert!(check_header_length(MAX_HEADER_BYTES, MAX_HEADER_BYTES + 8).is_ok());
+        let err = check_header_length(MAX_HEADER_BYTES + 1, u64::MAX).expect_err("over the limit");
         assert!(err.to_string().contains("more than a map's header may be"), "{err}");
-        let err = checked_header_length(10, 17).expect_err("9 bytes follow the field");
+        let err = check_header_length(10, 17).expect_err("9 bytes follow the field");
         assert!(err.to_string().contains("claims 10 bytes, but only 9 follow it"), "{err}");
     }
 
