@@ -660,8 +660,8 @@ impl Localizer {
                                 // prediction is answered with a covariance that holds the
                                 // geometric pose too (C_M + δδᵀ) — after a jump of the
                                 // camera (a robot carried away) the prediction is the wrong
-                                // one, and its own σ claimed decimetres of error were
-                                // centimetres
+                                // one, and its own σ of centimetres would hide an error of
+                                // decimetres
                                 let (metres, degrees) = separation(&m.world_from_cam, &g.world_from_cam);
                                 let why = format!(
                                     "geometric pose outside the motion gate ({metres:.2} m / {degrees:.1}° from the \
