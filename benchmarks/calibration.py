@@ -38,7 +38,10 @@ reference when given): the modes' own medians run over different frames, and the
 mode answers frames the single one loses. The fourth gives, per mode, the factor s on the
 map's C_map at which the fold's NEES coverage, and its lowest per-axis coverage, would be
 95 % (0: the measurement covariance alone covers it): C_map is one matrix per map, so it can be right on every fold only if the
-folds need about the same s.
+folds need about the same s. The fifth and sixth give each mode's coverage with C_map scaled
+by 0.1, 0.25, 0.5, 1 (as answered) and 2, and a last line per mode the same over the
+frames of all folds run, pooled: how the coverage of each fold, and of all, moves with one
+factor on every map's noise.
 """
 
 from __future__ import annotations
@@ -228,27 +231,51 @@ def sign_test(k: int, m: int) -> float:
     return min(1.0, 2 * tail / 2**n)
 
 
-def map_noise_scale_for_coverage(frames: list[dict[str, Any]], key: str, c_map: Any, per_axis: bool = False,
-                                 target: float = 0.95) -> float | None:
-    """The factor s on the map noise (results' convention) at which the frames' coverage would
-    be ``target``: NEES coverage (χ²₆ 95 %), or with ``per_axis`` the lowest per-axis 1.96σ
-    coverage; C(s) = C − C_i + s·C_i per frame, C_i = f_i·C_map the map noise the frame's
-    covariance holds (f_i its ``map_noise_scale``, 1 when absent), s bisected on [0, 1000]
-    (coverage grows with s). 0 when the measurement part alone covers ``target``; None without
-    frames or when even s = 1000 does not. 1 means the map noise is right for the fold; the
-    map's C_map is right on every fold only if every fold needs about the same s."""
+#: Factors s on C_map at which ``calibration.py`` prints each fold's coverage (and the folds' pooled one).
+MAP_NOISE_SCALES = (0.1, 0.25, 0.5, 1.0, 2.0)
+
+
+def measurement_and_map_noise(frames: list[dict[str, Any]], key: str, c_map: Any) -> list[tuple[Any, Any, Any]]:
+    """Per answered frame (δ under ``key``, C − C_i, C_i): its covariance split into the
+    measurement part and C_i = f_i·C_map, the map noise it holds (f_i its ``map_noise_scale``,
+    1 when absent; ``c_map`` in the results' convention)."""
     c_map = np.asarray(c_map)
     framed = [(np.asarray(f[key]), np.asarray(f["covariance"]), f.get("map_noise_scale", 1.0) * c_map)
               for f in frames if f[key] is not None and f["covariance"] is not None]
-    pairs = [(d, c - m, m) for d, c, m in framed]
+    return [(d, c - m, m) for d, c, m in framed]
+
+
+def coverage_at(pairs: list[tuple[Any, Any, Any]], s: float, per_axis: bool = False) -> float:
+    """Coverage of ``pairs`` (:func:`measurement_and_map_noise`) with the map noise scaled by
+    s, C(s) = C − C_i + s·C_i: NEES coverage (χ²₆ 95 %), or with ``per_axis`` the lowest
+    per-axis 1.96σ coverage."""
+    if per_axis:
+        inside = [np.abs(d) <= COVERAGE_Z * np.sqrt(np.diag(c + s * m)) for d, c, m in pairs]
+        return float(np.min(np.mean(inside, axis=0)))
+    return float(np.mean([d @ np.linalg.solve(c + s * m, d) <= CHI2_6_95 for d, c, m in pairs]))
+
+
+def coverage_by_map_noise_scale(pairs: list[tuple[Any, Any, Any]]) -> str:
+    """``s=0.1 46/58, …``: NEES / lowest-axis coverage (%) at each of :data:`MAP_NOISE_SCALES`."""
+    if not pairs:
+        return "—"
+    return ", ".join(f"{s:g}: {100 * coverage_at(pairs, s):.0f}/{100 * coverage_at(pairs, s, True):.0f}"
+                     for s in MAP_NOISE_SCALES)
+
+
+def map_noise_scale_for_coverage(frames: list[dict[str, Any]], key: str, c_map: Any, per_axis: bool = False,
+                                 target: float = 0.95) -> float | None:
+    """The factor s on the map noise (results' convention) at which the frames' coverage would
+    be ``target`` (:func:`coverage_at`), s bisected on [0, 1000]
+    (coverage grows with s). 0 when the measurement part alone covers ``target``; None without
+    frames or when even s = 1000 does not. 1 means the map noise is right for the fold; the
+    map's C_map is right on every fold only if every fold needs about the same s."""
+    pairs = measurement_and_map_noise(frames, key, c_map)
     if not pairs:
         return None
 
     def coverage(s: float) -> float:
-        if per_axis:
-            inside = [np.abs(d) <= COVERAGE_Z * np.sqrt(np.diag(c + s * m)) for d, c, m in pairs]
-            return float(np.min(np.mean(inside, axis=0)))
-        return float(np.mean([d @ np.linalg.solve(c + s * m, d) <= CHI2_6_95 for d, c, m in pairs]))
+        return coverage_at(pairs, s, per_axis)
 
     if coverage(0.0) >= target:
         return 0.0
@@ -299,6 +326,10 @@ def print_evaluation(name: str, r: dict[str, Any], against_reference: bool) -> N
     print(f"{'':<10} C_map × s for 95 % coverage against the {against} (NEES / lowest axis): "
           + ", ".join(f"{mode} " + " / ".join("—" if scale[mode, a] is None else f"{scale[mode, a]:.2f}" for a in (False, True))
                       for mode in r["frames"]), flush=True)
+    for mode in r["frames"]:
+        pairs = measurement_and_map_noise(r["frames"][mode], key, c_map)
+        print(f"{'':<10} coverage against the {against} with C_map × s, {mode} (s: NEES / lowest axis %): "
+              f"{coverage_by_map_noise_scale(pairs)}", flush=True)
     n = r["map_noise"]
     print(f"{'':<10} map noise √diag C_map {np.round(n['sqrt_diag'], 4).tolist()} "
           f"(n={n['holdout_samples']}, median inliers {n['holdout_inliers']:.0f}), "
@@ -357,6 +388,14 @@ def main() -> int:
             print_evaluation(f"{PAPER_TRAIN}-{len(seq) - 1}", r, reference is not None)
     elif args.folds or args.paper_split:
         print(f"(no shared data at {DATA}: 7-Scenes folds skipped)")
+    folds = [name for name in report if name != "paper split"]
+    if len(folds) > 1:
+        key, against = ("delta_reference", "reference") if reference is not None else ("delta", "labels")
+        for mode in ("single", "sequential"):
+            pairs = [p for name in folds for p in measurement_and_map_noise(
+                report[name]["frames"][mode], key, report[name]["map_noise"]["pose_covariance_labels"])]
+            print(f"folds {','.join(folds)} pooled ({len(pairs)} frames), coverage against the {against} with C_map × s, "
+                  f"{mode} (s: NEES / lowest axis %): {coverage_by_map_noise_scale(pairs)}", flush=True)
     if args.synthetic:
         seq = geoloc.datasets.synthetic_room(n_frames=300, seed=0)
         r = evaluate(seq[:200], seq[200:], args.locator)

@@ -67,6 +67,26 @@ def test_the_map_noise_factor_for_95_percent_has_its_closed_form() -> None:
     assert cal.map_noise_scale_for_coverage(scaled, "d", eye) == pytest.approx(19 / (2 * CHI2_6_95), rel=1e-9)
 
 
+def test_coverage_by_map_noise_factor_has_its_closed_form() -> None:
+    """The same frames (C = εI + C_map, C_map = I, ‖δ‖² = k on one axis, k = 1…20): at factor s
+    frame k is inside χ²₆ 95 % when k ≤ s·χ²₆(0.95) (12.59 s) and inside 1.96σ on its axis when
+    k ≤ 1.96²·s (3.84 s), so at s = 0.1, 0.25, 0.5, 1, 2 the counts are 1, 3, 6, 12, 20 of 20
+    (NEES) and 0, 0, 1, 3, 7 of 20 (axis)."""
+    from geoloc.evaluation import CHI2_6_95, COVERAGE_Z
+
+    cal = _calibration_module()
+    eye = np.eye(6)
+    frames = [{"d": np.sqrt(k) * np.eye(6)[0], "covariance": (1 + 1e-12) * eye} for k in range(1, 21)]
+    frames.append({"d": None, "covariance": None})
+    pairs = cal.measurement_and_map_noise(frames, "d", eye)
+    assert len(pairs) == 20
+    for s in cal.MAP_NOISE_SCALES:
+        assert cal.coverage_at(pairs, s) == sum(k <= s * CHI2_6_95 for k in range(1, 21)) / 20
+        assert cal.coverage_at(pairs, s, per_axis=True) == sum(k <= COVERAGE_Z**2 * s for k in range(1, 21)) / 20
+    assert cal.coverage_by_map_noise_scale(pairs) == "0.1: 5/0, 0.25: 15/0, 0.5: 30/5, 1: 60/15, 2: 100/35"
+    assert cal.coverage_by_map_noise_scale([]) == "—"
+
+
 def test_the_modes_are_compared_on_the_frames_both_localized() -> None:
     cal = _calibration_module()
     frames = {
