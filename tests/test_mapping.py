@@ -63,11 +63,11 @@ def test_build_reports_progress_and_keyframe_step(room: datasets.Sequence) -> No
 
 @pytest.mark.parametrize(
     ("kwargs", "name"),
-    [({"retrieval": "vlad"}, "retrieval"), ({"retrieval": 3}, "retrieval"), ({"features": "akaze"}, "kind|features"),
+    [({"retrieval": "vlad"}, "retrieval"), ({"retrieval": 3}, "retrieval"), ({"features": "akaze"}, "features"), ({"features": "ORB"}, "features"),
      ({"keyframe_step": 0}, "keyframe_step"), ({"n_features": 0}, "n_features")],
 )
 def test_build_refuses_bad_options(room: datasets.Sequence, kwargs: dict[str, object], name: str) -> None:
-    with pytest.raises(geoloc.InvalidInputError, match=name):
+    with pytest.raises(geoloc.InvalidInputError, match=f"^{name}:"):
         Map.build(room[0:4], **kwargs)  # type: ignore[arg-type]
 
 
@@ -107,6 +107,31 @@ def test_grey_bgr_and_path_inputs_agree_bit_for_bit(room_map: Map, room: dataset
 
     assert pose(bgr) == pose(cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY))
     assert pose(str(path)) == pose(cv2.imread(str(path), cv2.IMREAD_GRAYSCALE))
+
+
+def test_a_network_callable_sees_grey_images_at_build_and_at_query(room: datasets.Sequence) -> None:
+    """A retrieval callable (images → (N, D)) gets (H, W) grey images from Map.build, and the
+    same kind of image from Localizer.localize whether it is given BGR, grey or a path — the
+    BGR query's descriptor is that of its grey conversion."""
+    import cv2
+
+    from geoloc.descriptor import tiny_image_descriptors
+
+    seen: list[tuple[int, ...]] = []
+
+    def network(images: list[np.ndarray]) -> np.ndarray:
+        seen.extend(np.asarray(image).shape for image in images)
+        return tiny_image_descriptors(images)
+
+    m = Map.build(room[MAP_FRAMES], network)
+    assert seen and set(seen) == {(room.camera.height, room.camera.width)}
+    i = QUERIES[0]
+    bgr = room[i].image
+    seen.clear()
+    results = [Localizer(m, global_descriptor=network).localize(image, float(room.timestamps[i]))
+               for image in (bgr, cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY))]
+    assert seen == [(room.camera.height, room.camera.width)] * 2
+    assert results[0].pose is not None and results[0].pose.tobytes() == results[1].pose.tobytes()
 
 
 def test_reset_forgets_the_history(room_map: Map, room: datasets.Sequence) -> None:

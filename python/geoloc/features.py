@@ -107,7 +107,7 @@ class FeatureExtractor:
         if n_features > MAX_FEATURES:  # OpenCV takes a C int: 2**63 raised OverflowError
             raise InvalidInputError(f"n_features: must be at most {MAX_FEATURES}, got {n_features}")
         if root_sift and kind != "sift":
-            raise InvalidInputError("root_sift: only applies to kind='sift'")
+            raise InvalidInputError("root_sift: only applies to SIFT features (kind / features 'sift')")
         cv2 = import_cv2("feature extraction")
         self.kind = kind
         self.n_features = int(n_features)
@@ -133,7 +133,7 @@ class FeatureExtractor:
     def __call__(self, image: NDArray[Any], camera: Camera) -> Features:
         if not isinstance(camera, Camera):
             raise InvalidInputError(f"camera: expected a geoloc.Camera, got {type(camera).__name__}")
-        gray = self._gray(image, camera)
+        gray = self.gray(image, camera)
         kps, desc = self._detector.detectAndCompute(gray, None)
         width, dtype = self.descriptor_shape
         if desc is None or len(kps) == 0:
@@ -156,7 +156,10 @@ class FeatureExtractor:
                 descriptors = np.sqrt(descriptors / l1).astype(np.float32)
         return Features(camera.undistort_points(pts), descriptors, octaves, sigmas.astype(np.float64), responses)
 
-    def _gray(self, image: NDArray[Any], camera: Camera) -> NDArray[np.uint8]:
+    def gray(self, image: NDArray[Any], camera: Camera) -> NDArray[np.uint8]:
+        """The (H, W) uint8 grey image features are extracted from: ``image`` as given when
+        grey, OpenCV's BGR → grey conversion when (H, W, 3) BGR; checked against ``camera``'s
+        size (:class:`~geoloc.InvalidInputError` naming ``image``)."""
         img = np.asarray(image)
         if img.dtype != np.uint8:
             raise InvalidInputError(f"image: expected uint8 pixels, got dtype {img.dtype}")

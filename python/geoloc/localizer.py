@@ -157,20 +157,28 @@ class Localizer:
 
     def localize(self, image: Any, timestamp: float) -> Localization:
         """Localize one image (a path, (H, W) gray or (H, W, 3) BGR uint8 of the map's size)
-        taken at ``timestamp`` (seconds, increasing), described with the map's features."""
+        taken at ``timestamp`` (seconds, increasing), described with the map's features.
+
+        A BGR image is converted to grey first (OpenCV's BGR → grey), and the features and
+        the global-descriptor network, when the map has one, see that grey image, as they
+        saw the keyframes' at build. A path is decoded straight to grey (for a JPEG its
+        luma), as ``localize_sequence``, ``export_frames`` and the CLI read a dataset's
+        files; the two greys of one JPEG differ by a few levels, and so do the answers."""
         extractor = self.map.features
         if extractor is None:
             raise InvalidInputError(
                 "image: this map was built from features (Map.from_features); localize it with localize_features"
             )
         start = time.perf_counter()
-        pixels = self._decode(image)
+        # grey, as Map.build described its keyframes: features and a global-descriptor
+        # callable see the same kind of image at build and at query time
+        gray = extractor.gray(self._decode(image), self.camera)
         decoded = time.perf_counter()
-        f = extractor(pixels, self.camera)
+        f = extractor(gray, self.camera)
         described = time.perf_counter()
         g = None
         if self._global is not None:
-            g = np.asarray(self._global([pixels]), dtype=np.float32)[0]
+            g = np.asarray(self._global([gray]), dtype=np.float32)[0]
         r = self._core.localize(
             real_scalar(timestamp, "timestamp"), f.keypoints, f.descriptors, g, pixel_sigmas=f.pixel_sigmas
         )
