@@ -218,7 +218,9 @@ def summarize(
     ``estimates[k]`` is frame k's (4, 4) world_from_cam pose or None when lost;
     ``covariances[k]`` its (6, 6) right-perturbation covariance (translation first) or None;
     ``sources[k]`` "geometric" / "fused" / "motion" / "lost" (default: "geometric" or "lost");
-    ``timings_ms[k]`` per-stage milliseconds (with "total").
+    ``timings_ms[k]`` per-stage milliseconds (with "total"); ``timestamps`` (N,) seconds, the
+    ``timestamp`` of each ``per_frame`` entry (default: k, the frame's position — its
+    ``index`` is always k, a position in these N frames, not a dataset frame number).
 
     Keys: ``frames``, ``localized``, ``median_translation_m``, ``median_rotation_deg``,
     ``mean_translation_m``, ``mean_rotation_deg`` (over localized frames; None if none),

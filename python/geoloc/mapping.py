@@ -191,8 +191,9 @@ class Map:
           own tracks — focal lengths, principal point and lens distortion per
           ``intrinsics_model`` — and the keyframes' and every query's keypoints corrected
           with it (:attr:`self_calibration` says what was found, or why not).
-        - ``model`` (default off): the map-level 3D model of ``Localizer(..., locator="model")``
-          built and stored too (without one, such a localizer builds it when it starts).
+        - ``model`` (default on): the map-level 3D model of the default, model locator
+          built and stored too (off: a localizer with ``locator="model"`` builds it when it
+          starts; the paper's locator needs none).
 
         The keyframe pairs are matched once for all of these steps.
         """
@@ -208,7 +209,8 @@ class Map:
         if not isinstance(retrieval, str) and not callable(retrieval):
             raise InvalidInputError(f"retrieval: expected 'bow' or a callable network, got {type(retrieval).__name__}")
         options = _build_options(branching, depth, seed, estimate_noise, model, refine_intrinsics, intrinsics_model, adjust_labels)
-        extractor = FeatureExtractor(features, _as_int(n_features, "n_features", 1), root_sift=bool(root_sift))  # type: ignore[arg-type]
+        kind = choice(features, "features", ("orb", "sift"))
+        extractor = FeatureExtractor(kind, _as_int(n_features, "n_features", 1), root_sift=bool(root_sift))  # type: ignore[arg-type]
         indices = np.arange(0, len(sequence), step)
         camera = sequence.camera
         keypoints, descriptors, images = [], [], []
@@ -361,7 +363,7 @@ class Map:
 
     @property
     def model_points(self) -> int | None:
-        """Points of the stored map-level 3D model, or None when the map has none."""
+        """How many points the stored map-level 3D model holds, or None when the map has none."""
         points: int | None = self._core.model_points
         return points
 
@@ -377,7 +379,7 @@ class Map:
         ``holdout_inliers`` n̄ (their median PnP inliers: a pose resting on n < n̄ inliers gets
         C_map·n̄/n, see :meth:`map_noise_at`; 0: C_map applies unscaled),
         ``pose_covariance_source`` (which of the two and the support rule, in words) and, for a map built in this
-        process (not stored in the file), ``holdout``: the held-out re-localizations
+        process (not stored in the file: empty in a loaded map), ``holdout``: the held-out re-localizations
         (``keyframe`` (n,), ``delta`` (n, 6) = log(T_label⁻¹T_est), ``covariance`` (n, 6, 6) C_G,
         ``inliers`` (n,), ``used`` (n,) bool); ``resolved`` (6,) bool: per axis, whether those samples resolve
         C_map (an axis they do not is floored, never zero; stored in the map file, so a loaded

@@ -65,7 +65,7 @@ pub struct Args {
     /// At most 256.
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..=geoloc_core::parallel::MAX_THREADS as i64))]
     threads: Option<u32>,
-    /// Print a summary on stderr at the end: frames, frames/s, median ms per stage, peak RSS.
+    /// Print a summary on stderr at the end: frames, frames/s, sources, median ms per stage, peak RSS.
     #[arg(long)]
     stats: bool,
     /// Positional σ of a keypoint (px), for PnP and triangulation.

@@ -34,7 +34,13 @@ pub mod triangulate;
 
 pub use error::{GeolocError, Result};
 
-/// The README's Rust example, compiled and run by `cargo test` so it cannot rot.
+/// The README's code blocks that rustdoc takes for Rust (none today), compiled and run by
+/// `cargo test` so that one added there cannot rot.
 #[doc = include_str!("../../../README.md")]
 #[cfg(doctest)]
 pub struct ReadmeDoctests;
+
+/// The getting-started guide's Rust example, compiled and run by `cargo test` so it cannot rot.
+#[doc = include_str!("../../../docs/getting-started.md")]
+#[cfg(doctest)]
+pub struct GettingStartedDoctests;
