@@ -149,6 +149,8 @@ def test_localizer_refuses_bad_inputs(room_map: Map, tmp_path: Path) -> None:
         Localizer("scene.geoloc")  # type: ignore[arg-type]
     with pytest.raises(geoloc.InvalidInputError, match="camera"):
         Localizer(room_map, geoloc.Camera(500.0, 500.0, 320.0, 240.0, 640, 480))
+    with pytest.raises(geoloc.InvalidInputError, match=r"^camera: .*locator='paper'"):
+        Localizer(room_map, "paper")  # type: ignore[arg-type]
     loc = Localizer(room_map)
     with pytest.raises(geoloc.InvalidInputError, match="image.*320×240"):
         loc.localize(np.zeros((240, 320), np.uint8), 0.0)

@@ -114,6 +114,10 @@ class Localizer:
     ) -> None:
         if not isinstance(map, Map):
             raise InvalidInputError(f"map: expected a geoloc.Map, got {type(map).__name__}")
+        if isinstance(camera, str) and camera in ("paper", "model"):
+            raise InvalidInputError(
+                f"camera: expected a geoloc.Camera, got the string {camera!r}; the locator is a keyword: locator={camera!r}"
+            )
         if camera is not None and not isinstance(camera, Camera):
             raise InvalidInputError(f"camera: expected a geoloc.Camera, got {type(camera).__name__}")
         if camera is not None and camera.intrinsics != map.camera.intrinsics:
