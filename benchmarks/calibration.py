@@ -255,11 +255,18 @@ def coverage_at(pairs: list[tuple[Any, Any, Any]], s: float, per_axis: bool = Fa
     return float(np.mean([d @ np.linalg.solve(c + s * m, d) <= CHI2_6_95 for d, c, m in pairs]))
 
 
+def percent(fraction: float) -> str:
+    """``fraction`` in per cent, whole (one decimal where rounding would show a miss as 100)."""
+    value = 100 * fraction
+    return f"{value:.1f}" if 99.5 <= value < 100 else f"{value:.0f}"
+
+
 def coverage_by_map_noise_scale(pairs: list[tuple[Any, Any, Any]]) -> str:
-    """``s=0.1 46/58, …``: NEES / lowest-axis coverage (%) at each of :data:`MAP_NOISE_SCALES`."""
+    """``0.1: 46/58, …``: NEES / lowest-axis coverage (%, :func:`percent`) at each of
+    :data:`MAP_NOISE_SCALES`."""
     if not pairs:
         return "—"
-    return ", ".join(f"{s:g}: {100 * coverage_at(pairs, s):.0f}/{100 * coverage_at(pairs, s, True):.0f}"
+    return ", ".join(f"{s:g}: {percent(coverage_at(pairs, s))}/{percent(coverage_at(pairs, s, True))}"
                      for s in MAP_NOISE_SCALES)
 
 

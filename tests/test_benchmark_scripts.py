@@ -85,6 +85,9 @@ def test_coverage_by_map_noise_factor_has_its_closed_form() -> None:
         assert cal.coverage_at(pairs, s, per_axis=True) == sum(k <= COVERAGE_Z**2 * s for k in range(1, 21)) / 20
     assert cal.coverage_by_map_noise_scale(pairs) == "0.1: 5/0, 0.25: 15/0, 0.5: 30/5, 1: 60/15, 2: 100/35"
     assert cal.coverage_by_map_noise_scale([]) == "—"
+    # 1 frame of 200 far outside at every s: 99.5 %, not rounded up to a 100 that hides it
+    far = [(np.zeros(6), 1e-12 * eye, eye)] * 199 + [(1e3 * np.ones(6), 1e-12 * eye, eye)]
+    assert cal.coverage_by_map_noise_scale(far) == ", ".join(f"{s:g}: 99.5/99.5" for s in cal.MAP_NOISE_SCALES)
 
 
 def test_the_modes_are_compared_on_the_frames_both_localized() -> None:

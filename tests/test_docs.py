@@ -58,11 +58,39 @@ def test_docs_pages_stay_inside_docs() -> None:
     assert not outside, outside
 
 
+def _mkdocs_config() -> dict:
+    import yaml
+
+    config: dict = yaml.safe_load((ROOT / "mkdocs.yml").read_text())
+    return config
+
+
+def _nav_pages(entries: object) -> set[str]:
+    """Every page path named in a mkdocs nav (nested lists of paths and {title: entry})."""
+    if isinstance(entries, str):
+        return {entries}
+    if isinstance(entries, list):
+        return set().union(*(_nav_pages(e) for e in entries))
+    if isinstance(entries, dict):
+        return set().union(*(_nav_pages(e) for e in entries.values()))
+    return set()
+
+
 def test_every_page_is_in_the_navigation() -> None:
-    config = (ROOT / "mkdocs.yml").read_text()
-    pages = [p.relative_to(DOCS).as_posix() for p in DOCS.glob("**/*.md")]
-    missing = [p for p in pages if p not in config]
-    assert not missing, f"mkdocs.yml's nav lacks {missing}"
+    pages = {p.relative_to(DOCS).as_posix() for p in DOCS.glob("**/*.md")}
+    nav = _nav_pages(_mkdocs_config()["nav"])
+    assert pages <= nav, f"mkdocs.yml's nav lacks {sorted(pages - nav)}"
+    assert nav <= pages, f"mkdocs.yml's nav names missing pages {sorted(nav - pages)}"
+
+
+def test_the_strict_build_fails_on_broken_links_and_omitted_pages() -> None:
+    """--strict turns warnings into failures: dead links and anchors, and pages left out of
+    the nav, must be warnings (one `validation` block: a second one would replace the first)."""
+    validation = _mkdocs_config()["validation"]
+    assert validation["links"]["not_found"] == "warn"
+    assert validation["links"]["anchors"] == "warn"
+    assert validation["links"]["unrecognized_links"] == "warn"
+    assert validation["nav"]["omitted_files"] == "warn"
 
 
 def test_the_reference_documents_the_public_modules() -> None:

@@ -109,12 +109,13 @@ def test_grey_bgr_and_path_inputs_agree_bit_for_bit(room_map: Map, room: dataset
     assert pose(str(path)) == pose(cv2.imread(str(path), cv2.IMREAD_GRAYSCALE))
 
 
-def test_a_network_callable_sees_grey_images_at_build_and_at_query(room: datasets.Sequence) -> None:
+def test_a_network_callable_sees_grey_images_at_build_and_at_query(room: datasets.Sequence, tmp_path: Path) -> None:
     """A retrieval callable (images → (N, D)) gets (H, W) grey images from Map.build, and the
-    same kind of image from Localizer.localize whether it is given BGR, grey or a path — the
-    BGR query's descriptor is that of its grey conversion."""
+    same kind of image from Localizer.localize — given BGR, grey or a path — and from
+    export_frames given BGR (what geoloc-rs then localizes must be what localize computes)."""
     import cv2
 
+    from geoloc import export_frames
     from geoloc.descriptor import tiny_image_descriptors
 
     seen: list[tuple[int, ...]] = []
@@ -128,10 +129,15 @@ def test_a_network_callable_sees_grey_images_at_build_and_at_query(room: dataset
     i = QUERIES[0]
     bgr = room[i].image
     seen.clear()
+    path = tmp_path / "q.png"
+    cv2.imwrite(str(path), bgr)
     results = [Localizer(m, global_descriptor=network).localize(image, float(room.timestamps[i]))
-               for image in (bgr, cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY))]
-    assert seen == [(room.camera.height, room.camera.width)] * 2
+               for image in (bgr, cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY), str(path))]
+    assert seen == [(room.camera.height, room.camera.width)] * 3
     assert results[0].pose is not None and results[0].pose.tobytes() == results[1].pose.tobytes()
+    seen.clear()
+    export_frames(m, [(float(room.timestamps[i]), bgr)], tmp_path / "q.frames", global_descriptor=network)
+    assert seen == [(room.camera.height, room.camera.width)]
 
 
 def test_reset_forgets_the_history(room_map: Map, room: datasets.Sequence) -> None:

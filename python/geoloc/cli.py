@@ -1,8 +1,9 @@
 """The ``geoloc`` command line.
 
 Every command validates its options where they are parsed (argparse types that name the
-option), and every error a user can cause — bad input, a missing or unwritable file — ends as
-**one line on stderr** naming what is wrong and a non-zero exit status (2 for a usage or
+option), and every error a user can cause — bad input, a missing or unwritable file — ends in
+**one line on stderr** naming what is wrong (a malformed command line prints the command's
+usage above it, as argparse does) and a non-zero exit status (2 for a usage or
 input error, 1 for a failed run). A traceback is printed only with ``--debug``. Output files
 are written atomically and missing folders are never created.
 """

@@ -64,7 +64,8 @@ def export_frames(
     """
     if not isinstance(map, Map):
         raise InvalidInputError(f"map: expected a geoloc.Map, got {type(map).__name__}")
-    if map.features is None:
+    extractor = map.features
+    if extractor is None:
         raise InvalidInputError("map: built from features (Map.from_features); it has no feature extractor to describe images")
     if format not in ("binary", "jsonl"):
         raise InvalidInputError(f"format: expected 'binary' or 'jsonl', got {format!r}")
@@ -77,11 +78,11 @@ def export_frames(
     writer = FrameWriter(os.fspath(target), format=format)
     try:
         for done, (timestamp, image) in enumerate(_frames(frames), start=1):
-            pixels = localizer._decode(image)
-            f = map.features(pixels, map.camera)
+            gray = localizer._gray(image, extractor)
+            f = extractor(gray, map.camera)
             g: NDArray[np.float32] | None = None
             if global_descriptor is not None:
-                g = np.ascontiguousarray(np.asarray(global_descriptor([pixels]), dtype=np.float32)[0])
+                g = np.ascontiguousarray(np.asarray(global_descriptor([gray]), dtype=np.float32)[0])
             writer.write(timestamp, f.keypoints, f.pixel_sigmas, f.descriptors, g)
             if progress is not None:
                 progress(done)

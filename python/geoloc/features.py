@@ -159,7 +159,10 @@ class FeatureExtractor:
     def gray(self, image: NDArray[Any], camera: Camera) -> NDArray[np.uint8]:
         """The (H, W) uint8 grey image features are extracted from: ``image`` as given when
         grey, OpenCV's BGR → grey conversion when (H, W, 3) BGR; checked against ``camera``'s
-        size (:class:`~geoloc.InvalidInputError` naming ``image``)."""
+        size (:class:`~geoloc.InvalidInputError` naming ``image``, or ``camera`` when it is not a
+        :class:`~geoloc.Camera`)."""
+        if not isinstance(camera, Camera):
+            raise InvalidInputError(f"camera: expected a geoloc.Camera, got {type(camera).__name__}")
         img = np.asarray(image)
         if img.dtype != np.uint8:
             raise InvalidInputError(f"image: expected uint8 pixels, got dtype {img.dtype}")

@@ -28,6 +28,7 @@ from . import _core
 from ._validation import as_float64, given_options, keypoint_rows, real_scalar
 from .camera import Camera
 from .exceptions import InvalidInputError
+from .features import FeatureExtractor
 from .mapping import GlobalDescriptor, Map, ProgressCallback
 from .retrieval import _f32_rows, _local_descriptors
 
@@ -174,9 +175,7 @@ class Localizer:
                 "image: this map was built from features (Map.from_features); localize it with localize_features"
             )
         start = time.perf_counter()
-        # grey, as Map.build described its keyframes: features and a global-descriptor
-        # callable see the same kind of image at build and at query time
-        gray = extractor.gray(self._decode(image), self.camera)
+        gray = self._gray(image, extractor)
         decoded = time.perf_counter()
         f = extractor(gray, self.camera)
         described = time.perf_counter()
@@ -221,12 +220,15 @@ class Localizer:
             s = np.ascontiguousarray(s)
         return _from_core(self._core.localize(real_scalar(timestamp, "timestamp"), k, d, g, s))
 
-    def _decode(self, image: Any) -> NDArray[np.uint8]:
+    def _gray(self, image: Any, extractor: FeatureExtractor) -> NDArray[np.uint8]:
+        """The query's grey image, as Map.build described its keyframes: a path decoded
+        straight to grey, a BGR image converted (``extractor.gray``); the features and a
+        global-descriptor network both see it (``localize`` and ``export_frames``)."""
         if isinstance(image, (str, os.PathLike)):
             from ._images import read_image
 
-            return read_image(image, "image", gray=True)
-        return np.asarray(image)
+            return extractor.gray(read_image(image, "image", gray=True), self.camera)
+        return extractor.gray(np.asarray(image), self.camera)
 
     def reset(self) -> None:
         """Forget the motion history and the last frame's keyframe (the next frame is
