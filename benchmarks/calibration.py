@@ -261,6 +261,11 @@ def percent(fraction: float) -> str:
     return f"{value:.1f}" if 99.5 <= value < 100 else f"{value:.0f}"
 
 
+def scored_against(against_reference: bool) -> tuple[str, str]:
+    """The per-frame error key and its name in the printout: the reference's or the labels'."""
+    return ("delta_reference", "reference") if against_reference else ("delta", "labels")
+
+
 def coverage_by_map_noise_scale(pairs: list[tuple[Any, Any, Any]]) -> str:
     """``0.1: 46/58, …``: NEES / lowest-axis coverage (%, :func:`percent`) at each of
     :data:`MAP_NOISE_SCALES`."""
@@ -268,6 +273,12 @@ def coverage_by_map_noise_scale(pairs: list[tuple[Any, Any, Any]]) -> str:
         return "—"
     return ", ".join(f"{s:g}: {percent(coverage_at(pairs, s))}/{percent(coverage_at(pairs, s, True))}"
                      for s in MAP_NOISE_SCALES)
+
+
+def coverage_sweep_line(against: str, mode: str, pairs: list[tuple[Any, Any, Any]]) -> str:
+    """The printed coverage of one mode against ``against`` with C_map × s (see the module doc)."""
+    return (f"coverage against the {against} with C_map × s, {mode} (s: NEES / lowest axis %): "
+            f"{coverage_by_map_noise_scale(pairs)}")
 
 
 def map_noise_scale_for_coverage(frames: list[dict[str, Any]], key: str, c_map: Any, per_axis: bool = False,
@@ -323,7 +334,7 @@ def print_evaluation(name: str, r: dict[str, Any], against_reference: bool) -> N
         if f"{mode} vs reference" in r:
             print(row("", f"{mode[:3]} vs ref", r[f"{mode} vs reference"]), flush=True)
     print(f"{'':<10} NEES coverage by PnP inliers, single: {coverage_by_inliers(r['frames']['single'])}", flush=True)
-    key, against = ("delta_reference", "reference") if against_reference else ("delta", "labels")
+    key, against = scored_against(against_reference)
     print(f"{'':<10} against the {against} on the {common_frame_medians(r['frames'], key)}", flush=True)
     c_map = r["map_noise"]["pose_covariance_labels"]
     scale = {
@@ -335,8 +346,7 @@ def print_evaluation(name: str, r: dict[str, Any], against_reference: bool) -> N
                       for mode in r["frames"]), flush=True)
     for mode in r["frames"]:
         pairs = measurement_and_map_noise(r["frames"][mode], key, c_map)
-        print(f"{'':<10} coverage against the {against} with C_map × s, {mode} (s: NEES / lowest axis %): "
-              f"{coverage_by_map_noise_scale(pairs)}", flush=True)
+        print(f"{'':<10} {coverage_sweep_line(against, mode, pairs)}", flush=True)
     n = r["map_noise"]
     print(f"{'':<10} map noise √diag C_map {np.round(n['sqrt_diag'], 4).tolist()} "
           f"(n={n['holdout_samples']}, median inliers {n['holdout_inliers']:.0f}), "
@@ -397,12 +407,12 @@ def main() -> int:
         print(f"(no shared data at {DATA}: 7-Scenes folds skipped)")
     folds = [name for name in report if name != "paper split"]
     if len(folds) > 1:
-        key, against = ("delta_reference", "reference") if reference is not None else ("delta", "labels")
+        key, against = scored_against(reference is not None)
         for mode in ("single", "sequential"):
             pairs = [p for name in folds for p in measurement_and_map_noise(
                 report[name]["frames"][mode], key, report[name]["map_noise"]["pose_covariance_labels"])]
-            print(f"folds {','.join(folds)} pooled ({len(pairs)} frames), coverage against the {against} with C_map × s, "
-                  f"{mode} (s: NEES / lowest axis %): {coverage_by_map_noise_scale(pairs)}", flush=True)
+            print(f"folds {','.join(folds)} pooled ({len(pairs)} frames), {coverage_sweep_line(against, mode, pairs)}",
+                  flush=True)
     if args.synthetic:
         seq = geoloc.datasets.synthetic_room(n_frames=300, seed=0)
         r = evaluate(seq[:200], seq[200:], args.locator)

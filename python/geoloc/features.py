@@ -131,9 +131,7 @@ class FeatureExtractor:
         return SIFT_DESCRIPTOR_SIZE, np.dtype(np.float32)
 
     def __call__(self, image: NDArray[Any], camera: Camera) -> Features:
-        if not isinstance(camera, Camera):
-            raise InvalidInputError(f"camera: expected a geoloc.Camera, got {type(camera).__name__}")
-        gray = self.gray(image, camera)
+        gray = self.gray(image, camera)  # checks the camera, then the image
         kps, desc = self._detector.detectAndCompute(gray, None)
         width, dtype = self.descriptor_shape
         if desc is None or len(kps) == 0:
