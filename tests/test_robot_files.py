@@ -159,6 +159,27 @@ def test_export_frames_refuses_to_overwrite_one_of_its_frames(tmp_path: Path, sm
     assert (tmp_path / "1.png").read_bytes() == before
 
 
+@pytest.mark.parametrize("alias", ["image", "symlink", "hardlink", "trajectory"])
+def test_map_save_refuses_to_overwrite_a_file_the_map_was_built_from(tmp_path: Path, alias: str) -> None:
+    """It replaced the image: ``Map.save`` checked only that the path was writable."""
+    folder = datasets.synthetic_room(n_frames=12, seed=0)[:10].write_tum(tmp_path / "frames")
+    seq = datasets.load_tum(folder)
+    m = geoloc.Map.build(seq, n_features=300, branching=4, depth=2)
+    trajectory = folder / "groundtruth.txt"
+    input_file = trajectory if alias == "trajectory" else sorted((folder / "rgb").iterdir())[3]
+    out = {"symlink": tmp_path / "link.geoloc", "hardlink": tmp_path / "hard.geoloc"}.get(alias, input_file)
+    if alias == "symlink":
+        os.symlink(input_file, out)
+    if alias == "hardlink":
+        os.link(input_file, out)
+    before = input_file.read_bytes()
+    with pytest.raises(geoloc.InvalidInputError, match="^path: .* is the same file as the input sequence"):
+        m.save(out)
+    assert input_file.read_bytes() == before
+    m.save(tmp_path / "map.geoloc")  # any other path is written
+    assert len(geoloc.Map.load(tmp_path / "map.geoloc")) == 10
+
+
 # ------------------------------------------------------------------ concurrent writers
 
 

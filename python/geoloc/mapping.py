@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import os
 import warnings
+from pathlib import Path
 from typing import Any, Callable, Literal, Protocol, Sequence
 
 import numpy as np
@@ -136,11 +137,20 @@ class Map:
     module doc. Create one with :meth:`build` (images) or :meth:`from_features`, or
     :meth:`load` a saved one."""
 
-    def __init__(self, core: Any, camera: Camera, extractor: FeatureExtractor | None, frontend: dict[str, Any]) -> None:
+    def __init__(
+        self,
+        core: Any,
+        camera: Camera,
+        extractor: FeatureExtractor | None,
+        frontend: dict[str, Any],
+        inputs: tuple[tuple[str, Path], ...] = (),
+    ) -> None:
         self._core = core
         self._camera = camera
         self._extractor = extractor
         self._frontend = frontend
+        # (argument, file) for every file the map was built from: :meth:`save` never replaces one
+        self._inputs = inputs
 
     @staticmethod
     def default_options() -> dict[str, Any]:
@@ -247,7 +257,11 @@ class Map:
             "retrieval": "bow" if isinstance(retrieval, str) else descriptor_record(retrieval),
             "source": {"sequence": shown(sequence.name), "frames": [int(i) for i in indices]},
         }
-        return cls(core, camera, extractor, frontend)
+        inputs = [("sequence", f) for f in sequence.files]
+        network_file = getattr(retrieval, "path", None)
+        if isinstance(network_file, Path):
+            inputs.append(("retrieval", network_file))
+        return cls(core, camera, extractor, frontend, tuple(inputs))
 
     @classmethod
     def from_features(
@@ -439,10 +453,13 @@ class Map:
 
     def save(self, path: str | os.PathLike[str]) -> None:
         """Write the map to one ``.geoloc`` file, atomically (an interrupted save keeps the
-        old file; a path that is one of the map's inputs is refused)."""
-        from ._io import check_output_path
+        old file; a path that is one of the files the map was built from — the sequence's
+        images, pose and list files, the retrieval network's model file — is refused, also
+        through a symlink or a hard link)."""
+        from ._io import check_output_path, refuse_alias
 
         target = check_output_path(path, "path")
+        refuse_alias(target, "path", self._inputs)
         text = json.dumps(self._frontend, sort_keys=True, allow_nan=False)
         self._core.save(os.fspath(target), text)
 
