@@ -253,6 +253,22 @@ fn refuse_aliased_output(args: &Args) -> Result<(), String> {
 }
 
 /// The core's localizer options with the ones `geoloc.Localizer` also exposes set from `args`.
+/// The option values the core refuses ([`LocalizerOptions::check`]), as a usage error naming
+/// the flag (`--top-k: must be ≥ 1`): checked before anything is read, so that a bad value
+/// exits with the usage status like any other bad option, not with an input error's.
+pub fn usage_error(args: &Args) -> Option<String> {
+    let Err(GeolocError::InvalidInput { name, reason }) = options(args).check() else { return None };
+    let flag = match name.as_str() {
+        "top_k" => "--top-k",
+        "history" => "--history",
+        "pixel_sigma" => "--pixel-sigma",
+        "max_residual" => "--max-residual",
+        "gate_sigma" => "--gate-sigma",
+        other => other,
+    };
+    Some(format!("invalid value for '{flag}': {reason}"))
+}
+
 fn options(args: &Args) -> LocalizerOptions {
     LocalizerOptions {
         gate_sigma: args.gate_sigma,

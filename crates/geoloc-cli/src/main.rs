@@ -19,7 +19,7 @@ mod stats;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use clap::{Parser, Subcommand, ValueEnum};
+use clap::{CommandFactory, Parser, Subcommand, ValueEnum};
 
 /// Camera localization (6-DoF pose + calibrated covariance) on a robot, without Python.
 #[derive(Parser, Debug)]
@@ -59,6 +59,11 @@ enum Command {
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    if let Command::Localize(args) = &cli.command
+        && let Some(message) = localize::usage_error(args)
+    {
+        Cli::command().error(clap::error::ErrorKind::ValueValidation, message).exit();
+    }
     if let Some(warning) = geoloc_core::parallel::environment_warning() {
         eprintln!("geoloc-rs: warning: {warning}");
     }

@@ -649,3 +649,28 @@ fn a_crafted_chain_vocabulary_is_refused_at_once() {
     assert!(err.contains("deeper than the limit of 24 levels (MAX_DEPTH)"), "{err}");
     assert!(took < Duration::from_secs(2), "refused after {took:?}");
 }
+
+/// Every option value the core refuses is a usage error (exit 2, the flag named, nothing
+/// read), like a bad `--threads` that clap refuses itself; they were input errors (exit 1,
+/// the core's field name `top_k`).
+#[test]
+fn option_values_the_core_refuses_are_usage_errors_naming_the_flag() {
+    let d = dir("usage");
+    let (map, _) = scene(&d, 1);
+    let map_s = map.to_str().expect("utf-8");
+    for (flag, value) in [
+        ("--top-k", "0"),
+        ("--history", "1"),
+        ("--pixel-sigma", "nan"),
+        ("--gate-sigma", "0"),
+        ("--max-residual", "0"),
+        ("--threads", "0"),
+    ] {
+        let (out, hung) = run(&["localize", "--map", map_s, "--input", "-", flag, value], b"");
+        assert!(!hung);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{flag} {value}: {err}");
+        assert!(err.contains(&format!("'{flag}")), "{flag} {value}: {err}");
+        assert!(out.stdout.is_empty(), "{flag} {value}: nothing written");
+    }
+}
