@@ -159,6 +159,20 @@ def test_global_descriptor_shape_and_name() -> None:
     assert r.keyframe == 2
 
 
+def test_a_map_refuses_descriptors_wider_than_a_frame_stream_carries() -> None:
+    """5000-byte descriptors built a map that Python localized and geoloc-rs could not: every
+    frame of its stream was refused ("descriptor width 5000 is not in 1..=4096")."""
+    poses, kps, descs = _tiny_map_inputs()
+    plain = {"estimate_noise": False, "refine_intrinsics": False, "adjust_labels": False, "branching": 2, "depth": 2}
+    wide = [np.tile(d, (1, 4096 // 32 + 1))[:, :4097] for d in descs]
+    with pytest.raises(geoloc.InvalidInputError, match=r"^descriptors: width 4097 is beyond the 4096 a frame stream carries"):
+        Map.from_features(CAM, poses, kps, wide, **plain)
+    Map.from_features(CAM, poses, kps, [w[:, :4096] for w in wide], **plain)  # the widest a stream carries
+    long_global = np.ones((3, 2**16 + 1), np.float32)
+    with pytest.raises(geoloc.InvalidInputError, match=r"^global_descriptors: length 65537 is beyond the 65536"):
+        Map.from_features(CAM, poses, kps, descs, global_descriptors=long_global, retrieval="global", **plain)
+
+
 def test_integer_like_options() -> None:
     """Localizer(history=np.int64(5)) was refused."""
     poses, kps, descs = _tiny_map_inputs()

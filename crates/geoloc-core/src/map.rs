@@ -831,11 +831,20 @@ fn interpolated_corrections(labels: &[SE3], chosen: &[usize], adjusted: &[SE3]) 
 }
 
 /// Every keyframe: as many finite keypoints as descriptors, descriptors valid and of
-/// keyframe 0's kind and width.
+/// keyframe 0's kind and width, that width one a frame stream can carry
+/// ([`crate::frames::MAX_DESCRIPTOR_WIDTH`]: a map that builds is one geoloc-rs can localize
+/// against).
 fn check_keyframes(keyframes: &[Keyframe]) -> Result<()> {
     let Some(first) = keyframes.first() else {
         return Err(GeolocError::invalid("keyframes", "the map needs at least one keyframe"));
     };
+    let width = first.descriptors.view().width();
+    if width > crate::frames::MAX_DESCRIPTOR_WIDTH {
+        return Err(GeolocError::invalid(
+            "descriptors",
+            format!("width {width} is beyond the {} a frame stream carries", crate::frames::MAX_DESCRIPTOR_WIDTH),
+        ));
+    }
     let kind = |d: &DescriptorSet| (d.view().is_binary(), d.view().width());
     for (i, kf) in keyframes.iter().enumerate() {
         kf.descriptors.view().check(&format!("descriptors[{i}]"))?;
@@ -883,6 +892,12 @@ fn global_index(keyframes: &[Keyframe]) -> Result<DescriptorIndex> {
                 ));
             }
         }
+    }
+    if dim > crate::frames::MAX_GLOBAL_DIM {
+        return Err(GeolocError::invalid(
+            "global_descriptors",
+            format!("length {dim} is beyond the {} a frame stream carries", crate::frames::MAX_GLOBAL_DIM),
+        ));
     }
     if let Some(v) = data.iter().position(|v| !v.is_finite()) {
         return Err(GeolocError::NonFinite { name: "global_descriptors".into(), index: v / dim });
