@@ -327,3 +327,17 @@ def test_rotation_angle_refuses_non_rotations() -> None:
         lie.rotation_angle(np.ones((3, 3)))
     # a real dataset's near-rotation (det ≈ 0.9995) still has its angle
     assert lie.rotation_angle(0.9998 * lie.so3_exp([0.0, 0.0, 0.5])) == pytest.approx(0.5, abs=1e-3)
+
+
+def test_jacobian_inverses_refuse_a_rotation_vector_where_the_jacobian_is_singular() -> None:
+    """At ‖φ‖ = 2π the closed form gave 2.6e16 entries (J·J⁻¹ − I = 1) instead of an error."""
+    phi = np.array([0.0, 2 * np.pi, 0.0])
+    for fn, arg in [(lie.so3_left_jacobian_inv, phi), (lie.so3_right_jacobian_inv, phi),
+                    (lie.se3_left_jacobian_inv, np.r_[1.0, 0, 0, phi]), (lie.se3_right_jacobian_inv, np.r_[1.0, 0, 0, phi])]:
+        name = "phi" if arg.shape == (3,) else "xi"
+        with pytest.raises(geoloc.InvalidInputError, match=rf"^{name}: ‖φ‖ = 6.28\S* rad is 1·2π"):
+            fn(arg)
+    with pytest.raises(geoloc.InvalidInputError, match=r"^phi\[1\]: "):
+        lie.so3_left_jacobian_inv(np.stack([phi / 2, 2 * phi]))
+    beside = np.array([0.0, 2 * np.pi - 1e-6, 0.0])  # nearly singular, still invertible
+    np.testing.assert_allclose(lie.so3_left_jacobian(beside) @ lie.so3_left_jacobian_inv(beside), np.eye(3), atol=1e-6)

@@ -178,12 +178,15 @@ def so3_right_jacobian(phi: ArrayLike) -> Array:
 
 
 def so3_left_jacobian_inv(phi: ArrayLike) -> Array:
-    """J_l⁻¹(φ) in closed form (finite for ‖φ‖ < 2π). (…, 3) → (…, 3, 3)."""
+    """J_l⁻¹(φ) in closed form. (…, 3) → (…, 3, 3). ``phi`` at a nonzero multiple of 2π
+    (to working precision: J_l's smallest singular value 2|sin(‖φ‖/2)|/‖φ‖ below 1e-9), where
+    J_l is singular, raises InvalidInputError."""
     return _call(_core.so3_left_jacobian_inv, [(phi, "phi", (3,))], (3, 3))
 
 
 def so3_right_jacobian_inv(phi: ArrayLike) -> Array:
-    """J_r⁻¹(φ) = J_l⁻¹(−φ), the derivative of log(R exp(δ)) at δ = 0. (…, 3) → (…, 3, 3)."""
+    """J_r⁻¹(φ) = J_l⁻¹(−φ), the derivative of log(R exp(δ)) at δ = 0. (…, 3) → (…, 3, 3);
+    refused where J_l is singular, as :func:`so3_left_jacobian_inv`."""
     return _call(_core.so3_right_jacobian_inv, [(phi, "phi", (3,))], (3, 3))
 
 
@@ -241,12 +244,14 @@ def se3_right_jacobian(xi: ArrayLike) -> Array:
 
 
 def se3_left_jacobian_inv(xi: ArrayLike) -> Array:
-    """𝒥_l⁻¹(ξ) = [[J_l⁻¹, −J_l⁻¹ Q J_l⁻¹], [0, J_l⁻¹]] (closed form). (…, 6) → (…, 6, 6)."""
+    """𝒥_l⁻¹(ξ) = [[J_l⁻¹, −J_l⁻¹ Q J_l⁻¹], [0, J_l⁻¹]] (closed form). (…, 6) → (…, 6, 6).
+    Refused like :func:`so3_left_jacobian_inv` where its rotation part makes J_l singular."""
     return _call(_core.se3_left_jacobian_inv, [(xi, "xi", (6,))], (6, 6))
 
 
 def se3_right_jacobian_inv(xi: ArrayLike) -> Array:
-    """𝒥_r⁻¹(ξ), the derivative of log(T exp(δ)) at δ = 0 for T = exp(ξ). (…, 6) → (…, 6, 6)."""
+    """𝒥_r⁻¹(ξ), the derivative of log(T exp(δ)) at δ = 0 for T = exp(ξ). (…, 6) → (…, 6, 6);
+    refused where J_l is singular, as :func:`se3_left_jacobian_inv`."""
     return _call(_core.se3_right_jacobian_inv, [(xi, "xi", (6,))], (6, 6))
 
 

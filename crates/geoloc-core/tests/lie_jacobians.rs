@@ -103,3 +103,30 @@ fn jacobian_inverses_near_pi() {
         assert!(checked >= 1);
     }
 }
+
+/// J_l(φ)'s singular values against nalgebra's SVD: 1 and twice |2 sin(θ/2)|/θ, the value
+/// [`so3::check_jacobian_invertible`] tests; φ at 2π (the closed-form inverse there gave
+/// 1e16 entries and J·J⁻¹ − I = 1) is refused, φ beside it and below π are not.
+#[test]
+fn a_singular_left_jacobian_is_refused_and_the_singular_value_is_the_svds() {
+    let axis = Vector3::new(1.0, -2.0, 0.5).normalize();
+    for theta in [0.3, 2.0, 4.0, 6.0, 8.0, 12.0] {
+        let svd = so3::left_jacobian(&(axis * theta)).svd(false, false);
+        let mut values: Vec<f64> = svd.singular_values.iter().copied().collect();
+        values.sort_by(f64::total_cmp);
+        let across = (2.0 * (0.5f64 * theta).sin() / theta).abs();
+        assert!((values[0] - across).abs() < 1e-12 && (values[1] - across).abs() < 1e-12, "θ {theta}: {values:?}");
+        assert!((values[2] - 1.0).abs() < 1e-12, "θ {theta}: {values:?}");
+    }
+    for turns in [1.0, 2.0, 5.0] {
+        let phi = axis * (std::f64::consts::TAU * turns);
+        let err = so3::check_jacobian_invertible(&phi).expect_err("singular");
+        assert!(err.to_string().starts_with("phi: "), "{err}");
+    }
+    for theta in [0.0, 1.0, std::f64::consts::PI, 6.0, std::f64::consts::TAU - 1e-6, std::f64::consts::TAU + 1e-6] {
+        let phi = axis * theta;
+        so3::check_jacobian_invertible(&phi).expect("invertible");
+        let product = so3::left_jacobian(&phi) * so3::left_jacobian_inverse(&phi);
+        assert!((product - nalgebra::Matrix3::identity()).amax() < 1e-6, "θ {theta}");
+    }
+}

@@ -48,6 +48,21 @@ fn xi_of(x: &[f64; 6], i: Row) -> geoloc_core::Result<Twist> {
     Ok(xi)
 }
 
+/// [`phi_of`], refused where J_l(φ) is singular ([`so3::check_jacobian_invertible`]).
+fn invertible_phi_of(x: &[f64; 3], i: Row) -> geoloc_core::Result<Vector3<f64>> {
+    let phi = phi_of(x, i)?;
+    so3::check_jacobian_invertible(&phi).map_err(|e| i.label(e, "phi"))?;
+    Ok(phi)
+}
+
+/// [`xi_of`], refused where 𝒥_l(ξ) is singular (its rotation part's J_l,
+/// [`so3::check_jacobian_invertible`]).
+fn invertible_xi_of(x: &[f64; 6], i: Row) -> geoloc_core::Result<Twist> {
+    let xi = xi_of(x, i)?;
+    so3::check_jacobian_invertible(&Vector3::new(xi[3], xi[4], xi[5])).map_err(|e| i.label(e, "xi"))?;
+    Ok(xi)
+}
+
 /// Row `i` of a flat (N, 16) slice as a rigid transform.
 fn pose_at(name: &str, values: &[f64], i: Row) -> geoloc_core::Result<SE3> {
     pose_of(name, row::<16>(values, i.index), i)
@@ -139,11 +154,11 @@ unary! {
 }
 unary! {
     /// J_l⁻¹(φ) of each row.
-    fn so3_left_jacobian_inv(phi: 3) -> 9 = |i, x, out| { write_matrix(&so3::left_jacobian_inverse(&phi_of(x, i)?), out); Ok(()) }
+    fn so3_left_jacobian_inv(phi: 3) -> 9 = |i, x, out| { write_matrix(&so3::left_jacobian_inverse(&invertible_phi_of(x, i)?), out); Ok(()) }
 }
 unary! {
     /// J_r⁻¹(φ) of each row.
-    fn so3_right_jacobian_inv(phi: 3) -> 9 = |i, x, out| { write_matrix(&so3::right_jacobian_inverse(&phi_of(x, i)?), out); Ok(()) }
+    fn so3_right_jacobian_inv(phi: 3) -> 9 = |i, x, out| { write_matrix(&so3::right_jacobian_inverse(&invertible_phi_of(x, i)?), out); Ok(()) }
 }
 unary! {
     /// ξ^ (4×4) of each twist row (ρ, φ).
@@ -200,11 +215,11 @@ unary! {
 }
 unary! {
     /// 𝒥_l⁻¹(ξ) of each twist row.
-    fn se3_left_jacobian_inv(xi: 6) -> 36 = |i, x, out| { write_matrix(&se3::left_jacobian_inverse(&xi_of(x, i)?), out); Ok(()) }
+    fn se3_left_jacobian_inv(xi: 6) -> 36 = |i, x, out| { write_matrix(&se3::left_jacobian_inverse(&invertible_xi_of(x, i)?), out); Ok(()) }
 }
 unary! {
     /// 𝒥_r⁻¹(ξ) of each twist row.
-    fn se3_right_jacobian_inv(xi: 6) -> 36 = |i, x, out| { write_matrix(&se3::right_jacobian_inverse(&xi_of(x, i)?), out); Ok(()) }
+    fn se3_right_jacobian_inv(xi: 6) -> 36 = |i, x, out| { write_matrix(&se3::right_jacobian_inverse(&invertible_xi_of(x, i)?), out); Ok(()) }
 }
 
 /// T₁T₂ for each pair of rows.

@@ -417,6 +417,35 @@ pub fn left_jacobian_inverse(phi: &Vector3<f64>) -> Matrix3<f64> {
     Matrix3::identity() - 0.5 * p + series::jacobian_inverse_second(theta) * p * p
 }
 
+/// Smallest singular value of J_l(φ) below which [`check_jacobian_invertible`] refuses φ.
+pub const MIN_JACOBIAN_SINGULAR_VALUE: f64 = 1e-9;
+
+/// Err naming `phi` where J_l(φ) (and J_r(φ)) is singular to working precision, so that
+/// [`left_jacobian_inverse`] would return noise: J_l's singular values are 1 along φ and
+/// |2 sin(θ/2)| / θ twice across it (θ = ‖φ‖; its eigenvalues there are
+/// (sin θ ± i(1 − cos θ))/θ), zero at every nonzero multiple of 2π. Refused when that value
+/// is below [`MIN_JACOBIAN_SINGULAR_VALUE`]; never for θ < π (it is at least 2/π there).
+///
+/// # Errors
+/// [`GeolocError::InvalidInput`] for `phi`.
+pub fn check_jacobian_invertible(phi: &Vector3<f64>) -> Result<()> {
+    let theta = phi.norm();
+    if theta < std::f64::consts::PI {
+        return Ok(());
+    }
+    let smallest = (2.0 * (0.5 * theta).sin() / theta).abs();
+    if smallest < MIN_JACOBIAN_SINGULAR_VALUE {
+        let turns = theta / std::f64::consts::TAU;
+        return Err(GeolocError::invalid(
+            "phi",
+            format!(
+                "‖φ‖ = {theta} rad is {turns:.0}·2π to within working precision, where J_l(φ) is singular (smallest singular value {smallest:.1e})"
+            ),
+        ));
+    }
+    Ok(())
+}
+
 /// J_r⁻¹(φ) = J_l⁻¹(−φ).
 #[inline]
 pub fn right_jacobian_inverse(phi: &Vector3<f64>) -> Matrix3<f64> {
