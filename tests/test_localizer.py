@@ -173,6 +173,19 @@ def test_a_map_refuses_descriptors_wider_than_a_frame_stream_carries() -> None:
         Map.from_features(CAM, poses, kps, descs, global_descriptors=long_global, retrieval="global", **plain)
 
 
+def test_a_bool_is_no_number_for_an_option_or_an_intrinsic() -> None:
+    """``Localizer(top_k=True)`` ran with top_k = 1 and ``Camera(True, …)`` with fx = 1."""
+    poses, kps, descs = _tiny_map_inputs()
+    m = Map.from_features(CAM, poses, kps, descs, branching=2, depth=2, estimate_noise=False, refine_intrinsics=False, adjust_labels=False)
+    for name in ("top_k", "history", "pixel_sigma", "max_residual", "gate_sigma"):
+        with pytest.raises(geoloc.InvalidInputError, match=rf"^{name}: expected .*bool"):
+            Localizer(m, locator="paper", **{name: True})
+    for name in ("fx", "fy", "cx", "cy", "width", "height"):
+        values = {"fx": 500.0, "fy": 500.0, "cx": 320.0, "cy": 240.0, "width": 640, "height": 480, name: np.True_}
+        with pytest.raises(geoloc.InvalidInputError, match=rf"^{name}: expected"):
+            geoloc.Camera(**values)
+
+
 def test_integer_like_options() -> None:
     """Localizer(history=np.int64(5)) was refused."""
     poses, kps, descs = _tiny_map_inputs()

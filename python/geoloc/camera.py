@@ -36,7 +36,7 @@ class Camera:
     def __post_init__(self) -> None:
         for name in ("fx", "fy", "cx", "cy"):
             value = getattr(self, name)
-            if not isinstance(value, (int, float, np.floating, np.integer)) or not math.isfinite(value):
+            if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.floating, np.integer)) or not math.isfinite(value):
                 raise InvalidInputError(f"{name}: expected a finite number, got {value!r}")
             object.__setattr__(self, name, float(value))
         for name in ("fx", "fy"):
@@ -44,7 +44,7 @@ class Camera:
                 raise InvalidInputError(f"{name}: focal length must be > 0, got {getattr(self, name)}")
         for name in ("width", "height"):
             value = getattr(self, name)
-            if not isinstance(value, (int, np.integer)) or value <= 0:
+            if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) or value <= 0:
                 raise InvalidInputError(f"{name}: expected a positive integer, got {value!r}")
         if self.dist is not None:
             raw = np.asarray(self.dist) if not isinstance(self.dist, (str, bytes)) else np.asarray([])

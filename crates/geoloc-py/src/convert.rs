@@ -186,6 +186,9 @@ pub fn count_arg(obj: Option<&Bound<'_, PyAny>>, name: &str, default: usize) -> 
 /// count; floats, negative values and values beyond `u64` raise `InvalidInputError` naming
 /// `name` (never `OverflowError`).
 pub fn count(name: &str, value: &Bound<'_, PyAny>) -> PyResult<u64> {
+    if value.is_instance_of::<pyo3::types::PyBool>() {
+        return Err(invalid(name, format!("expected a non-negative integer, got a bool ({})", describe(value))));
+    }
     let index = value
         .call_method0("__index__")
         .map_err(|_| invalid(name, format!("expected a non-negative integer, got {}", describe(value))))?;

@@ -110,6 +110,9 @@ fn flag(name: &str, value: &Bound<'_, PyAny>) -> PyResult<bool> {
 }
 
 fn real(name: &str, value: &Bound<'_, PyAny>) -> PyResult<f64> {
+    if value.is_instance_of::<pyo3::types::PyBool>() {
+        return Err(invalid(name, "expected a real number, got a bool"));
+    }
     value.extract::<f64>().map_err(|_| invalid(name, "expected a real number"))
 }
 
