@@ -215,51 +215,60 @@ fn the_reduced_step_equals_the_dense_step() {
 }
 
 /// Labels on a sensor 5 cm and 3° from the camera, 2 mm / 0.05° noise, and one run of 8
-/// keyframes displaced by 20 cm / 5°: the adjustment recovers the camera poses, the offset
-/// and the run (corrected by ≈ the displacement, significant), and leaves the rest alone.
+/// keyframes displaced by 20 cm / 5°, in eight random scenes: the adjustment recovers the
+/// camera poses and the offset within their covariances (and within 5 cm / 0.3°, a quarter of
+/// the displacement: the labels' noise and the path's ±25° of turn leave the offset's
+/// translation known to a few centimetres), corrects the run by ≈ the displacement,
+/// significantly, leaves the other labels within 1 cm, and estimates the σ of the consistent
+/// labels (mm), not the run's. One scene's thresholds fitted to its seed failed at half of
+/// the others (camera and offset errors up to 4 cm inside their covariances, σ 5.6 mm).
 #[test]
 fn recovers_a_displaced_run_and_the_sensor_offset() {
-    let mut rng = SplitMix64::new(9);
-    let n = 40;
-    let (camera, cams, landmarks, observations) = scene(&mut rng, n, 500, 0.5);
-    let axis = Vector3::new(0.3, -1.0, 0.5).normalize();
-    let offset_true = SE3::new(SO3::exp(&(axis * 3f64.to_radians())), Vector3::new(0.04, -0.02, 0.02));
-    let run = 20..28;
-    let bump = SE3::exp(&crate::lie::se3::twist(&Vector3::new(0.12, 0.1, -0.12), &(axis * 5f64.to_radians())));
-    let labels: Vec<SE3> = cams
-        .iter()
-        .enumerate()
-        .map(|(k, c)| {
-            let l = *c * offset_true.inverse() * SE3::exp(&rng.pose_noise(0.002, 0.001));
-            if run.contains(&k) { bump * l } else { l }
-        })
-        .collect();
-    let points: Vec<Vector3<f64>> = landmarks.iter().map(|p| p + rng.unit_vector() * 0.05).collect();
-    let adjusted =
-        bundle_adjust(&camera, &labels, &points, &observations, &AdjustmentOptions::default()).expect("adjusts");
-    let errors: Vec<(f64, f64)> = adjusted.camera_poses().iter().zip(&cams).map(|(a, c)| pose_error(a, c)).collect();
-    let worst_t = errors.iter().map(|e| e.0).fold(0.0, f64::max);
-    let worst_r = errors.iter().map(|e| e.1).fold(0.0, f64::max);
-    // (the labels' translation noise and the path's ±25° of turn leave the offset's
-    // translation known to about a centimetre: the common shift it allows is checked against
-    // the covariance)
-    assert!(worst_t < 0.02 && worst_r < 0.2f64.to_radians(), "worst {worst_t} m, {} deg", worst_r.to_degrees());
-    let (dt, dr) = pose_error(&adjusted.offset, &offset_true);
-    assert!(dt < 0.02 && dr < 0.1f64.to_radians(), "offset off by {dt} m, {} deg", dr.to_degrees());
-    let e = (adjusted.offset.inverse() * offset_true).log();
-    let m = (e.transpose() * adjusted.offset_covariance.try_inverse().expect("SPD") * e)[0];
-    assert!(m < 22.46, "offset NEES {m}");
-    let corrections = adjusted.corrections(&labels);
-    for (k, (e, m)) in corrections.iter().enumerate() {
-        if run.contains(&k) {
-            assert!(se3::phi(e).norm() > 4f64.to_radians() && *m > 100.0, "run keyframe {k}: {e}, {m}");
-        } else {
-            assert!(se3::rho(e).norm() < 0.01, "keyframe {k} moved by {}", se3::rho(e).norm());
+    for seed in 1..=8 {
+        let mut rng = SplitMix64::new(seed);
+        let n = 40;
+        let (camera, cams, landmarks, observations) = scene(&mut rng, n, 500, 0.5);
+        let axis = Vector3::new(0.3, -1.0, 0.5).normalize();
+        let offset_true = SE3::new(SO3::exp(&(axis * 3f64.to_radians())), Vector3::new(0.04, -0.02, 0.02));
+        let run = 20..28;
+        let bump = SE3::exp(&crate::lie::se3::twist(&Vector3::new(0.12, 0.1, -0.12), &(axis * 5f64.to_radians())));
+        let labels: Vec<SE3> = cams
+            .iter()
+            .enumerate()
+            .map(|(k, c)| {
+                let l = *c * offset_true.inverse() * SE3::exp(&rng.pose_noise(0.002, 0.001));
+                if run.contains(&k) { bump * l } else { l }
+            })
+            .collect();
+        let points: Vec<Vector3<f64>> = landmarks.iter().map(|p| p + rng.unit_vector() * 0.05).collect();
+        let adjusted =
+            bundle_adjust(&camera, &labels, &points, &observations, &AdjustmentOptions::default()).expect("adjusts");
+        let nees = |estimate: &SE3, covariance: &nalgebra::Matrix6<f64>, truth: &SE3| {
+            let e = (estimate.inverse() * *truth).log();
+            (e.transpose() * covariance.try_inverse().expect("SPD") * e)[0]
+        };
+        for (k, (a, c)) in adjusted.camera_poses().iter().zip(&cams).enumerate() {
+            let (t, r) = pose_error(a, c);
+            assert!(t < 0.05 && r < 0.3f64.to_radians(), "seed {seed} keyframe {k}: {t} m, {} deg", r.to_degrees());
+            let m = nees(a, &adjusted.camera_pose_covariances[k], c);
+            assert!(m < crate::stats::chi2::CHI2_6_999, "seed {seed} keyframe {k}: NEES {m}");
         }
+        let (dt, dr) = pose_error(&adjusted.offset, &offset_true);
+        assert!(dt < 0.05 && dr < 0.3f64.to_radians(), "seed {seed}: offset off by {dt} m, {} deg", dr.to_degrees());
+        let m = nees(&adjusted.offset, &adjusted.offset_covariance, &offset_true);
+        assert!(m < crate::stats::chi2::CHI2_6_999, "seed {seed}: offset NEES {m}");
+        let corrections = adjusted.corrections(&labels);
+        for (k, (e, m)) in corrections.iter().enumerate() {
+            if run.contains(&k) {
+                assert!(se3::phi(e).norm() > 4f64.to_radians() && *m > 100.0, "seed {seed} run keyframe {k}: {e}, {m}");
+            } else {
+                assert!(se3::rho(e).norm() < 0.01, "seed {seed}: keyframe {k} moved by {}", se3::rho(e).norm());
+            }
+        }
+        assert!(adjusted.rms_px.1 < 0.8, "seed {seed}: {:?}", adjusted.rms_px);
+        // the estimated σ is that of the consistent labels (mm), not the run's (20 cm)
+        assert!(adjusted.label_sigma.translation_m < 0.01, "seed {seed}: {:?}", adjusted.label_sigma);
     }
-    assert!(adjusted.rms_px.1 < 0.8, "{:?}", adjusted.rms_px);
-    // the estimated σ is that of the consistent labels (a few mm), not the run's
-    assert!(adjusted.label_sigma.translation_m < 0.005, "{:?}", adjusted.label_sigma);
 }
 
 /// The covariances cover the error: over 60 scenes (independent samples: one keyframe, the
