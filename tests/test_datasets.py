@@ -267,6 +267,18 @@ def test_associate_gives_a_tie_to_the_earlier_reference() -> None:
 # ---------------------------------------------------------------------------- folder
 
 
+def test_images_listed_out_of_time_order_are_refused(tum_folder: tuple[Path, datasets.Sequence], tmp_path: Path) -> None:
+    """A reversed rgb.txt loaded as a sequence whose time ran backwards, without a word."""
+    root, _ = tum_folder
+    copy = tmp_path / "room"
+    shutil.copytree(root, copy)
+    lines = (copy / "rgb.txt").read_text().splitlines()
+    header, rows = [x for x in lines if x.startswith("#")], [x for x in lines if not x.startswith("#")]
+    (copy / "rgb.txt").write_text("\n".join([*header, *rows[::-1]]) + "\n")
+    with pytest.raises(geoloc.DatasetError, match=r"rgb.txt'.*entry 2 has the timestamp .*, before entry 1's .* time order"):
+        datasets.load_tum(copy)
+
+
 def test_folder_by_timestamp_and_row(tum_folder: tuple[Path, datasets.Sequence], tmp_path: Path) -> None:
     root, seq = tum_folder
     intrinsics = seq.camera.intrinsics

@@ -106,6 +106,13 @@ def load_tum(
             raise DatasetError(f"{str(rgb)!r}: entry {k + 1} has no file name (expected 'timestamp filename')")
     times = np.array([floats(r[:1], rgb, k + 1)[0] for k, r in enumerate(rows)])
     refuse_repeated_times(times, repr(str(rgb)), [f"entry {k + 1}" for k in range(len(rows))])
+    back = np.flatnonzero(np.diff(times) < 0)
+    if back.size:  # a sequence is in capture order: frame i + 1 after frame i
+        k = int(back[0]) + 1
+        raise DatasetError(
+            f"{str(rgb)!r}: entry {k + 1} has the timestamp {float(times[k])!r}, before entry {k}'s "
+            f"{float(times[k - 1])!r} (the entries must be in time order)"
+        )
     files = [root / " ".join(r[1:]) for r in rows]
     camera = _tum_camera(intrinsics, root)
     gt_file = root / "groundtruth.txt"
