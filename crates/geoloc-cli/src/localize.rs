@@ -252,7 +252,6 @@ fn refuse_aliased_output(args: &Args) -> Result<(), String> {
     Ok(())
 }
 
-/// The core's localizer options with the ones `geoloc.Localizer` also exposes set from `args`.
 /// The option values the core refuses ([`LocalizerOptions::check`]), as a usage error naming
 /// the flag (`--top-k: must be ≥ 1`): checked before anything is read, so that a bad value
 /// exits with the usage status like any other bad option, not with an input error's.
@@ -269,6 +268,7 @@ pub fn usage_error(args: &Args) -> Option<String> {
     Some(format!("invalid value for '{flag}': {reason}"))
 }
 
+/// The core's localizer options with the ones `geoloc.Localizer` also exposes set from `args`.
 fn options(args: &Args) -> LocalizerOptions {
     LocalizerOptions {
         gate_sigma: args.gate_sigma,
