@@ -253,7 +253,7 @@ fn refuse_aliased_output(args: &Args) -> Result<(), String> {
 }
 
 /// The option values the core refuses ([`LocalizerOptions::check`]), as a usage error naming
-/// the flag (`--top-k: must be ≥ 1`): checked before anything is read, so that a bad value
+/// the flag (`invalid value for '--top-k': must be ≥ 1`): checked before anything is read, so that a bad value
 /// exits with the usage status like any other bad option, not with an input error's.
 pub fn usage_error(args: &Args) -> Option<String> {
     let Err(GeolocError::InvalidInput { name, reason }) = options(args).check() else { return None };
