@@ -216,6 +216,30 @@ def test_camera_validation_and_undistort_without_distortion() -> None:
     np.testing.assert_array_equal(cam.K, [[500, 0, 320], [0, 500, 240], [0, 0, 1]])
 
 
+@pytest.mark.parametrize(
+    "dist",
+    [
+        (-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05, 0.0),  # EuRoC cam0: strong barrel
+        (0.2624, -0.9531, -0.0054, 0.0026, 1.1633),  # TUM fr1
+        (-0.3, 0.1, 0.001, -0.001, 0.0, 0.05, 0.02, 0.01),  # rational (8 coefficients)
+    ],
+    ids=["euroc", "tum-fr1", "rational"],
+)
+def test_undistort_points_inverts_the_forward_distortion_over_the_image(dist: tuple[float, ...]) -> None:
+    """Against OpenCV's forward model (projectPoints): undistorted pixels on a grid over the
+    image, distorted, come back to 1e-5 px. OpenCV's default undistortion (5 fixed-point
+    iterations) left EuRoC's corners 0.57 px off."""
+    import cv2
+
+    cam = geoloc.Camera(458.654, 457.296, 367.215, 248.375, 752, 480, dist)
+    u, v = np.meshgrid(np.linspace(40, 712, 25), np.linspace(30, 450, 15))
+    undistorted = np.column_stack([u.ravel(), v.ravel()])
+    rays = np.column_stack([(undistorted - [cam.cx, cam.cy]) / [cam.fx, cam.fy], np.ones(len(undistorted))])
+    distorted, _ = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), cam.K, np.asarray(dist))
+    back = cam.undistort_points(distorted.reshape(-1, 2))
+    assert np.abs(back - undistorted).max() < 1e-5
+
+
 # --- bad inputs, one test each -------------------------------------------------------
 
 

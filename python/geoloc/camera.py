@@ -77,9 +77,16 @@ class Camera:
         if np.abs(pts).max() > _MAX_PIXEL:
             raise InvalidInputError(f"pixels: |value| {np.abs(pts).max():.3g} exceeds {_MAX_PIXEL:.0e} px")
         cv2 = _import_cv2()
-        out = cv2.undistortPoints(pts.reshape(-1, 1, 2), self.K, np.asarray(self.dist), P=self.K)
+        # iterated to convergence: OpenCV's default stops after 5 fixed-point iterations,
+        # which left corner pixels of a strongly distorted lens (k1 = −0.28) 0.57 px off
+        criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, UNDISTORT_ITERATIONS, UNDISTORT_EPS)
+        out = cv2.undistortPoints(pts.reshape(-1, 1, 2), self.K, np.asarray(self.dist), None, None, self.K, criteria)
         return np.asarray(out, dtype=np.float64).reshape(-1, 2)
 
+
+#: Fixed-point iterations of :meth:`Camera.undistort_points` at most, and the distortion
+#: residual (normalized image units) at which it stops.
+UNDISTORT_ITERATIONS, UNDISTORT_EPS = 100, 1e-12
 
 #: Largest |pixel| undistort_points accepts: OpenCV's iterative undistortion overflows to NaN
 #: far below float64's range (1e302 px returned NaN), and no image is a billion pixels wide.
