@@ -22,7 +22,8 @@ def test_columns_and_scores_are_sane() -> None:
     for c in cols:
         assert c.trials + c.failures == 40
         assert len(c.per_axis) == 6
-        assert 0.0 <= c.nees <= 1.0
+        if c.model == "propagated":  # 95 % calibrated: fewer than 32 of 40 covered has P < 1e-3
+            assert c.nees >= 0.8, c
     # the paper's formula ignores label noise; the propagated model does not
     paper_label, propagated_label = cols[2], cols[3]
     assert propagated_label.nees > paper_label.nees + 0.3
