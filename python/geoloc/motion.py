@@ -36,7 +36,11 @@ def motion_predict(
 
     With ``covariances`` (m, 6, 6) of the poses the fit is weighted and the predicted
     covariance is calibrated when the motion is constant; without them (the paper's way) the
-    per-axis noise is estimated from the fit residuals, which needs m ≥ 3. ``t_query`` and
+    per-axis noise is estimated from the fit residuals, which needs m ≥ 3 — an estimate from
+    m − 2 degrees of freedom per axis, right on average but often far too small for few poses:
+    in a Monte Carlo of constant motion the true pose fell inside the predicted 95 % region
+    (6-DoF NEES) for 22 % of predictions from 3 poses, 46 % from 4, 72 % from 6 and 84 % from
+    10. Give the poses' covariances for a calibrated prediction. ``t_query`` and
     the timestamps must lie within 1e9 s of the latest timestamp; covariances must be
     symmetric positive definite (invalid input raises :class:`geoloc.InvalidInputError`).
 
