@@ -180,6 +180,15 @@ def test_map_save_refuses_to_overwrite_a_file_the_map_was_built_from(tmp_path: P
     assert len(geoloc.Map.load(tmp_path / "map.geoloc")) == 10
 
 
+def test_a_map_records_the_dataset_frame_numbers_of_its_keyframes() -> None:
+    """It recorded positions in the sequence as sliced: seq[4:12][::2] gave [0, 2, 4, 6]."""
+    room = datasets.synthetic_room(n_frames=12, seed=0)
+    m = geoloc.Map.build(room[2:12][::2], n_features=300, branching=4, depth=2, keyframe_step=1)
+    assert m.settings["source"]["frames"] == [2, 4, 6, 8, 10]
+    m2 = geoloc.Map.build(room[2:12], n_features=300, branching=4, depth=2, keyframe_step=3)
+    assert m2.settings["source"]["frames"] == [2, 5, 8, 11]
+
+
 # ------------------------------------------------------------------ concurrent writers
 
 

@@ -255,7 +255,8 @@ class Map:
             "features": {"kind": extractor.kind, "n_features": extractor.n_features, "root_sift": extractor.root_sift},
             "camera": camera_record(camera),
             "retrieval": "bow" if isinstance(retrieval, str) else descriptor_record(retrieval),
-            "source": {"sequence": shown(sequence.name), "frames": [int(i) for i in indices]},
+            # the dataset's frame numbers (Frame.index), not positions in the sequence as sliced
+            "source": {"sequence": shown(sequence.name), "frames": [int(i) for i in sequence.indices[indices]]},
         }
         inputs = [("sequence", f) for f in sequence.files]
         network_file = getattr(retrieval, "path", None)
@@ -322,7 +323,9 @@ class Map:
 
     @property
     def settings(self) -> dict[str, Any]:
-        """What the map records about how it was built (features, retrieval, source frames)."""
+        """What the map records about how it was built: features, camera, retrieval, and its
+        ``source`` — a built map's sequence name and ``frames``, the dataset's frame numbers of
+        its keyframes (``Frame.index``)."""
         copy: dict[str, Any] = json.loads(json.dumps(self._frontend))
         return copy
 
