@@ -452,6 +452,13 @@ def test_evaluate_reference_errors_are_one_line(tmp_path: Path) -> None:
     # three training frames: a similarity fits them exactly, and determines nothing 30 frames on
     few = _room_reference(tmp_path, "7scenes-reference", np.r_[0:3, 30:60])  # type: ignore[arg-type]
     _one_line_error(_run(*room, "--reference", str(few)), "--reference", "do not determine its alignment")
+    # the frame numbers shifted by a third of the room: a similarity fits, far from every pose
+    # (it was accepted, with an "own uncertainty" of millimetres)
+    lines = _room_reference(tmp_path, "7scenes-reference").read_text().splitlines()
+    shifted = _write(tmp_path / "shifted.txt", "\n".join(
+        f"{(int(line.split()[0]) + ROOM_FRAMES // 3) % ROOM_FRAMES} {line.split(maxsplit=1)[1]}" for line in lines
+    ) + "\n")
+    _one_line_error(_run(*room, "--reference", str(shifted)), "--reference", "does not fit the training frames")
 
 
 def test_map_keyframe_poses_prefers_the_maps_own() -> None:

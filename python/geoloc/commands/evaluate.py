@@ -126,14 +126,35 @@ def _reference_rows(reference: dict[str, Any], seq: Any, what: str) -> NDArray[n
     return rows
 
 
+#: A reference whose aligned training poses lie a median of more than this many Huber scales
+#: (2 cm / 1°) from the poses it is fitted to is refused: labels that drift (7-Scenes: 2–3 cm /
+#: 1.5° from an SfM reference) stay well inside it; frame indices shifted by half the
+#: sequence gave 20 cm / 7°.
+MAX_MEDIAN_RESIDUAL_SCALES = 5.0
+
+
 def _checked_alignment_uncertainty(alignment: Any, test_reference: NDArray[np.float64], file: Any) -> tuple[float, float]:
     """The alignment's own uncertainty at the test frames' aligned reference poses (median
     position m, rotation deg); InvalidInputError naming --reference when it is beyond the
     first recall threshold a pose is scored at (5 cm / 5°): the training frames it shares with the dataset do not determine S
     and X, and a score against that reference means nothing. (Three frames 7 mm apart: ±18 m;
-    60 frames of 7-Scenes for the next 30: ±3 cm / 0.7°, at 2 cm / 1° per frame.)"""
+    60 frames of 7-Scenes for the next 30: ±3 cm / 0.7°, at 2 cm / 1° per frame.) Refused
+    too when the training frames' residuals have a median beyond
+    :data:`MAX_MEDIAN_RESIDUAL_SCALES` Huber scales: the reference does not describe those
+    frames (wrong frame numbers or timestamps, another scene or unit), and the uncertainty,
+    computed for residuals of the scales' size, would understate it."""
     from ..evaluation import RECALL_THRESHOLDS
 
+    st = alignment.statistics()
+    max_p = MAX_MEDIAN_RESIDUAL_SCALES * alignment.position_scale_m
+    max_r = MAX_MEDIAN_RESIDUAL_SCALES * alignment.rotation_scale_deg
+    if not (st["median_position_m"] <= max_p and st["median_rotation_deg"] <= max_r):
+        raise InvalidInputError(
+            f"--reference: {str(file)!r} does not fit the training frames: aligned by a similarity and one camera offset, "
+            f"its poses lie a median {100 * st['median_position_m']:.3g} cm / {st['median_rotation_deg']:.3g}° from them "
+            f"(at most {100 * max_p:g} cm / {max_r:g}° is accepted) — wrong frame numbers or timestamps, another scene, "
+            "or another unit?"
+        )
     sigma_p, sigma_r = alignment.uncertainty(test_reference)
     p, r = float(np.median(sigma_p)), float(np.median(sigma_r))
     max_m, max_deg = RECALL_THRESHOLDS[0]
