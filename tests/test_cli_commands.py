@@ -197,6 +197,31 @@ def test_localize_a_folder_of_images(room_map: Path, tmp_path: Path) -> None:
     assert np.allclose([[float(v) for v in r[1:4]] for r in rows], room.poses[[33, 36, 39], :3, 3], atol=SYNTHETIC_MEDIAN_M)
 
 
+@pytest.mark.parametrize("fmt", ["tum", "folder"])
+def test_localize_a_dataset_localizes_images_without_a_pose_too(room_map: Path, tmp_path: Path, fmt: str) -> None:
+    """Images with no ground-truth pose (half of them here) were dropped without a word:
+    "3/3 frames localized" of 6. Localizing needs no pose; the trajectory file stays an input
+    no output may replace."""
+    room = datasets.synthetic_room(n_frames=ROOM_FRAMES)[33:45:2]
+    root = room.write_tum(tmp_path / "tum")
+    truth = root / "groundtruth.txt"
+    lines = truth.read_text().splitlines()
+    truth.write_text("\n".join([line for line in lines if line.startswith("#")] + [line for line in lines if not line.startswith("#")][:3]) + "\n")
+    args = ["--dataset", str(root), "--format", "tum"]
+    if fmt == "folder":  # the images in a folder, the half trajectory beside them
+        (root / "rgb").joinpath("traj.txt").write_text(truth.read_text())
+        args = ["--dataset", str(root / "rgb"), "--format", "folder"]
+    out = tmp_path / "poses.txt"
+    result = _run("localize", "--map", str(room_map), *args, "--mode", "single", "--out", str(out))
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert re.search(r"\b(\d)/6 frames localized", result.stderr), result.stderr
+    assert ("traj.txt does not time every image" in result.stderr) == (fmt == "folder")
+    rows = [line for line in out.read_text().splitlines() if not line.startswith("#")]
+    assert len(rows) >= 5
+    trajectory = truth if fmt == "tum" else root / "rgb" / "traj.txt"
+    _one_line_error(_run("localize", "--map", str(room_map), *args, "--out", str(trajectory)), "--out", "same file as the input")
+
+
 def test_a_plot_folder_that_cannot_be_made_is_refused_before_any_work(tmp_path: Path) -> None:
     """A file named like a mode's plot folder failed demo and evaluate after the results were
     written, naming an internal "directory"; now the option is named and nothing is written."""

@@ -93,12 +93,14 @@ def select(sequence: Any, frames: FrameRange | None, option: str) -> Any:
     return sequence[frames.resolve(len(sequence), option, sequence.name)]
 
 
-def load_dataset(args: argparse.Namespace, camera: Any = None) -> Any:
+def load_dataset(args: argparse.Namespace, camera: Any = None, poses: bool = True) -> Any:
     """The :class:`~geoloc.datasets.Sequence` named by ``--dataset``/``--format`` (and
     ``--intrinsics``, ``--trajectory``, ``--synthetic-frames`` where the command has them).
 
     ``camera`` (a :class:`geoloc.Camera`) is used when ``--intrinsics`` is not given and the
-    format needs intrinsics (a map's camera, for ``localize``).
+    format needs intrinsics (a map's camera, for ``localize``). ``poses=False`` (images to
+    localize): a ``tum`` or ``folder`` dataset's every image, its trajectory not read — an
+    image without a pose is not dropped.
     """
     from .. import datasets
 
@@ -120,7 +122,7 @@ def load_dataset(args: argparse.Namespace, camera: Any = None) -> Any:
             raise InvalidInputError(f"--dataset: folder {str(root)!r} is a file, expected a folder")
         raise InvalidInputError(f"--dataset: no such file or folder: {str(root)!r} does not exist")
     try:
-        return _load_files(args, fmt, root, intrinsics if intrinsics is not None else camera)
+        return _load_files(args, fmt, root, intrinsics if intrinsics is not None else camera, poses)
     except DatasetError as e:
         raise InvalidInputError(option_message(str(e), "--dataset")) from None
 
@@ -138,7 +140,7 @@ def option_message(message: str, option: str) -> str:
     return f"{option}: {message}"
 
 
-def _load_files(args: argparse.Namespace, fmt: str, root: Path, given: Any) -> Any:
+def _load_files(args: argparse.Namespace, fmt: str, root: Path, given: Any, poses: bool = True) -> Any:
     from .. import datasets
 
     trajectory = getattr(args, "trajectory", None)
@@ -147,12 +149,37 @@ def _load_files(args: argparse.Namespace, fmt: str, root: Path, given: Any) -> A
     if fmt == "7scenes":
         return datasets.load_7scenes(root, intrinsics=given if given is not None else (525.0, 525.0, 320.0, 240.0))
     if fmt == "tum":
-        return datasets.load_tum(root, intrinsics=given)
+        return datasets.load_tum(root, intrinsics=given, ground_truth=poses)
     if given is None:
         raise InvalidInputError("--intrinsics: a plain image folder has no calibration; pass --intrinsics fx,fy,cx,cy")
+    if not poses:
+        return _every_image(root, given)
     if trajectory is not None and not (root / trajectory).is_file():
         raise InvalidInputError(f"--trajectory: file {str(root / trajectory)!r} does not exist")
     return datasets.load_folder(root, trajectory=trajectory if trajectory is not None else "traj.txt", intrinsics=given)
+
+
+def _every_image(root: Path, intrinsics: Any) -> Any:
+    """Every image of a ``folder`` dataset, to localize: timed by its trajectory ``traj.txt``
+    when that gives every image a pose (a folder of unnumbered images has no other clock),
+    else by the images' names (or index / 30 s), with a warning on stderr that the
+    trajectory does not cover them — never an image left out for want of a pose."""
+    from .. import datasets
+
+    every = datasets.load_folder(root, trajectory=None, intrinsics=intrinsics)
+    if not (root / "traj.txt").is_file():
+        return every
+    try:
+        timed = datasets.load_folder(root, trajectory="traj.txt", intrinsics=intrinsics)
+    except DatasetError as e:
+        why = str(e).partition(": ")[2] or str(e)
+    else:
+        if len(timed) == len(every):
+            return timed
+        why = f"it gives {len(timed)} of the {len(every)} images a pose"
+    print(f"geoloc: warning: --dataset: traj.txt does not time every image ({why}); localizing all {len(every)} "
+          "images, timed by their names", file=sys.stderr)
+    return every
 
 
 def dataset_inputs(sequence: Any, option: str) -> list[tuple[str, Any]]:

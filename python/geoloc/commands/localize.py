@@ -83,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         if args.format is None:
             raise InvalidInputError("--format: required with --dataset (7scenes, tum, folder or synthetic)")
-        sequence = load_dataset(args, camera=camera)
+        sequence = load_dataset(args, camera=camera, poses=False)  # every image: localizing needs no pose
         if (sequence.camera.width, sequence.camera.height) != (camera.width, camera.height):
             raise InvalidInputError(
                 f"--dataset: its images are {sequence.camera.width}×{sequence.camera.height}, "
@@ -94,7 +94,11 @@ def run(args: argparse.Namespace) -> int:
                 f"--intrinsics: {sequence.camera.intrinsics} differ from the map's {camera.intrinsics} "
                 "(queries must use the map's camera)"
             )
-    refuse_alias(out, "--out", dataset_inputs(sequence, "--images" if args.images is not None else "--dataset"))
+    option = "--images" if args.images is not None else "--dataset"
+    # the dataset's trajectory files too, read or not: an output never replaces one
+    root = Path(args.images if args.images is not None else args.dataset or ".")
+    unread = [(option, p) for p in (root / "traj.txt", root / "groundtruth.txt") if p.is_file()]
+    refuse_alias(out, "--out", dataset_inputs(sequence, option) + unread)
     sequence = select(sequence, args.frames, "--frames")
     results = localize_sequence(Localizer(the_map, global_descriptor=network, locator=args.locator), sequence, args.mode, Progress("localize"))
     kept = [k for k, r in enumerate(results) if r.pose is not None]

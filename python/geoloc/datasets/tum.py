@@ -85,14 +85,18 @@ def resolve_camera(intrinsics: Intrinsics | None, root: Path, size: tuple[int, i
 
 
 def load_tum(
-    path: str | os.PathLike[str], intrinsics: Intrinsics | None = None, max_time_difference: float = 0.02
+    path: str | os.PathLike[str],
+    intrinsics: Intrinsics | None = None,
+    max_time_difference: float = 0.02,
+    ground_truth: bool = True,
 ) -> Sequence:
     """A TUM RGB-D folder (``rgb.txt`` + optional ``groundtruth.txt``) as a :class:`Sequence`.
 
     Images are associated with ground-truth poses by nearest timestamp (at most
-    ``max_time_difference`` s apart; others are dropped); without ``groundtruth.txt``
-    every image is kept and ``seq.poses`` is None. ``Frame.index`` is the image's entry
-    number in ``rgb.txt`` (dropped images leave gaps). Intrinsics: see the module doc.
+    ``max_time_difference`` s apart; others are dropped); without ``groundtruth.txt``, or
+    with ``ground_truth=False`` (images to localize, which need no pose), every image is kept
+    and ``seq.poses`` is None. ``Frame.index`` is the image's entry number in ``rgb.txt``
+    (dropped images leave gaps). Intrinsics: see the module doc.
     """
     root = existing_folder(path)
     if not math.isfinite(real_scalar(max_time_difference, "max_time_difference")) or max_time_difference < 0:
@@ -117,7 +121,7 @@ def load_tum(
     camera = _tum_camera(intrinsics, root)
     gt_file = root / "groundtruth.txt"
     read = [rgb, *files, *(p for p in (gt_file, root / "camera.txt") if p.exists())]
-    if gt_file.exists():
+    if ground_truth and gt_file.exists():
         gt_times, gt_poses = read_tum_trajectory(gt_file)
         match = associate(times, gt_times, max_time_difference)
         keep = match >= 0
