@@ -16,7 +16,7 @@ import pytest
 import geoloc
 from cli_runner import one_line_error as _one_line_error
 from cli_runner import run_geoloc as _run
-from geoloc import datasets, evaluation
+from geoloc import datasets, evaluation, lie
 
 ROOT = Path(__file__).resolve().parents[1]
 REDKITCHEN = ROOT.parent / "shared" / "data" / "7scenes-redkitchen"
@@ -220,6 +220,46 @@ def test_localize_a_dataset_localizes_images_without_a_pose_too(room_map: Path, 
     assert len(rows) >= 5
     trajectory = truth if fmt == "tum" else root / "rgb" / "traj.txt"
     _one_line_error(_run("localize", "--map", str(room_map), *args, "--out", str(trajectory)), "--out", "same file as the input")
+
+
+def test_localize_writes_the_labels_convention_or_the_camera_pose_and_says_which(tmp_path: Path) -> None:
+    """The file said world_from_cam and held the pose in the labels' convention (on 7-Scenes
+    17.8 cm / 5° from the camera's); ``--camera-pose`` writes ``Localization.camera_pose``.
+    Here the labels sit on a sensor 8 cm and 4° from the camera, so the two differ."""
+    import cv2
+
+    room = datasets.synthetic_room(n_frames=ROOM_FRAMES)
+    x = lie.se3_exp(np.r_[0.05, -0.04, 0.05, 0.03, np.radians(4.0), 0.02])  # label_from_cam
+    root = room[:30].write_tum(tmp_path / "labelled")
+    truth = [line.split() for line in (root / "groundtruth.txt").read_text().splitlines() if not line.startswith("#")]
+    labels = room.poses[:30] @ lie.se3_inverse(x)
+    evaluation.write_tum_trajectory(root / "groundtruth.txt", [float(r[0]) for r in truth], labels)
+    map_path = tmp_path / "offset.geoloc"
+    the_map = geoloc.Map.build(datasets.load_tum(root))
+    the_map.save(map_path)
+    images = tmp_path / "images"
+    images.mkdir()
+    for i in (33, 36, 39):
+        cv2.imwrite(str(images / f"{room.timestamps[i]:.6f}.png"), room[i].image)
+    localizer = geoloc.Localizer(the_map)
+    expected = {}
+    for i in (33, 36, 39):
+        localizer.reset()
+        expected[i] = localizer.localize(str(images / f"{room.timestamps[i]:.6f}.png"), float(room.timestamps[i]))
+    apart = [np.linalg.norm(expected[i].pose[:3, 3] - expected[i].camera_pose[:3, 3]) for i in expected]
+    assert min(apart) > 0.05, apart
+    for flag, attribute, header in (([], "pose", "convention of the map's pose labels"),
+                                    (["--camera-pose"], "camera_pose", "the camera's own pose")):
+        out = tmp_path / f"{attribute}.txt"
+        result = _run("localize", "--map", str(map_path), "--images", str(images), "--mode", "single", *flag, "--out", str(out))
+        assert result.returncode == 0, result.stdout + result.stderr
+        lines = out.read_text().splitlines()
+        assert header in lines[0], lines[0]
+        rows = np.array([[float(v) for v in line.split()] for line in lines[1:]])
+        poses = np.stack([getattr(expected[i], attribute) for i in (33, 36, 39)])
+        np.testing.assert_allclose(rows[:, 1:4], poses[:, :3, 3], atol=1e-6)
+    camera = np.array([[float(v) for v in line.split()] for line in (tmp_path / "camera_pose.txt").read_text().splitlines()[1:]])
+    np.testing.assert_allclose(camera[:, 1:4], room.poses[[33, 36, 39], :3, 3], atol=SYNTHETIC_MEDIAN_M * 3)
 
 
 def test_a_plot_folder_that_cannot_be_made_is_refused_before_any_work(tmp_path: Path) -> None:

@@ -162,7 +162,8 @@ def _add_localize(commands: argparse._SubParsersAction[argparse.ArgumentParser])
         help="localize images against a map; writes a TUM trajectory",
         description="Localize every image of a folder (numeric names in number order, their number "
         "the timestamp; other names sorted by name, timestamps index/30 s) or of a dataset against a map built by build-map, and write the "
-        "poses (world_from_cam) as a TUM trajectory (timestamp tx ty tz qx qy qz qw), atomically. "
+        "poses as a TUM trajectory (timestamp tx ty tz qx qy qz qw), atomically: in the convention of the map's pose labels "
+        "(what the map was built from), or with --camera-pose the camera's own. "
         "Lost frames are left out of the file and counted in the summary line on stderr.",
         epilog=_example(
             "geoloc localize --map redkitchen.geoloc --dataset ../shared/data/7scenes-redkitchen",
@@ -193,6 +194,11 @@ def _add_localize(commands: argparse._SubParsersAction[argparse.ArgumentParser])
     loc.add_argument(
         "--out", type=output_file_or_stdout, required=True, metavar="poses.txt",
         help="TUM trajectory to write (its folder must exist); - writes it to standard output",
+    )
+    loc.add_argument(
+        "--camera-pose", action="store_true",
+        help="write the camera's own pose (world_from_cam); by default the pose in the convention of the map's "
+        "pose labels, comparable with them (the two differ by the label-to-camera offset the map estimated)",
     )
 
     def run(args: argparse.Namespace) -> int:

@@ -426,20 +426,24 @@ def format_tum_line(timestamp: float, pose: ArrayLike) -> str:
     return " ".join(repr(float(v)) for v in [t, *values])
 
 
-def tum_trajectory_text(timestamps: ArrayLike, poses: ArrayLike) -> str:
-    """``timestamps`` (N,) s and world_from_cam ``poses`` (N, 4, 4) as the text of a TUM
-    trajectory: a comment line, then one :func:`format_tum_line` per pose."""
+def tum_trajectory_text(timestamps: ArrayLike, poses: ArrayLike, convention: str = "world_from_cam") -> str:
+    """``timestamps`` (N,) s and ``poses`` (N, 4, 4) as the text of a TUM trajectory: a
+    comment line naming the poses' ``convention``, then one :func:`format_tum_line` per pose."""
     ts = as_float64(timestamps, "timestamps").reshape(-1)
     T = _poses(poses, "poses")
     if len(ts) != len(T):
         raise InvalidInputError(f"timestamps, poses: expected the same count, got {len(ts)} and {len(T)}")
-    lines = ["# timestamp tx ty tz qx qy qz qw (world_from_cam; written by geoloc)"]
+    if not isinstance(convention, str) or "\n" in convention:
+        raise InvalidInputError(f"convention: expected one line of text, got {convention!r:.60}")
+    lines = [f"# timestamp tx ty tz qx qy qz qw ({convention}; written by geoloc)"]
     lines += [format_tum_line(t, p) for t, p in zip(ts, T)]
     return "\n".join(lines) + "\n"
 
 
-def write_tum_trajectory(path: str | os.PathLike[str], timestamps: ArrayLike, poses: ArrayLike) -> None:
+def write_tum_trajectory(
+    path: str | os.PathLike[str], timestamps: ArrayLike, poses: ArrayLike, convention: str = "world_from_cam"
+) -> None:
     """Write :func:`tum_trajectory_text` to ``path`` atomically: a temp file in the same
     folder, fsync, rename. Missing parent folders are not created; an unwritable path raises
     InvalidInputError naming it."""
-    write_text_atomic(path, tum_trajectory_text(timestamps, poses))
+    write_text_atomic(path, tum_trajectory_text(timestamps, poses, convention))

@@ -1,4 +1,6 @@
-"""``geoloc localize``: images (a folder or a dataset) + a map → a TUM trajectory.
+"""``geoloc localize``: images (a folder or a dataset) + a map → a TUM trajectory, in the
+convention of the map's pose labels (``Localization.pose``) or, with ``--camera-pose``, the
+camera's own (``Localization.camera_pose``).
 
 Frames the localizer loses are left out of the trajectory file (TUM has no "unknown pose")
 and counted in the one-line summary on stderr.
@@ -108,12 +110,18 @@ def run(args: argparse.Namespace) -> int:
         print(f"geoloc localize: error: every one of the {len(results)} frames was lost; nothing written to {shown_out}",
               file=sys.stderr)
         return EXIT_FAILURE
-    timestamps, poses = sequence.timestamps[kept], np.stack([results[k].pose for k in kept])
+    timestamps = sequence.timestamps[kept]
+    if args.camera_pose:
+        poses = np.stack([results[k].camera_pose for k in kept])
+        convention = "world_from_cam: the camera's own pose"
+    else:
+        poses = np.stack([results[k].pose for k in kept])
+        convention = "world_from_cam in the convention of the map's pose labels; --camera-pose: the camera's own"
     if to_stdout:
-        sys.stdout.write(tum_trajectory_text(timestamps, poses))
+        sys.stdout.write(tum_trajectory_text(timestamps, poses, convention))
         sys.stdout.flush()
     else:
-        write_tum_trajectory(args.out, timestamps, poses)
+        write_tum_trajectory(args.out, timestamps, poses, convention)
     sources = Counter(r.source for r in results)
     lost = len(results) - len(kept)
     counts = ", ".join(f"{k} {v}" for k, v in sorted(sources.items()))
