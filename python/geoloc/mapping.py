@@ -425,8 +425,11 @@ class Map:
 
     def map_noise_at(self, inliers: int | None) -> NDArray[np.float64]:
         """C_map (6, 6, as ``map_noise["pose_covariance"]``) for a pose resting on ``inliers`` PnP
-        inliers: C_map·max(1, n̄/inliers), n̄ = ``map_noise["holdout_inliers"]`` — what the
-        localizer adds to a pose's covariance (unscaled for None, 0 inliers or n̄ = 0)."""
+        inliers: C_map·max(1, n̄/inliers), n̄ = ``map_noise["holdout_inliers"]`` (unscaled for
+        None, 0 inliers or n̄ = 0) — what the localizer adds to the camera pose's covariance.
+        When the map adjusted its labels, a result's ``covariance`` is in the labels'
+        convention, and what it holds of this is Ad_X C Ad_Xᵀ (X the label-to-camera offset,
+        right perturbation: T_label = T_cam X⁻¹)."""
         # any support at or above n̄ leaves C_map unscaled: a count past the core's integer range is that
         count = None if inliers is None else min(_as_int(inliers, "inliers", 0), int(np.iinfo(np.uint32).max))
         out: NDArray[np.float64] = self._core.map_noise_at(count)
