@@ -44,7 +44,8 @@ class Localization:
     perturbation, translation first) or None when lost; ``source`` "geometric" / "fused" /
     "motion" / "lost"; ``reason`` says why; ``keyframe`` the keyframe whose group gave the
     geometric pose (the retrieved one, or the last frame's when the paper's locator
-    tracked); PnP ``inliers`` of the frame's geometric pose (for a ``motion`` answer, those of
+    tracked; 0 when no geometric pose was found — a ``lost`` frame, or a ``motion`` answer
+    whose measurement failed — so read it with ``source`` and ``inliers``); PnP ``inliers`` of the frame's geometric pose (for a ``motion`` answer, those of
     the refused or failed measurement, not support for the answered pose); ``timings`` in ms per stage (the core's ``retrieval``,
     ``keyframes``, ``map_points``, ``matching``, ``pnp``, ``motion_fusion``; from an image
     also ``decode`` and ``features``; ``total``). When the map adjusted its labels, ``pose`` is
