@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 
 import geoloc
-from geoloc import datasets
+from geoloc import datasets, lie
 from geoloc._core import FrameWriter
 
 pytestmark = pytest.mark.slow  # builds geoloc-rs (cargo build --release) and runs it
@@ -225,6 +225,26 @@ def test_geoloc_rs_gives_the_python_localizers_bits_on_7scenes(geoloc_rs: Path, 
     assert result.returncode == 0, result.stderr
     print("\n" + result.stderr)
     _assert_bit_identical(_parse(result.stdout), _python_lines(map_path, queries))
+    # --camera-pose: the camera's own pose (Python's camera_pose, bit for bit), and the
+    # covariance C_cam with C_label = Ad_X C_cam Ad_Xᵀ, X = T_label⁻¹ T_cam (the map's offset)
+    camera = _parse(_localize(geoloc_rs, map_path, frames, "--threads", "1", "--camera-pose").stdout)
+    loc = geoloc.Localizer(geoloc.Map.load(map_path))
+    apart = []
+    for i, ((values, source), (label_values, _)) in enumerate(zip(camera, _parse(result.stdout))):
+        r = loc.localize(queries.gray(i), float(queries.timestamps[i]))
+        assert source == r.source
+        if r.pose is None:
+            continue
+        want = [float(v) for v in geoloc.format_tum_line(float(queries.timestamps[i]), r.camera_pose).split()]
+        assert np.array_equal(np.array(values[:8]).view(np.uint64), np.array(want).view(np.uint64)), (i, values[:8], want)
+        x = lie.se3_compose(lie.se3_inverse(r.pose), r.camera_pose)
+        c_cam = np.zeros((6, 6))
+        c_cam[UPPER] = values[8:]
+        c_cam = c_cam + np.triu(c_cam, 1).T
+        ad = lie.se3_adjoint(x)
+        np.testing.assert_allclose(ad @ c_cam @ ad.T, r.covariance, rtol=1e-9, atol=1e-15)
+        apart.append(np.linalg.norm(x[:3, 3]))
+    assert apart and min(apart) > 0.05, apart  # the labels track the depth camera, ≈ 17 cm away
 
 
 # ------------------------------------------------------------------ bad input

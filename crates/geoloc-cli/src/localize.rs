@@ -87,6 +87,11 @@ pub struct Args {
     /// Model locator: keyframes retrieved.
     #[arg(long, default_value_t = LocalizerOptions::default().top_k)]
     top_k: usize,
+    /// Write the camera's own pose and its covariance; by default both are in the convention
+    /// of the map's pose labels, as geoloc.Localizer returns them (they differ by the
+    /// label-to-camera offset the map estimated; `geoloc-rs info` shows it).
+    #[arg(long)]
+    camera_pose: bool,
 }
 
 fn parse_locator(s: &str) -> Result<Locator, String> {
@@ -219,8 +224,9 @@ fn localize_frames(
             pixel_sigmas: Some(&record.pixel_sigmas),
         };
         let result = localizer.localize(&frame).map_err(|e| format!("{}: frame {index}: {e}", shown(&args.input)))?;
-        // in the labels' convention, as the Python Localizer returns it
-        let result = map.to_label_convention(result);
+        // in the labels' convention, as the Python Localizer returns it, unless the camera's
+        // own pose is asked for
+        let result = if args.camera_pose { result } else { map.to_label_convention(result) };
         write_line(out, &output::line(record.timestamp, &result)).map_err(write_err)?;
         stats.push(result.timings, result.source);
     }
