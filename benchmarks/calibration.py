@@ -59,6 +59,9 @@ import numpy as np
 
 import geoloc
 from geoloc.evaluation import CHI2_6_95, COVERAGE_Z, summarize_results
+
+#: χ²₆ 99.9 % quantile: beyond it an answer lies outside its covariance's 99.9 % region.
+CHI2_6_999 = 22.457744484825326
 from geoloc.lie import se3_adjoint, se3_inverse, se3_log
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "7scenes-redkitchen"
@@ -255,6 +258,15 @@ def coverage_at(pairs: list[tuple[Any, Any, Any]], s: float, per_axis: bool = Fa
     return float(np.mean([d @ np.linalg.solve(c + s * m, d) <= CHI2_6_95 for d, c, m in pairs]))
 
 
+def outside_region(frames: list[dict[str, Any]], key: str) -> tuple[int, int]:
+    """(k, n): of the n answered frames with an error under ``key``, the k outside their
+    99.9 % region (NEES δᵀC⁻¹δ above the χ²₆ 99.9 % quantile) — the answers the covariance
+    does not hold at all."""
+    nees = [np.asarray(f[key]) @ np.linalg.solve(np.asarray(f["covariance"]), np.asarray(f[key]))
+            for f in frames if f[key] is not None and f["covariance"] is not None]
+    return int(np.sum(np.array(nees) > CHI2_6_999)), len(nees)
+
+
 def percent(fraction: float) -> str:
     """``fraction`` in per cent, whole (one decimal where rounding would show a miss as 100)."""
     value = 100 * fraction
@@ -347,6 +359,8 @@ def print_evaluation(name: str, r: dict[str, Any], against_reference: bool) -> N
     for mode in r["frames"]:
         pairs = measurement_and_map_noise(r["frames"][mode], key, c_map)
         print(f"{'':<10} {coverage_sweep_line(against, mode, pairs)}", flush=True)
+    print(f"{'':<10} outside the 99.9 % region against the {against}: "
+          + ", ".join("{} {} of {}".format(mode, *outside_region(r["frames"][mode], key)) for mode in r["frames"]), flush=True)
     n = r["map_noise"]
     print(f"{'':<10} map noise √diag C_map {np.round(n['sqrt_diag'], 4).tolist()} "
           f"(n={n['holdout_samples']}, median inliers {n['holdout_inliers']:.0f}), "
@@ -413,6 +427,9 @@ def main() -> int:
                 report[name]["frames"][mode], key, report[name]["map_noise"]["pose_covariance_labels"])]
             print(f"folds {','.join(folds)} pooled ({len(pairs)} frames), {coverage_sweep_line(against, mode, pairs)}",
                   flush=True)
+        print(f"folds {','.join(folds)} pooled, outside the 99.9 % region against the {against}: " + ", ".join(
+            "{} {} of {}".format(mode, *np.sum([outside_region(report[name]["frames"][mode], key) for name in folds], axis=0))
+            for mode in ("single", "sequential")), flush=True)
     if args.synthetic:
         seq = geoloc.datasets.synthetic_room(n_frames=300, seed=0)
         r = evaluate(seq[:200], seq[200:], args.locator)

@@ -112,6 +112,19 @@ def test_the_paper_split_is_refused_with_per_fold_network_descriptors(tmp_path: 
     assert result.returncode == 2 and "--paper-split: the saved network descriptors are per fold" in result.stderr, result.stderr
 
 
+def test_outside_region_counts_answers_beyond_the_chi2_999_quantile() -> None:
+    """Against scipy's χ²₆ quantile and a hand-built set: errors of NEES 22.4 and 22.5 fall
+    either side of it; lost frames and frames without an error are not counted."""
+    stats = pytest.importorskip("scipy.stats")
+    cal = _calibration_module()
+    assert cal.CHI2_6_999 == pytest.approx(stats.chi2.ppf(0.999, 6), rel=1e-12)
+    cov = np.diag([4.0, 1.0, 1.0, 1.0, 1.0, 1.0])
+    frame = lambda nees: {"d": [2.0 * np.sqrt(nees), 0, 0, 0, 0, 0], "covariance": cov.tolist()}  # noqa: E731
+    frames = [frame(22.4), frame(22.5), frame(100.0), frame(0.0), {"d": None, "covariance": cov.tolist()},
+              {"d": [1.0] * 6, "covariance": None}]
+    assert cal.outside_region(frames, "d") == (2, 4)
+
+
 @pytest.mark.parametrize(("k", "m"), [(0, 0), (0, 1), (3, 0), (52, 46), (55, 43), (58, 40), (10, 90), (50, 50)])
 def test_the_sign_test_is_scipys_exact_binomial_test(k: int, m: int) -> None:
     stats = pytest.importorskip("scipy.stats")
