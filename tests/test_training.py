@@ -268,6 +268,24 @@ def test_an_absurd_learning_rate_is_refused_before_any_work(tmp_path: Path, caps
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.parametrize("checkpoint", ["m.onnx", "m.curve.json", "sub/../m.onnx"])
+def test_a_checkpoint_that_another_output_would_replace_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], checkpoint: str
+) -> None:
+    """`--checkpoint m.curve.json --out m.onnx` trained, then the curve replaced the checkpoint
+    and `--resume` failed; `--checkpoint m.onnx --out m.onnx` (a new file) likewise. Refused
+    before any work, naming both, nothing written."""
+    from geoloc.cli import main
+
+    (tmp_path / "sub").mkdir()  # "sub/../m.onnx": another spelling of the model's path
+    argv = ["train", "--dataset", "synthetic", "--tiny", "--epochs", "1", "--pairs", "2", "--batch-size", "2",
+            "--dim", "8", "--no-progress", "--out", str(tmp_path / "m.onnx"), "--checkpoint", str(tmp_path / checkpoint)]
+    assert main(argv) == 2
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert len(lines) == 1 and "--checkpoint" in lines[0] and "is the same file as --out" in lines[0], lines
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["sub"]
+
+
 def test_a_diverging_loss_names_the_learning_rate(monkeypatch: pytest.MonkeyPatch) -> None:
     """A loss that becomes NaN stops training with an error naming `lr` (the user's to lower),
     not an internal error."""

@@ -37,6 +37,7 @@ __all__ = [
     "file_identity",
     "read_bytes",
     "refuse_alias",
+    "refuse_shared_outputs",
     "shown",
     "special_kind",
     "write_bytes_atomic",
@@ -197,6 +198,23 @@ def refuse_alias(output: Any, output_name: str, inputs: Iterable[tuple[str, Any]
                 f"{output_name}: {str(output)!r} is the same file as the input {name}{alias}; writing it would "
                 "replace that input (choose another output)"
             )
+
+
+def refuse_shared_outputs(outputs: Iterable[tuple[str, Any]]) -> None:
+    """InvalidInputError naming both when two of ``outputs`` (``(name, path)`` pairs; None
+    paths are skipped) are one file — the same resolved path, existing or not yet, or the
+    same device and inode: the later write would replace the earlier one's output."""
+    seen: list[tuple[str, str, Any]] = []
+    for name, path in outputs:
+        if path is None:
+            continue
+        real, identity = os.path.realpath(path), file_identity(path)
+        for other, other_real, other_identity in seen:
+            if real == other_real or (identity is not None and identity == other_identity):
+                raise InvalidInputError(
+                    f"{name}: {str(path)!r} is the same file as {other}; one output would replace the other (choose another)"
+                )
+        seen.append((name, real, identity))
 
 
 def _umask() -> int:

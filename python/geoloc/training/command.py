@@ -146,11 +146,13 @@ def add_train_command(commands: argparse._SubParsersAction[argparse.ArgumentPars
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
     def run(args: argparse.Namespace) -> int:
-        from .._io import refuse_alias, shown
+        from .._io import refuse_alias, refuse_shared_outputs, shown
         from . import require_torch
 
         if args.resume and not args.checkpoint:
             raise InvalidInputError("--resume: needs --checkpoint FILE")
+        # the checkpoint is written during the run, the model and its curve at its end
+        refuse_shared_outputs([("--out", args.out), ("--out (its .curve.json)", curve_path(args.out)), ("--checkpoint", args.checkpoint)])
         refuse_alias(args.out, "--out", [("--init", args.init), ("--checkpoint", args.checkpoint)])
         refuse_alias(args.checkpoint, "--checkpoint", [("--init", args.init)])
         require_torch()
