@@ -186,6 +186,23 @@ def test_a_bool_is_no_number_for_an_option_or_an_intrinsic() -> None:
             geoloc.Camera(**values)
 
 
+def test_a_camera_other_than_the_maps_is_refused_whatever_differs() -> None:
+    """Only fx, fy, cx, cy were compared: a camera with another distortion was accepted and
+    corrected the queries with it (7.7 cm off instead of 0.4 cm), one of another image size
+    refused every image of the map's size later."""
+    poses, kps, descs = _tiny_map_inputs()
+    m = Map.from_features(CAM, poses, kps, descs, branching=2, depth=2, estimate_noise=False, refine_intrinsics=False, adjust_labels=False)
+    c = m.camera
+    Localizer(m, geoloc.Camera(c.fx, c.fy, c.cx, c.cy, width=c.width, height=c.height), locator="paper")  # the same camera
+    for other, what in [
+        (geoloc.Camera(c.fx, c.fy, c.cx, c.cy, width=c.width, height=c.height, dist=(0.3, -0.2, 0, 0, 0)), "distortion"),
+        (geoloc.Camera(c.fx, c.fy, c.cx, c.cy, width=2 * c.width, height=2 * c.height), "image size"),
+        (geoloc.Camera(c.fx + 1, c.fy, c.cx, c.cy, width=c.width, height=c.height), "intrinsics"),
+    ]:
+        with pytest.raises(geoloc.InvalidInputError, match=rf"^camera: not the map's camera — {what} "):
+            Localizer(m, other, locator="paper")
+
+
 def test_integer_like_options() -> None:
     """Localizer(history=np.int64(5)) was refused."""
     poses, kps, descs = _tiny_map_inputs()

@@ -98,7 +98,8 @@ class Localizer:
     motion prediction (fitted to the last ``history`` poses) is not fused. ``None`` = the
     core's default (:meth:`default_options`); the core checks every value.
 
-    ``camera`` (optional) must have the map's intrinsics; ``global_descriptor`` is the
+    ``camera`` (optional) must be the map's camera — intrinsics, image size and distortion;
+    ``global_descriptor`` is the
     network a map that retrieves by global descriptors was built with (for :meth:`localize`)."""
 
     def __init__(
@@ -122,10 +123,19 @@ class Localizer:
             )
         if camera is not None and not isinstance(camera, Camera):
             raise InvalidInputError(f"camera: expected a geoloc.Camera, got {type(camera).__name__}")
-        if camera is not None and camera.intrinsics != map.camera.intrinsics:
+        if camera is not None and camera != map.camera:
+            # intrinsics, image size and distortion alike: the queries' keypoints are corrected with it
+            differ = [
+                f"{name} {mine} where the map has {theirs}"
+                for name, mine, theirs in (
+                    ("intrinsics", camera.intrinsics, map.camera.intrinsics),
+                    ("image size", (camera.width, camera.height), (map.camera.width, map.camera.height)),
+                    ("distortion", camera.dist, map.camera.dist),
+                )
+                if mine != theirs
+            ]
             raise InvalidInputError(
-                f"camera: intrinsics {camera.intrinsics} differ from the map's {map.camera.intrinsics}; "
-                "queries must be described with the map's camera"
+                f"camera: not the map's camera — {'; '.join(differ)}; queries must be described with the map's camera"
             )
         recorded = map.settings["retrieval"]
         if isinstance(recorded, dict) and global_descriptor is None:
