@@ -203,6 +203,23 @@ def test_a_camera_other_than_the_maps_is_refused_whatever_differs() -> None:
             Localizer(m, other, locator="paper")
 
 
+def test_global_descriptors_are_used_or_refused_never_ignored() -> None:
+    """from_features(global_descriptors=G) without retrieval= built a bag-of-words map and
+    dropped G; a network given to the localizer of a bag-of-words map ran on every query for
+    nothing. G now makes the map fused (as Map.build with a network), retrieval='bow' with G
+    and a network for a bag-of-words map are refused by name."""
+    poses, kps, descs = _tiny_map_inputs()
+    plain = {"branching": 2, "depth": 2, "estimate_noise": False, "refine_intrinsics": False, "adjust_labels": False}
+    g = np.random.default_rng(5).normal(size=(3, 16)).astype(np.float32)
+    assert Map.from_features(CAM, poses, kps, descs, global_descriptors=g, **plain).settings["retrieval"] == "fused"
+    assert Map.from_features(CAM, poses, kps, descs, **plain).settings["retrieval"] == "bow"
+    with pytest.raises(geoloc.InvalidInputError, match=r"^global_descriptors: given with retrieval='bow'"):
+        Map.from_features(CAM, poses, kps, descs, global_descriptors=g, retrieval="bow", **plain)
+    bow = Map.from_features(CAM, poses, kps, descs, **plain)
+    with pytest.raises(geoloc.InvalidInputError, match=r"^global_descriptor: this map retrieves by bag of words alone"):
+        Localizer(bow, global_descriptor=lambda images: np.zeros((len(images), 16), np.float32), locator="paper")
+
+
 def test_integer_like_options() -> None:
     """Localizer(history=np.int64(5)) was refused."""
     poses, kps, descs = _tiny_map_inputs()

@@ -138,6 +138,11 @@ class Localizer:
                 f"camera: not the map's camera — {'; '.join(differ)}; queries must be described with the map's camera"
             )
         recorded = map.settings["retrieval"]
+        if recorded == "bow" and global_descriptor is not None:
+            raise InvalidInputError(
+                "global_descriptor: this map retrieves by bag of words alone and would not use a network "
+                "(it ran on every query for nothing); build the map with the network to use one"
+            )
         if isinstance(recorded, dict) and global_descriptor is None:
             raise InvalidInputError("global_descriptor: this map retrieves by a network; pass the same network here")
         if isinstance(recorded, dict) and "sha256" in recorded:

@@ -288,8 +288,9 @@ class Map:
         """Build a map from features you computed: ``poses`` (K, 4, 4) world_from_cam, per
         keyframe ``keypoints`` (N, 2) undistorted pixels and local ``descriptors`` (N, W)
         (uint8 rows: binary/ORB; float rows: SIFT), optional ``global_descriptors`` (K, D)
-        (``retrieval="global"`` retrieves by them alone, ``"fused"`` combines them with bag of
-        words as :meth:`build` does with a network; the default is bag of words),
+        (``retrieval="global"`` retrieves by them alone, ``"fused"`` — the default when they
+        are given — combines them with bag of words as :meth:`build` does with a network;
+        without them the default is bag of words),
         ``pose_covariances`` (K, 6, 6) of the labels and ``timestamps`` (K,) in seconds.
 
         The build options and their defaults are those of :meth:`build`. Everything is
@@ -299,6 +300,13 @@ class Map:
         features (:meth:`geoloc.Localizer.localize_features`), not images."""
         if retrieval is not None:
             choice(retrieval, "retrieval", ("bow", "global", "fused"))
+        if global_descriptors is not None and retrieval == "bow":
+            raise InvalidInputError(
+                "global_descriptors: given with retrieval='bow', which does not use them "
+                "(retrieval='fused' combines them with bag of words, 'global' retrieves by them alone)"
+            )
+        if global_descriptors is not None and retrieval is None:
+            retrieval = "fused"  # as Map.build with a network: they were silently dropped
         options = _build_options(branching, depth, seed, estimate_noise, model, refine_intrinsics, intrinsics_model, adjust_labels)
         options.update(given_options(retrieval=retrieval))
         core = _core_map(camera, poses, keypoints, descriptors, global_descriptors, pose_covariances, timestamps, options)
