@@ -220,6 +220,28 @@ def test_global_descriptors_are_used_or_refused_never_ignored() -> None:
         Localizer(bow, global_descriptor=lambda images: np.zeros((len(images), 16), np.float32), locator="paper")
 
 
+def test_a_network_that_misbehaves_is_named_as_the_argument_that_gave_it() -> None:
+    """Text from the network was a bare ValueError, a wrong row count named
+    `global_descriptors` (never passed), an array instead of a network a TypeError at the
+    first frame, no rows an IndexError."""
+    room = geoloc.datasets.synthetic_room(n_frames=30)
+    net = lambda images: np.stack([np.resize(i[::60, ::80].astype(np.float32).ravel(), 8) for i in images])  # noqa: E731
+    bad = [
+        (lambda images: np.array([["a"] * 8 for _ in images]), "values that are not numbers"),
+        (lambda images: np.ones((len(images) - 1, 8)), r"shape \(9, 8\) for 10 images"),
+        (lambda images: np.ones((len(images), 0)), r"shape \(10, 0\)"),
+    ]
+    for network, message in bad:
+        with pytest.raises(geoloc.InvalidInputError, match=rf"^retrieval: the network returned {message}"):
+            Map.build(room, retrieval=network, keyframe_step=3)
+    m = Map.build(room, retrieval=net, keyframe_step=3)
+    with pytest.raises(geoloc.InvalidInputError, match=r"^global_descriptor: expected a network, .* got ndarray"):
+        Localizer(m, global_descriptor=np.ones(8))
+    with pytest.raises(geoloc.InvalidInputError, match=r"^global_descriptor: the network returned shape \(0, 8\) for 1 images"):
+        Localizer(m, global_descriptor=lambda images: np.zeros((0, 8))).localize(room.gray(4), 1.0)
+    assert Localizer(m, global_descriptor=net).localize(room.gray(4), 1.0).source in ("geometric", "lost")
+
+
 def test_integer_like_options() -> None:
     """Localizer(history=np.int64(5)) was refused."""
     poses, kps, descs = _tiny_map_inputs()

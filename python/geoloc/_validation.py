@@ -144,3 +144,25 @@ def check_rigid(arr: NDArray[np.float64], name: str) -> None:
             f"{name}[{i}] is not a rigid transform (last row {arr[i, 3].tolist()}, max |RᵀR − I| = {ortho[i]:.3g}); "
             "project near-rotations first (geoloc.lie.se3_project)"
         )
+
+
+def network_rows(network: Any, images: list[Any], name: str) -> NDArray[np.float32]:
+    """``network(images)`` as (len(images), D) float32 rows, D ≥ 1; InvalidInputError naming
+    ``name`` (the argument that gave the network) when it is not callable or returns anything
+    else — text, another row count, no rows, more dimensions — instead of numpy's or the
+    core's error about an argument the caller never passed."""
+    if not callable(network):
+        raise InvalidInputError(
+            f"{name}: expected a network, a callable from a list of (H, W) grey images to (N, D) descriptors, "
+            f"got {type(network).__name__}"
+        )
+    out = network(images)
+    try:
+        rows = np.asarray(out, dtype=np.float32)
+    except (TypeError, ValueError):
+        raise InvalidInputError(f"{name}: the network returned values that are not numbers ({type(out).__name__})") from None
+    if rows.ndim != 2 or rows.shape[0] != len(images) or rows.shape[1] == 0:
+        raise InvalidInputError(
+            f"{name}: the network returned shape {rows.shape} for {len(images)} images; expected ({len(images)}, D), D ≥ 1"
+        )
+    return rows

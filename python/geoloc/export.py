@@ -70,6 +70,7 @@ def export_frames(
     if format not in ("binary", "jsonl"):
         raise InvalidInputError(f"format: expected 'binary' or 'jsonl', got {format!r}")
     from ._io import check_output_path, refuse_alias
+    from ._validation import network_rows
 
     target = check_output_path(path, "path")
     refuse_alias(target, "path", [("frames", f) for f in getattr(frames, "files", ())])
@@ -82,7 +83,7 @@ def export_frames(
             f = extractor(gray, map.camera)
             g: NDArray[np.float32] | None = None
             if global_descriptor is not None:
-                g = np.ascontiguousarray(np.asarray(global_descriptor([gray]), dtype=np.float32)[0])
+                g = np.ascontiguousarray(network_rows(global_descriptor, [gray], "global_descriptor")[0])
             writer.write(timestamp, f.keypoints, f.pixel_sigmas, f.descriptors, g)
             if progress is not None:
                 progress(done)

@@ -25,7 +25,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from . import _core
-from ._validation import as_float64, given_options, keypoint_rows, real_scalar
+from ._validation import as_float64, given_options, keypoint_rows, network_rows, real_scalar
 from .camera import Camera
 from .exceptions import InvalidInputError
 from .features import FeatureExtractor
@@ -163,6 +163,8 @@ class Localizer:
         )
         self.map = map
         self.camera = camera or map.camera
+        if global_descriptor is not None and not callable(global_descriptor):
+            network_rows(global_descriptor, [], "global_descriptor")  # raises: names what was given
         self._global = global_descriptor
         self._core = _core.FeatureLocalizer(map._core, options=options)
 
@@ -197,7 +199,7 @@ class Localizer:
         described = time.perf_counter()
         g = None
         if self._global is not None:
-            g = np.asarray(self._global([gray]), dtype=np.float32)[0]
+            g = network_rows(self._global, [gray], "global_descriptor")[0]
         r = self._core.localize(
             real_scalar(timestamp, "timestamp"), f.keypoints, f.descriptors, g, pixel_sigmas=f.pixel_sigmas
         )

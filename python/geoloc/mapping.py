@@ -26,7 +26,7 @@ from numpy.typing import ArrayLike, NDArray
 from . import _core
 from ._frontend import FRONTEND_VERSION, camera_record, descriptor_record, frontend_parts
 from ._io import shown
-from ._validation import as_batch, as_float64, choice, given_options, keypoint_rows
+from ._validation import as_batch, as_float64, choice, given_options, keypoint_rows, network_rows
 from .camera import Camera
 from .exceptions import FileAccessError, InvalidInputError
 from .features import DEFAULT_KIND, DEFAULT_N_FEATURES, FeatureExtractor
@@ -233,7 +233,7 @@ class Map:
                 images.append(gray)
             if progress is not None:
                 progress(done, len(indices))
-        global_descriptors = None if isinstance(retrieval, str) else np.asarray(retrieval(images), dtype=np.float32)
+        global_descriptors = None if isinstance(retrieval, str) else network_rows(retrieval, images, "retrieval")
         options["retrieval"] = "bow" if isinstance(retrieval, str) else "fused"
         try:
             core = _core_map(
