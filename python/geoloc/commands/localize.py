@@ -97,9 +97,10 @@ def run(args: argparse.Namespace) -> int:
                 "(queries must use the map's camera)"
             )
     option = "--images" if args.images is not None else "--dataset"
-    # the dataset's trajectory files too, read or not: an output never replaces one
-    root = Path(args.images if args.images is not None else args.dataset or ".")
-    unread = [(option, p) for p in (root / "traj.txt", root / "groundtruth.txt") if p.is_file()]
+    # a folder's trajectory too, read or not (a TUM sequence lists its groundtruth.txt itself):
+    # an output never replaces one; the built-in room has no folder
+    folder = args.images if args.images is not None else args.dataset
+    unread = [] if folder is None else [(option, p) for p in (Path(folder) / "traj.txt",) if p.is_file()]
     refuse_alias(out, "--out", dataset_inputs(sequence, option) + unread)
     sequence = select(sequence, args.frames, "--frames")
     results = localize_sequence(Localizer(the_map, global_descriptor=network, locator=args.locator), sequence, args.mode, Progress("localize"))
