@@ -58,10 +58,7 @@ from typing import Any
 import numpy as np
 
 import geoloc
-from geoloc.evaluation import CHI2_6_95, COVERAGE_Z, summarize_results
-
-#: χ²₆ 99.9 % quantile: beyond it an answer lies outside its covariance's 99.9 % region.
-CHI2_6_999 = 22.457744484825326
+from geoloc.evaluation import CHI2_6_95, CHI2_6_999, COVERAGE_Z, summarize_results
 from geoloc.lie import se3_adjoint, se3_inverse, se3_log
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "7scenes-redkitchen"

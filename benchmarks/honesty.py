@@ -39,6 +39,8 @@ from typing import Any
 
 import numpy as np
 
+from geoloc.evaluation import CHI2_6_999
+
 ROOT = Path(__file__).resolve().parent.parent
 DATA = ROOT.parent / "shared" / "data"
 KITCHEN = DATA / "7scenes-redkitchen"
@@ -48,8 +50,6 @@ REFERENCE = DATA / "7scenes-redkitchen-reference" / "sfm-poses.txt"
 MAPS = {"30": (0, 60, 2), "100": (0, 300, 3), "600": (0, 600, 1)}
 #: Query frames this many frames from the map's span or more are ``outside`` it.
 OUTSIDE_MARGIN = 30
-#: χ²₆ 99.9 % quantile.
-CHI2_6_999 = 22.457744484825326
 GROSS_M, GROSS_DEG = 0.5, 10.0
 
 

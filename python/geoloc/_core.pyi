@@ -12,6 +12,7 @@ PARALLEL_MIN_ITEMS: int
 MIN_NOISE_SAMPLES: int
 MAX_THREADS: int
 CHI2_6_95: float
+CHI2_6_999: float
 
 def chi2_quantile(p: NDArray[np.float64], dof: int) -> NDArray[np.float64]: ...
 def num_threads_warning(value: str | None) -> str | None: ...

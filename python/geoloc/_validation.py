@@ -146,16 +146,23 @@ def check_rigid(arr: NDArray[np.float64], name: str) -> None:
         )
 
 
-def network_rows(network: Any, images: list[Any], name: str) -> NDArray[np.float32]:
-    """``network(images)`` as (len(images), D) float32 rows, D ≥ 1; InvalidInputError naming
-    ``name`` (the argument that gave the network) when it is not callable or returns anything
-    else — text, another row count, no rows, more dimensions — instead of numpy's or the
-    core's error about an argument the caller never passed."""
+def check_network(network: Any, name: str) -> None:
+    """InvalidInputError naming ``name`` unless ``network`` is callable (a list of (H, W) grey
+    images → (N, D) descriptors)."""
     if not callable(network):
         raise InvalidInputError(
             f"{name}: expected a network, a callable from a list of (H, W) grey images to (N, D) descriptors, "
             f"got {type(network).__name__}"
         )
+
+
+def network_rows(network: Any, images: list[Any], name: str) -> NDArray[np.float32]:
+    """``network(images)`` as (len(images), D) float32 rows, D ≥ 1; InvalidInputError naming
+    ``name`` (the argument that gave the network) when it is not callable
+    (:func:`check_network`) or returns anything else — text, another row count, no rows, more
+    dimensions — instead of numpy's or the core's error about an argument the caller never
+    passed."""
+    check_network(network, name)
     out = network(images)
     try:
         rows = np.asarray(out, dtype=np.float32)

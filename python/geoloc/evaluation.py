@@ -39,6 +39,7 @@ from .reference import ReferenceAlignment, align_reference, load_reference, matc
 
 __all__ = [
     "CHI2_6_95",
+    "CHI2_6_999",
     "RECALL_THRESHOLDS",
     "ReferenceAlignment",
     "align_reference",
@@ -64,6 +65,8 @@ Array = NDArray[np.float64]
 
 CHI2_6_95: float = _core.CHI2_6_95
 """χ²₆(0.95): the 95 % quantile of the chi-square distribution with 6 degrees of freedom (the core's)."""
+CHI2_6_999: float = _core.CHI2_6_999
+"""χ²₆(0.999): beyond it an error lies outside its covariance's 99.9 % region (the core's)."""
 COVERAGE_Z = 1.959963984540054
 """Two-sided 95 % quantile of the standard normal: per-axis coverage uses |δ_k| ≤ z·σ_k."""
 RECALL_THRESHOLDS: tuple[tuple[float, float], ...] = ((0.05, 5.0), (0.25, 2.0), (0.10, 1.0))

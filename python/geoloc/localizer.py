@@ -25,7 +25,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from . import _core
-from ._validation import as_float64, given_options, keypoint_rows, network_rows, real_scalar
+from ._validation import as_float64, check_network, given_options, keypoint_rows, network_rows, real_scalar
 from .camera import Camera
 from .exceptions import InvalidInputError
 from .features import FeatureExtractor
@@ -163,8 +163,8 @@ class Localizer:
         )
         self.map = map
         self.camera = camera or map.camera
-        if global_descriptor is not None and not callable(global_descriptor):
-            network_rows(global_descriptor, [], "global_descriptor")  # raises: names what was given
+        if global_descriptor is not None:
+            check_network(global_descriptor, "global_descriptor")
         self._global = global_descriptor
         self._core = _core.FeatureLocalizer(map._core, options=options)
 

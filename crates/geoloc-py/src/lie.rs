@@ -59,7 +59,7 @@ fn invertible_phi_of(x: &[f64; 3], i: Row) -> geoloc_core::Result<Vector3<f64>> 
 /// [`so3::check_jacobian_invertible`]).
 fn invertible_xi_of(x: &[f64; 6], i: Row) -> geoloc_core::Result<Twist> {
     let xi = xi_of(x, i)?;
-    so3::check_jacobian_invertible(&Vector3::new(xi[3], xi[4], xi[5])).map_err(|e| i.label(e, "xi"))?;
+    so3::check_jacobian_invertible(&se3::phi(&xi)).map_err(|e| i.label(e, "xi"))?;
     Ok(xi)
 }
 

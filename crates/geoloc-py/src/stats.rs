@@ -26,6 +26,7 @@ pub fn chi2_quantile<'py>(
 
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("CHI2_6_95", geoloc_core::stats::chi2::CHI2_6_95)?;
+    m.add("CHI2_6_999", geoloc_core::stats::chi2::CHI2_6_999)?;
     m.add_function(wrap_pyfunction!(chi2_quantile, m)?)?;
     Ok(())
 }
