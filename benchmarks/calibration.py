@@ -9,7 +9,13 @@ model + gated fusion) — and the synthetic room. Per fold × mode: median error
 NEES, sources; and the map's estimated noise (√diag C_map, acceleration PSD).
 
     PYTHONPATH=python python benchmarks/calibration.py [--folds 0,6] [--synthetic] [--json out.json]
-        [--keep-labels] [--reference FILE] [--network DIR/NAME] [--seed S]
+        [--keep-labels] [--reference FILE] [--network DIR/NAME] [--seed S] [--paper-split] [--near-path]
+
+``--near-path`` adds queries beside the mapped path, as a robot or a phone meets them in a
+mapped room: every 10th frame of 0–699 (5, 15, …, 695) against a map of the other 630
+(``near path``; not pooled with the folds). The folds' queries lie 2.4–8.6 from their
+nearest training keyframe in ``Localization.novelty``'s units (10 cm or 5° = 1), these about
+0.1: they carry the map's near-regime noise, the folds' C_map (``Map.map_noise["near"]``).
 
 ``--keep-labels`` builds every map on the labels as they are (by default ``Map.build``
 corrects them by bundle adjustment); with the
@@ -119,6 +125,11 @@ def evaluate(
             "acceleration_psd": noise["acceleration_psd"].tolist(),
             "holdout_samples": noise["holdout_samples"],
             "holdout_inliers": noise["holdout_inliers"],
+            "near": None if noise["near"] is None else {
+                "sqrt_diag": np.sqrt(np.diag(noise["near"]["covariance"])).tolist(),
+                "spacing": noise["near"]["spacing"],
+                "holdout_distance": noise["near"]["holdout_distance"],
+            },
             "holdout": {
                 "keyframe": h["keyframe"].tolist(),
                 "position": [train.poses[k][:3, 3].tolist() for k in h["keyframe"]],
@@ -126,6 +137,7 @@ def evaluate(
                 "covariance": h["covariance"].tolist(),
                 "inliers": h["inliers"].tolist(),
                 "used": h["used"].tolist(),
+                "novelty": h["novelty"].tolist(),
             },
         },
         "frames": {},
@@ -166,6 +178,7 @@ def evaluate(
                 "position": gt[i][:3, 3].tolist(),
                 "inliers": int(r.inliers),
                 "map_noise_scale": float(r.map_noise_scale),
+                "novelty": None if r.novelty is None else float(r.novelty),
                 "keyframe": int(r.keyframe),
             }
             for i, r in enumerate(results)
@@ -177,6 +190,16 @@ def isometric_sigmas(c: Any) -> tuple[float, float]:
     """The paper's isometric σ: mean √diag of the translation block (m), and of the rotation one."""
     d = np.sqrt(np.clip(np.diag(np.asarray(c)), 0.0, None))
     return float(d[:3].mean()), float(d[3:].mean())
+
+
+#: ``--near-path``: every this-th frame (from the middle of each run of them) is a query.
+NEAR_PATH_STEP = 10
+
+
+def near_path(seq: Any) -> tuple[Any, Any]:
+    """(train, test): frames 5, 15, …, the queries; the map of all the others."""
+    test = np.arange(NEAR_PATH_STEP // 2, len(seq), NEAR_PATH_STEP)
+    return seq[np.setdiff1d(np.arange(len(seq)), test)], seq[test]
 
 
 def fold(seq: Any, b: int) -> tuple[Any, Any]:
@@ -237,8 +260,9 @@ MAP_NOISE_SCALES = (0.1, 0.25, 0.5, 1.0, 2.0)
 
 def measurement_and_map_noise(frames: list[dict[str, Any]], key: str, c_map: Any) -> list[tuple[Any, Any, Any]]:
     """Per answered frame (δ under ``key``, C − C_i, C_i): its covariance split into the
-    measurement part and C_i = f_i·C_map, the map noise it holds (f_i its ``map_noise_scale``,
-    1 when absent; ``c_map`` in the results' convention)."""
+    measurement part and C_i = f_i·C_map, the C_map it holds (f_i its ``map_noise_scale``,
+    1 when absent; ``c_map`` in the results' convention; a near-regime frame's C_near part
+    stays with the measurement)."""
     c_map = np.asarray(c_map)
     framed = [(np.asarray(f[key]), np.asarray(f["covariance"]), f.get("map_noise_scale", 1.0) * c_map)
               for f in frames if f[key] is not None and f["covariance"] is not None]
@@ -359,6 +383,12 @@ def print_evaluation(name: str, r: dict[str, Any], against_reference: bool) -> N
     print(f"{'':<10} outside the 99.9 % region against the {against}: "
           + ", ".join("{} {} of {}".format(mode, *outside_region(r["frames"][mode], key)) for mode in r["frames"]), flush=True)
     n = r["map_noise"]
+    novelty = [f["novelty"] for f in r["frames"]["single"] if f.get("novelty") is not None]
+    if n.get("near") is not None and novelty:
+        near = n["near"]
+        print(f"{'':<10} near regime √diag C_near {np.round(near['sqrt_diag'], 4).tolist()} at ν ≤ {near['spacing']:.2f}, "
+              f"C_map at ν ≥ {near['holdout_distance']:.2f}; the queries' ν (single) median {np.median(novelty):.2f}, "
+              f"range {min(novelty):.2f}–{max(novelty):.2f}", flush=True)
     print(f"{'':<10} map noise √diag C_map {np.round(n['sqrt_diag'], 4).tolist()} "
           f"(n={n['holdout_samples']}, median inliers {n['holdout_inliers']:.0f}), "
           f"q {np.round(n['acceleration_psd'], 3).tolist()}, build {r['build_s']:.0f} s",
@@ -382,6 +412,9 @@ def main() -> int:
                     "numbers move with a nuisance parameter")
     ap.add_argument("--network", type=Path, metavar="DIR/NAME",
                     help="fuse each fold's map with the network whose descriptors DIR/NAME-fold<LO>.npz holds")
+    ap.add_argument("--near-path", action="store_true",
+                    help=f"also queries beside the mapped path: every {NEAR_PATH_STEP}th frame of 0-699 against a map "
+                    "of the rest")
     ap.add_argument("--paper-split", action="store_true",
                     help=f"also the paper's split: train on frames 0-{PAPER_TRAIN - 1}, test on {PAPER_TRAIN}-699")
     args = ap.parse_args()
@@ -397,7 +430,7 @@ def main() -> int:
     report: dict[str, Any] = {}
     header = f"{'fold':<10} {'mode':<10} {'median':>18} {'median, lost=∞':>18} {'5cm/5°':>7} {'NEES':>6} {'axis min':>8} {'med NEES':>8} {'σ_p med':>8}  sources"
     print(header, flush=True)
-    if DATA.is_dir() and (args.folds or args.paper_split):
+    if DATA.is_dir() and (args.folds or args.paper_split or args.near_path):
         seq = geoloc.datasets.load_7scenes(DATA)[:700]
         rows = frame_rows(seq) if args.network is not None else {}
         for b in (int(x) for x in args.folds.split(",") if x):
@@ -414,9 +447,14 @@ def main() -> int:
             r = evaluate(seq[:PAPER_TRAIN], seq[PAPER_TRAIN:], args.locator, args.adjust_labels, reference, None, args.seed)
             report["paper split"] = r
             print_evaluation(f"{PAPER_TRAIN}-{len(seq) - 1}", r, reference is not None)
-    elif args.folds or args.paper_split:
+        if args.near_path:
+            train, test = near_path(seq)
+            r = evaluate(train, test, args.locator, args.adjust_labels, reference, None, args.seed)
+            report["near path"] = r
+            print_evaluation("near path", r, reference is not None)
+    elif args.folds or args.paper_split or args.near_path:
         print(f"(no shared data at {DATA}: 7-Scenes folds skipped)")
-    folds = [name for name in report if name != "paper split"]
+    folds = [name for name in report if name not in ("paper split", "near path")]
     if len(folds) > 1:
         key, against = scored_against(reference is not None)
         for mode in ("single", "sequential"):

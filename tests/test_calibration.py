@@ -75,8 +75,11 @@ def test_noise_the_held_out_keyframes_cannot_resolve_is_floored_and_said(exact: 
     names = ", ".join(a for a, u in zip(("tx", "ty", "tz", "φx", "φy", "φz"), unresolved) if u)
     assert f"on {names} they do not resolve it" in noise["pose_covariance_source"], noise["pose_covariance_source"]
     support = noise["holdout_inliers"]
-    assert support > 0 and noise["pose_covariance_source"].endswith(
-        f"; a pose on n < {support:.0f} inliers (their median) gets C_map·{support:.0f}/n"
+    assert support > 0 and (
+        f"; a pose on n < {support:.0f} inliers (their median) gets C_map·{support:.0f}/n;" in noise["pose_covariance_source"]
+    ), noise["pose_covariance_source"]
+    assert noise["pose_covariance_source"].endswith(
+        f"rising linearly to C_map at the held-out keyframes' least distance (ν ≥ {noise['near']['holdout_distance']:.2f})"
     ), noise["pose_covariance_source"]
     path = tmp_path / "exact.geoloc"
     exact_map.save(path)
@@ -108,12 +111,71 @@ def test_a_pose_with_less_support_than_the_held_out_keyframes_gets_more_map_nois
     np.testing.assert_array_equal(m.map_noise_at(2**70), c)  # more support than any n̄: unscaled
     m.save(tmp_path / "support.geoloc")
     assert geoloc.Map.load(tmp_path / "support.geoloc").map_noise["holdout_inliers"] == n_bar
-    # single images: each pose's factor from its own inliers
+    # single images: each pose's factor from its own inliers and its distance from the keyframes
     results = geoloc.Localizer(m).localize_sequence(seq[1:300:10], "single")
     assert any(r.pose is not None for r in results)
     for r in results:
-        want = 1.0 if r.pose is None else max(1.0, n_bar / r.inliers)
+        want = 1.0 if r.pose is None else near_weight(noise, r.novelty) * max(1.0, n_bar / r.inliers)
         assert r.map_noise_scale == pytest.approx(want, rel=1e-15), (r.inliers, r.source)
+
+
+def pose_distances(pose: Any, keyframes: Any) -> Any:
+    """ν of ``pose`` from each keyframe, written out: √((‖Δt‖ / 0.1 m)² + (angle / 5°)²), the
+    angle from the trace of R_kᵀR."""
+    t = np.linalg.norm(keyframes[:, :3, 3] - pose[:3, 3], axis=1)
+    trace = np.einsum("kji,ji->k", keyframes[:, :3, :3], pose[:3, :3])
+    angle = np.degrees(np.arccos(np.clip((trace - 1) / 2, -1, 1)))
+    return np.hypot(t / 0.1, angle / 5.0)
+
+
+def near_weight(noise: dict[str, Any], novelty: float | None) -> float:
+    """w = clamp((ν − ν₀)/(ν₁ − ν₀), 0, 1), 1 without a near regime."""
+    near = noise["near"]
+    if near is None or novelty is None:
+        return 1.0
+    return float(np.clip((novelty - near["spacing"]) / (near["holdout_distance"] - near["spacing"]), 0.0, 1.0))
+
+
+def test_a_pose_beside_the_keyframes_carries_their_variance_not_c_map(
+    exact: tuple[Any, geoloc.Map], tmp_path: Path
+) -> None:
+    """The near regime: C_near where the keyframes are as close as to each other, C_map from
+    the held-out keyframes' least distance on, linear between; a result's novelty is its
+    camera pose's distance from the nearest keyframe (checked in numpy); the regime survives
+    the file. The labels here are exact, so the images agree with them and the map keeps
+    them: C_near is the labels' σ the adjustment estimated."""
+    seq, m = exact
+    noise = m.map_noise
+    near = noise["near"]
+    assert near is not None and 0 < near["spacing"] < near["holdout_distance"]
+    h = noise["holdout"]
+    assert near["holdout_distance"] == h["novelty"][h["used"]].min()
+    keyframes = m.camera_poses
+    spacing = [np.sort(pose_distances(k, keyframes))[1] for k in keyframes]
+    assert near["spacing"] == pytest.approx(np.median(spacing), rel=1e-9)
+    sigma_m, sigma_deg = m.labels["label_sigma_m"], m.labels["label_sigma_deg"]
+    want = np.minimum(np.r_[[sigma_m**2] * 3, [np.radians(sigma_deg) ** 2] * 3], np.diag(noise["pose_covariance"]))
+    np.testing.assert_allclose(np.diag(near["covariance"]), want, rtol=1e-12)
+    c, c_near, n_bar = noise["pose_covariance"], near["covariance"], noise["holdout_inliers"]
+    for nu in (0.0, near["spacing"], (near["spacing"] + near["holdout_distance"]) / 2, near["holdout_distance"], 50.0):
+        w = near_weight(noise, nu)
+        np.testing.assert_allclose(m.map_noise_at(10, nu), (1 - w) * c_near + w * c * max(1.0, n_bar / 10), rtol=1e-12)
+    assert near_weight(noise, near["spacing"]) == 0.0 and near_weight(noise, near["holdout_distance"]) == 1.0
+    for bad in (-1.0, float("nan"), "1", True):
+        with pytest.raises(ValueError, match="novelty"):
+            m.map_noise_at(10, bad)  # type: ignore[arg-type]
+    # queries between the keyframes: their novelty is that of their camera pose, most are near
+    results = geoloc.Localizer(m).localize_sequence(seq[1:300:10], "single")
+    answered = [r for r in results if r.pose is not None]
+    assert answered and all(r.novelty is not None for r in answered)
+    for r in answered:
+        assert r.novelty == pytest.approx(pose_distances(r.camera_pose, keyframes).min(), rel=1e-6, abs=1e-9)
+    assert np.median([r.novelty for r in answered]) < near["spacing"]
+    assert all(r.novelty is None for r in results if r.pose is None)
+    m.save(tmp_path / "near.geoloc")
+    back = geoloc.Map.load(tmp_path / "near.geoloc").map_noise["near"]
+    assert back is not None and back["spacing"] == near["spacing"] and back["holdout_distance"] == near["holdout_distance"]
+    np.testing.assert_array_equal(back["covariance"], c_near)
 
 
 def test_sequential_is_never_worse_than_single(room: tuple[Any, Any, geoloc.Map]) -> None:

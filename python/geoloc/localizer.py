@@ -51,10 +51,13 @@ class Localization:
     also ``decode`` and ``features``; ``total``). When the map adjusted its labels, ``pose`` is
     in the labels' convention (world_from_label, what the sequence's poses were) and
     ``camera_pose`` is the camera's own world_from_cam; otherwise the two are equal.
-    ``map_noise_scale`` is the factor on the map's C_map inside ``covariance``: max(1, n̄/n)
+    ``map_noise_scale`` is the factor on the map's C_map inside ``covariance``: w·max(1, n̄/n)
     for a pose resting on n inliers when the map's held-out keyframes had a median n̄
     (``Map.map_noise["holdout_inliers"]``; a motion-only frame takes the last measurement's
-    n), 1 when unscaled or lost."""
+    n), 1 when lost; w ∈ [0, 1] is C_map's weight at the pose's ``novelty`` ν, its distance from
+    the nearest keyframe (√((Δt / 10 cm)² + (Δθ / 5°)²); None when lost): a pose as near a
+    keyframe as the keyframes are to each other carries the keyframe poses' own variance
+    instead of C_map (``Map.map_noise["near"]``, :meth:`Map.map_noise_at`)."""
 
     pose: NDArray[np.float64] | None
     covariance: NDArray[np.float64] | None
@@ -65,6 +68,7 @@ class Localization:
     timings: dict[str, float] = field(default_factory=dict)
     camera_pose: NDArray[np.float64] | None = None
     map_noise_scale: float = 1.0
+    novelty: float | None = None
 
     @property
     def timings_ms(self) -> dict[str, float]:
@@ -77,7 +81,7 @@ def _from_core(r: Any, timings: dict[str, float] | None = None) -> Localization:
     stages = dict(timings or {})
     stages.update(r.timings_ms)
     return Localization(r.pose, r.covariance, r.source, r.reason, r.keyframe, r.inliers, stages, r.camera_pose,
-                        r.map_noise_scale)
+                        r.map_noise_scale, r.novelty)
 
 
 class Localizer:

@@ -26,7 +26,7 @@ from numpy.typing import ArrayLike, NDArray
 from . import _core
 from ._frontend import FRONTEND_VERSION, camera_record, descriptor_record, frontend_parts
 from ._io import shown
-from ._validation import as_batch, as_float64, choice, given_options, keypoint_rows, network_rows
+from ._validation import as_batch, as_float64, choice, given_options, keypoint_rows, network_rows, real_scalar
 from .camera import Camera
 from .exceptions import FileAccessError, InvalidInputError
 from .features import DEFAULT_KIND, DEFAULT_N_FEATURES, FeatureExtractor
@@ -402,22 +402,30 @@ class Map:
         ``holdout_samples`` (held-out keyframes C_map comes from; with fewer than
         ``geoloc._core.MIN_NOISE_SAMPLES`` C_map is a conservative default, never zero),
         ``holdout_inliers`` n̄ (their median PnP inliers: a pose resting on n < n̄ inliers gets
-        C_map·n̄/n, see :meth:`map_noise_at`; 0: C_map applies unscaled),
+        C_map·n̄/n, see :meth:`map_noise_at`; 0: C_map applies unscaled), ``near`` (None, or
+        the near regime: ``covariance`` C_near (6, 6), the keyframe poses' own variance that a
+        pose as close to a keyframe as the keyframes are to each other — distance ν ≤
+        ``spacing`` — carries instead of C_map, rising linearly to C_map at ν ≥
+        ``holdout_distance``, the held-out keyframes' least distance; ν in
+        :attr:`Localization.novelty`'s units, 10 cm or 5° = 1),
         ``pose_covariance_source`` (which of the two and the support rule, in words) and, for a map built in this
         process (not stored in the file: empty in a loaded map), ``holdout``: the held-out re-localizations
         (``keyframe`` (n,), ``delta`` (n, 6) = log(T_label⁻¹T_est), ``covariance`` (n, 6, 6) C_G,
-        ``inliers`` (n,), ``used`` (n,) bool); ``resolved`` (6,) bool: per axis, whether those samples resolve
+        ``inliers`` (n,), ``used`` (n,) bool, ``novelty`` (n,) each one's distance from the
+        keyframes its re-localization kept); ``resolved`` (6,) bool: per axis, whether those samples resolve
         C_map (an axis they do not is floored, never zero; stored in the map file, so a loaded
         map says the same; None with too few samples or for a file saved before it was stored)."""
         cov, psd, velocity_mean, velocity_variance, samples, support = self._core.map_noise
-        keyframes, deltas, covs, inliers, used = self._core.map_noise_holdout
+        keyframes, deltas, covs, inliers, used, novelty = self._core.map_noise_holdout
         resolved = self._core.map_noise_resolved
+        near = self._core.map_noise_near
         holdout = {
             "keyframe": np.asarray(keyframes, dtype=np.int64),
             "delta": deltas,
             "covariance": covs,
             "inliers": np.asarray(inliers, dtype=np.int64),
             "used": np.asarray(used, dtype=bool),
+            "novelty": np.asarray(novelty, dtype=np.float64),
         }
         return {
             "pose_covariance": cov,
@@ -429,18 +437,23 @@ class Map:
             "pose_covariance_source": self._core.map_noise_description,
             "holdout": holdout,
             "resolved": None if resolved is None else np.asarray(resolved, dtype=bool),
+            "near": None if near is None else {"covariance": near[0], "spacing": near[1], "holdout_distance": near[2]},
         }
 
-    def map_noise_at(self, inliers: int | None) -> NDArray[np.float64]:
-        """C_map (6, 6, as ``map_noise["pose_covariance"]``) for a pose resting on ``inliers`` PnP
-        inliers: C_map·max(1, n̄/inliers), n̄ = ``map_noise["holdout_inliers"]`` (unscaled for
-        None, 0 inliers or n̄ = 0) — what the localizer adds to the camera pose's covariance.
+    def map_noise_at(self, inliers: int | None, novelty: float | None = None) -> NDArray[np.float64]:
+        """The map noise (6, 6, as ``map_noise["pose_covariance"]``) of a pose resting on
+        ``inliers`` PnP inliers at distance ``novelty`` from its nearest keyframe
+        (:attr:`Localization.novelty`): (1 − w)·C_near + w·C_map·max(1, n̄/inliers), n̄ =
+        ``map_noise["holdout_inliers"]`` (unscaled for None, 0 inliers or n̄ = 0), w = 1 without
+        a near regime (``map_noise["near"]``) or a ``novelty``, else clamp((ν − ν₀)/(ν₁ − ν₀), 0,
+        1) — what the localizer adds to the camera pose's covariance.
         When the map adjusted its labels, a result's ``covariance`` is in the labels'
         convention, and what it holds of this is Ad_X C Ad_Xᵀ (X the label-to-camera offset,
         right perturbation: T_label = T_cam X⁻¹)."""
         # any support at or above n̄ leaves C_map unscaled: a count past the core's integer range is that
         count = None if inliers is None else min(_as_int(inliers, "inliers", 0), int(np.iinfo(np.uint32).max))
-        out: NDArray[np.float64] = self._core.map_noise_at(count)
+        nu = None if novelty is None else real_scalar(novelty, "novelty")
+        out: NDArray[np.float64] = self._core.map_noise_at(count, nu)
         return out
 
     def retrieve_features(

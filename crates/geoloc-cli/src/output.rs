@@ -69,6 +69,7 @@ mod tests {
             keyframe: 0,
             inliers: 0,
             map_noise_scale: 1.0,
+            novelty: None,
             timings: Timings::default(),
         }
     }

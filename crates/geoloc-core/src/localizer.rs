@@ -344,9 +344,14 @@ pub struct Localization {
     pub keyframe: usize,
     /// PnP inliers (0 without a geometric pose).
     pub inliers: usize,
-    /// The factor on the map's C_map in `estimate`'s covariance
-    /// ([`crate::map::MapNoise::support_scale`]: ≥ 1, 1 when unscaled or lost).
+    /// The factor on the map's C_map in `estimate`'s covariance: w·max(1, n̄/n), w the weight
+    /// of C_map at the pose's distance from the keyframes ([`crate::map::MapNoise::novelty_weight`],
+    /// 1 without a near regime) and max(1, n̄/n) the support's
+    /// ([`crate::map::MapNoise::support_scale`]); 1 when lost.
     pub map_noise_scale: f64,
+    /// ν: the pose's distance from the nearest keyframe ([`crate::map::noise::pose_distance`],
+    /// 10 cm or 5° = 1), which sets the map noise it carries; None when lost.
+    pub novelty: Option<f64>,
     /// Time per stage.
     pub timings: Timings,
 }
@@ -511,15 +516,18 @@ impl Localizer {
         };
         // the map noise of the support the pose rests on: this frame's inliers, or for a
         // motion-only frame the last measurement's
-        let mut map_noise_scale = 1.0;
+        let (mut map_noise_scale, mut novelty) = (1.0, None);
         if let Some(e) = &mut estimate {
-            map_noise_scale = self.map.noise.support_scale(self.last_support.map(|(_, n)| n));
-            e.covariance += self.map.noise.pose_covariance * map_noise_scale;
+            let support = self.last_support.map(|(_, n)| n);
+            let nu = self.map.novelty(&e.world_from_cam);
+            map_noise_scale = self.map.noise.support_scale(support) * self.map.noise.novelty_weight(Some(nu));
+            e.covariance += self.map.noise.covariance_at(support, Some(nu));
+            novelty = Some(nu);
         }
         self.last_timestamp = Some(frame.timestamp);
         timings.motion_fusion_ms = ms(t);
         timings.total_ms = ms(start);
-        Ok(Localization { estimate, source, reason, keyframe, inliers, map_noise_scale, timings })
+        Ok(Localization { estimate, source, reason, keyframe, inliers, map_noise_scale, novelty, timings })
     }
 
     /// Retrieval and the geometric locator. A map fused with a network is asked for its bag

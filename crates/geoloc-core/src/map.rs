@@ -148,6 +148,30 @@ pub struct MapNoise {
     /// ([`noise::resolved_axes`]), kept in the map file so that a loaded map says what the
     /// built one did; None when they could not estimate it (or a file saved before it).
     pub resolved: Option<[bool; 6]>,
+    /// The near regime: the map noise of a pose as close to the keyframes as they are to each
+    /// other ([`NearNoise`], [`MapNoise::covariance_at`]); None: C_map at every distance (no
+    /// keyframe pose covariances, C_map the default, or a file saved before it).
+    pub near: Option<NearNoise>,
+}
+
+/// The map noise near the keyframes ([`noise`], "the near regime"): a query the distance ν
+/// ([`noise::pose_distance`]: 10 cm or 5° count 1) from its nearest keyframe gets
+///
+///   C(ν) = (1 − w) C_near + w C_map,  w = clamp((ν − ν₀) / (ν₁ − ν₀), 0, 1),
+///
+/// C_near the keyframe poses' own variance, ν₀ the keyframes' median spacing and ν₁ the least
+/// distance of a held-out keyframe C_map was measured from.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct NearNoise {
+    /// C_near: diagonal, per axis the median variance of the keyframe poses in the labels'
+    /// frame ([`LabelAdjustment::pose_variance`], or the given pose covariances of a map that
+    /// keeps its labels), at most C_map's.
+    pub covariance: Matrix6<f64>,
+    /// ν₀: the median distance of a keyframe from its nearest other keyframe.
+    pub spacing: f64,
+    /// ν₁: the least distance, among C_map's held-out keyframes, of a held-out keyframe from
+    /// the keyframes its re-localization kept (> ν₀).
+    pub holdout_distance: f64,
 }
 
 impl MapNoise {
@@ -171,6 +195,29 @@ impl MapNoise {
         match inliers {
             Some(n) if n > 0 && self.holdout_inliers > n as f64 => self.holdout_inliers / n as f64,
             _ => 1.0,
+        }
+    }
+
+    /// w(ν) of [`NearNoise`]: the weight of C_map in the map noise of a pose at distance
+    /// `novelty` from its nearest keyframe (1 without a near regime or a distance).
+    pub fn novelty_weight(&self, novelty: Option<f64>) -> f64 {
+        match (self.near, novelty) {
+            (Some(near), Some(v)) => ((v - near.spacing) / (near.holdout_distance - near.spacing)).clamp(0.0, 1.0),
+            _ => 1.0,
+        }
+    }
+
+    /// The map noise of a pose resting on `inliers` PnP inliers at distance `novelty`
+    /// ([`noise::pose_distance`]) from its nearest keyframe: (1 − w) C_near + w C_map·max(1, n̄/n)
+    /// (w = [`MapNoise::novelty_weight`], C_map's support scaling as
+    /// [`MapNoise::pose_covariance_at`]); C_map at the support alone without a near regime or
+    /// a distance.
+    pub fn covariance_at(&self, inliers: Option<usize>, novelty: Option<f64>) -> Matrix6<f64> {
+        let w = self.novelty_weight(novelty);
+        let far = self.pose_covariance_at(inliers) * w;
+        match self.near {
+            Some(near) if w < 1.0 => far + near.covariance * (1.0 - w),
+            _ => far,
         }
     }
 
@@ -201,6 +248,8 @@ pub struct HoldoutSample {
     pub inliers: usize,
     /// Whether the C_map estimate used it (all do, unless there were too few for one).
     pub used: bool,
+    /// Its distance from the keyframes its re-localization kept ([`noise::pose_distance`]).
+    pub novelty: f64,
 }
 
 /// How to build the retrieval structure.

@@ -218,9 +218,26 @@ impl FeatureMap {
         Ok((c, list(&n.acceleration_psd), mean, variance, n.holdout_samples, n.holdout_inliers))
     }
 
-    /// C_map at a pose's support: C_map·max(1, n̄/inliers) (unscaled for None).
-    fn map_noise_at<'py>(&self, py: Python<'py>, inliers: Option<usize>) -> PyResult<Bound<'py, PyArray2<f64>>> {
-        square(py, &self.inner.noise.pose_covariance_at(inliers))
+    /// The map noise at a pose's support and distance from the keyframes:
+    /// (1 − w) C_near + w C_map·max(1, n̄/inliers) (the core's `MapNoise::covariance_at`).
+    #[pyo3(signature = (inliers, novelty=None))]
+    fn map_noise_at<'py>(
+        &self,
+        py: Python<'py>,
+        inliers: Option<usize>,
+        novelty: Option<f64>,
+    ) -> PyResult<Bound<'py, PyArray2<f64>>> {
+        if novelty.is_some_and(|v| !(v.is_finite() && v >= 0.0)) {
+            return Err(invalid("novelty", "must be finite and ≥ 0"));
+        }
+        square(py, &self.inner.noise.covariance_at(inliers, novelty))
+    }
+
+    /// The near regime of the map noise: (C_near (6, 6), ν₀ spacing, ν₁ held-out distance), or None.
+    #[getter]
+    #[allow(clippy::type_complexity)]
+    fn map_noise_near<'py>(&self, py: Python<'py>) -> PyResult<Option<(Bound<'py, PyArray2<f64>>, f64, f64)>> {
+        self.inner.noise.near.map(|n| Ok((square(py, &n.covariance)?, n.spacing, n.holdout_distance))).transpose()
     }
 
     /// The build's held-out re-localizations: (keyframes, δ (n, 6), C_G (n, 6, 6), inliers, used).
@@ -229,14 +246,16 @@ impl FeatureMap {
     fn map_noise_holdout<'py>(
         &self,
         py: Python<'py>,
-    ) -> (Vec<usize>, Bound<'py, PyArray2<f64>>, Bound<'py, numpy::PyArray3<f64>>, Vec<usize>, Vec<bool>) {
+    ) -> (Vec<usize>, Bound<'py, PyArray2<f64>>, Bound<'py, numpy::PyArray3<f64>>, Vec<usize>, Vec<bool>, Vec<f64>)
+    {
         let h = &self.inner.noise.holdout;
         let deltas: Vec<_> = h.iter().map(|s| s.delta.transpose()).collect();
         let covs: Vec<_> = h.iter().map(|s| s.covariance).collect();
         let keyframes = h.iter().map(|s| s.keyframe).collect();
         let inliers = h.iter().map(|s| s.inliers).collect();
         let used = h.iter().map(|s| s.used).collect();
-        (keyframes, matrices_to_array(py, &deltas), matrices_to_array3(py, &covs), inliers, used)
+        let novelty = h.iter().map(|s| s.novelty).collect();
+        (keyframes, matrices_to_array(py, &deltas), matrices_to_array3(py, &covs), inliers, used, novelty)
     }
 
     /// Where C_map came from and the support it was measured at, in words (the core's wording).
@@ -327,10 +346,16 @@ impl Localization {
         self.inner.inliers
     }
 
-    /// The factor on the map's C_map inside `covariance` (≥ 1; 1 when unscaled or lost).
+    /// The factor on the map's C_map inside `covariance`: w·max(1, n̄/n) (1 when lost).
     #[getter]
     fn map_noise_scale(&self) -> f64 {
         self.inner.map_noise_scale
+    }
+
+    /// ν: the pose's distance from the nearest keyframe (10 cm or 5° = 1), None when lost.
+    #[getter]
+    fn novelty(&self) -> Option<f64> {
+        self.inner.novelty
     }
 
     /// Milliseconds per stage: retrieval, keyframes, map_points, matching, pnp, motion_fusion, total.

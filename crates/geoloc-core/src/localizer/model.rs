@@ -211,9 +211,9 @@ pub(super) fn widened_to_hold(estimate: &Estimate, other: &Estimate) -> Estimate
 }
 
 /// Step 9's scale of a keyframe's distance from the pose in translation (m) ...
-pub const NEAREST_SCALE_M: f64 = 0.1;
-/// ... and in rotation (degrees): 10 cm count as much as 5°.
-pub const NEAREST_SCALE_DEG: f64 = 5.0;
+pub const NEAREST_SCALE_M: f64 = crate::map::noise::POSE_DISTANCE_SCALE_M;
+/// ... and in rotation (degrees): 10 cm count as much as 5° ([`crate::map::noise::pose_distance`]).
+pub const NEAREST_SCALE_DEG: f64 = crate::map::noise::POSE_DISTANCE_SCALE_DEG;
 
 /// Of the answer from the retrieved keyframes and the one from the keyframes nearest it (step
 /// 9): the first when the second is refused; the one with more inliers (ties: the first) when

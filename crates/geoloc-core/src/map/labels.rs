@@ -33,6 +33,14 @@ pub struct LabelAdjustment {
     pub corrections: Vec<Vector6<f64>>,
     /// Per keyframe: e_kᵀ Σ_k⁻¹ e_k with Σ_k the adjusted label pose's marginal covariance.
     pub significance: Vec<f64>,
+    /// Per twist axis (translation first), the median over the keyframes of the variance of
+    /// the adjusted label pose B_k as a perturbation of the camera pose T_k = B_k X with X
+    /// held fixed: diag(Ad_{X⁻¹} Σ_k Ad_{X⁻¹}ᵀ) (B_k exp(ε) X = T_k exp(Ad_{X⁻¹} ε)). How well
+    /// the map's poses are known in the labels' frame, without the offset's own uncertainty
+    /// (which a result in the labels' convention, T X⁻¹, does not carry): the map noise of a
+    /// query as close to the keyframes as they are to each other
+    /// ([`crate::map::noise`], the near regime). Zero in files saved before it.
+    pub pose_variance: Vector6<f64>,
     /// The labels' σ the adjustment used.
     pub label_sigma: LabelSigma,
     /// τ of the label corrections (translation, rotation; keyframes): how many neighbouring
@@ -79,6 +87,7 @@ impl LabelAdjustment {
     ) -> Self {
         let (corrections, significance) =
             labels.iter().zip(adjusted).zip(covariances).map(|((l, b), c)| correction(l, b, c)).unzip();
+        let pose_variance = camera_frame_variance(&adjustment.offset, covariances);
         let used = adjustment.inliers.iter().filter(|i| **i).count();
         Self {
             labels,
@@ -86,6 +95,7 @@ impl LabelAdjustment {
             offset_covariance: adjustment.offset_covariance,
             corrections,
             significance,
+            pose_variance,
             label_sigma: adjustment.label_sigma,
             correlation_keyframes: adjustment.correlation_keyframes,
             rms_px: adjustment.rms_px,
@@ -239,9 +249,50 @@ impl LabelAdjustment {
     }
 }
 
+/// Per twist axis, the median over `covariances` (of label poses B_k, right perturbation) of
+/// the variance of the camera pose T_k = B_k X they imply with X = `offset` fixed:
+/// diag(Ad_{X⁻¹} Σ_k Ad_{X⁻¹}ᵀ) ([`LabelAdjustment::pose_variance`]); zero for none.
+pub(crate) fn camera_frame_variance(offset: &SE3, covariances: &[Matrix6<f64>]) -> Vector6<f64> {
+    let a = offset.inverse().adjoint();
+    Vector6::from_fn(|axis, _| {
+        let mut v: Vec<f64> = covariances.iter().map(|c| (a * c * a.transpose())[(axis, axis)].max(0.0)).collect();
+        median(&mut v, EvenMedian::Mean).unwrap_or(0.0)
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The camera-frame variance against a finite-difference Jacobian of ε ↦ log(T⁻¹ B exp(ε) X)
+    /// (T = B X), pushed through each covariance, then the median per axis.
+    #[test]
+    fn the_pose_variance_is_the_label_covariance_seen_from_the_camera() {
+        let mut rng = crate::testing::SplitMix64::new(9);
+        let x = SE3::exp(&rng.twist(0.3, 0.2));
+        let b = SE3::exp(&rng.twist(1.0, 2.0));
+        let t = b * x;
+        let h = 1e-6;
+        let j = nalgebra::Matrix6::from_fn(|r, c| {
+            let e = Vector6::from_fn(|i, _| if i == c { h } else { 0.0 });
+            let plus = (t.inverse() * b * SE3::exp(&e) * x).log();
+            let minus = (t.inverse() * b * SE3::exp(&(-e)) * x).log();
+            (plus[r] - minus[r]) / (2.0 * h)
+        });
+        let covariances: Vec<Matrix6<f64>> = (1..=5)
+            .map(|k| {
+                let m = Matrix6::from_fn(|r, c| ((r * 7 + c * 3 + k) % 5) as f64 * 1e-4);
+                m * m.transpose() + Matrix6::identity() * (k as f64) * 1e-5
+            })
+            .collect();
+        let got = camera_frame_variance(&x, &covariances);
+        for axis in 0..6 {
+            let mut v: Vec<f64> = covariances.iter().map(|c| (j * c * j.transpose())[(axis, axis)]).collect();
+            v.sort_by(f64::total_cmp);
+            assert!((got[axis] - v[2]).abs() < 1e-6 * v[2], "axis {axis}: {} vs {}", got[axis], v[2]);
+        }
+        assert_eq!(camera_frame_variance(&x, &[]), Vector6::zeros());
+    }
 
     fn record(significance: Vec<f64>) -> LabelAdjustment {
         let n = significance.len();
@@ -251,6 +302,7 @@ mod tests {
             offset_covariance: Matrix6::identity(),
             corrections: (0..n).map(|k| Vector6::new(0.01 * k as f64, 0.0, 0.0, 0.0, 0.0, 0.001)).collect(),
             significance,
+            pose_variance: Vector6::zeros(),
             label_sigma: LabelSigma { translation_m: 0.01, rotation_rad: 0.01 },
             correlation_keyframes: (1.0, 1.0),
             rms_px: (1.0, 1.0),

@@ -163,6 +163,9 @@ pub struct LabelsHeader {
     /// Whether the map uses the adjustment (false: the images agreed with the labels).
     #[serde(default = "applied")]
     pub applied: bool,
+    /// [`LabelAdjustment::pose_variance`] (6 values; absent in files saved before it: zero).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub pose_variance: Vec<f64>,
 }
 
 fn applied() -> bool {
@@ -183,6 +186,7 @@ impl LabelsHeader {
             observations: [l.observations.0, l.observations.1],
             correlation_keyframes: [l.correlation_keyframes.0, l.correlation_keyframes.1],
             applied: l.applied,
+            pose_variance: l.pose_variance.iter().copied().collect(),
         }
     }
 
@@ -198,6 +202,14 @@ impl LabelsHeader {
         if !(t.is_finite() && t > 0.0 && r.is_finite() && r > 0.0) {
             return Err(format_error("labels.label_sigma: must be finite and > 0"));
         }
+        let pose_variance = match self.pose_variance.len() {
+            0 => Vector6::zeros(),
+            6 => Vector6::from_column_slice(&self.pose_variance),
+            n => return Err(format_error(format!("labels.pose_variance: expected 6 values, got {n}"))),
+        };
+        if pose_variance.iter().any(|v| !(v.is_finite() && *v >= 0.0)) {
+            return Err(format_error("labels.pose_variance: must be finite and ≥ 0"));
+        }
         let labels = read_pose_array(file, "keyframes.labels", k)?;
         let values = f64_array(file, "keyframes.label_corrections", &[k, 7])?;
         if values.iter().any(|v| !v.is_finite()) {
@@ -211,6 +223,7 @@ impl LabelsHeader {
             offset_covariance,
             corrections,
             significance,
+            pose_variance,
             label_sigma: crate::adjust::LabelSigma { translation_m: t, rotation_rad: r },
             correlation_keyframes: (self.correlation_keyframes[0], self.correlation_keyframes[1]),
             rms_px: (self.rms_px[0], self.rms_px[1]),
@@ -343,6 +356,21 @@ pub struct NoiseHeader {
     /// not estimate it, and in files saved before it).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub resolved: Vec<bool>,
+    /// The near regime ([`crate::map::NearNoise`]): C_near row-major (36 values), ν₀ and ν₁;
+    /// absent without one (and in files saved before it).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub near: Option<NearHeader>,
+}
+
+/// [`crate::map::NearNoise`] in the header.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct NearHeader {
+    /// C_near, row-major (36 values).
+    pub covariance: Vec<f64>,
+    /// ν₀, the keyframes' median spacing.
+    pub spacing: f64,
+    /// ν₁, the held-out keyframes' least distance (> ν₀).
+    pub holdout_distance: f64,
 }
 
 /// Whether n̄ is 0 (then not written).
@@ -360,6 +388,11 @@ impl NoiseHeader {
             holdout_samples: n.holdout_samples,
             holdout_inliers: n.holdout_inliers,
             resolved: n.resolved.map(|r| r.to_vec()).unwrap_or_default(),
+            near: n.near.map(|near| NearHeader {
+                covariance: near.covariance.transpose().iter().copied().collect(),
+                spacing: near.spacing,
+                holdout_distance: near.holdout_distance,
+            }),
         })
     }
 
@@ -395,6 +428,7 @@ impl NoiseHeader {
             6 => Some(std::array::from_fn(|a| self.resolved[a])),
             n => return Err(format_error(format!("map_noise.resolved: expected 6 values, got {n}"))),
         };
+        let near = self.near.as_ref().map(NearHeader::to_near).transpose()?;
         Ok(MapNoise {
             pose_covariance: c,
             acceleration_psd: q,
@@ -403,7 +437,27 @@ impl NoiseHeader {
             holdout_inliers: self.holdout_inliers,
             holdout: vec![],
             resolved,
+            near,
         })
+    }
+}
+
+impl NearHeader {
+    /// Checks and converts: 36 finite values of a symmetric PSD C_near, 0 ≤ ν₀ < ν₁ finite.
+    fn to_near(&self) -> Result<crate::map::NearNoise> {
+        if self.covariance.len() != 36 {
+            return Err(format_error(format!(
+                "map_noise.near.covariance: expected 36 values, got {}",
+                self.covariance.len()
+            )));
+        }
+        let covariance = Matrix6::from_row_slice(&self.covariance);
+        check_covariance("map_noise.near.covariance", &covariance).map_err(as_format)?;
+        let (spacing, far) = (self.spacing, self.holdout_distance);
+        if !(spacing.is_finite() && far.is_finite() && 0.0 <= spacing && spacing < far) {
+            return Err(format_error("map_noise.near: needs finite 0 ≤ spacing < holdout_distance"));
+        }
+        Ok(crate::map::NearNoise { covariance, spacing, holdout_distance: far })
     }
 }
 
@@ -1111,6 +1165,11 @@ mod tests {
             holdout_inliers: 312.5,
             holdout: vec![],
             resolved: Some([true, false, true, true, false, true]),
+            near: Some(crate::map::NearNoise {
+                covariance: Matrix6::from_diagonal(&Vector6::new(4e-5, 3e-5, 2e-5, 1e-5, 2e-5, 3e-5)),
+                spacing: 0.125,
+                holdout_distance: 1.75,
+            }),
         };
         let file = original.to_map_file("{}").expect("serializes");
         let (back, header) = Map::from_map_file(&file).expect("valid");
@@ -1154,6 +1213,35 @@ mod tests {
         let (back, _) = Map::from_map_file(&old_noise).expect("valid");
         assert!(back.noise.velocity_prior.is_none());
         assert_eq!(back.noise.acceleration_psd, original.noise.acceleration_psd);
+        // the near regime: absent in an older file (C_map at every distance), checked when present
+        let header: serde_json::Value = serde_json::from_str(&file.header).expect("json");
+        let with_near = |edit: &dyn Fn(&mut serde_json::Value)| {
+            let mut h = header.clone();
+            edit(&mut h["map_noise"]);
+            let mut f = file.clone();
+            f.header = h.to_string();
+            Map::from_map_file(&f)
+        };
+        let back = with_near(&|n| {
+            n.as_object_mut().expect("object").remove("near");
+        })
+        .expect("an older file")
+        .0;
+        assert_eq!(back.noise.near, None);
+        assert_eq!(back.noise.covariance_at(Some(400), Some(0.0)), a);
+        for (what, edit) in [
+            (
+                "near.covariance",
+                &(|n: &mut serde_json::Value| n["near"]["covariance"][0] = (-1.0).into())
+                    as &dyn Fn(&mut serde_json::Value),
+            ),
+            ("near.covariance", &|n| n["near"]["covariance"] = serde_json::json!([1.0])),
+            ("map_noise.near", &|n| n["near"]["spacing"] = 2.0.into()),
+            ("map_noise.near", &|n| n["near"]["spacing"] = (-0.1).into()),
+        ] {
+            let err = with_near(edit).expect_err(what).to_string();
+            assert!(err.contains(what), "{what}: {err}");
+        }
     }
 
     /// A stored model comes back exactly (re-saved bytes identical); a map without one
