@@ -13,9 +13,10 @@ NEES, sources; and the map's estimated noise (√diag C_map, acceleration PSD).
 
 ``--near-path`` adds queries beside the mapped path, as a robot or a phone meets them in a
 mapped room: every 10th frame of 0–699 (5, 15, …, 695) against a map of the other 630
-(``near path``; not pooled with the folds). The folds' queries lie 2.4–8.6 from their
-nearest training keyframe in ``Localization.novelty``'s units (10 cm or 5° = 1), these about
-0.1: they carry the map's near-regime noise, the folds' C_map (``Map.map_noise["near"]``).
+(``near path``; not pooled with the folds). The folds' queries lie 1.35–6.3 from their
+nearest training keyframe in ``Localization.novelty``'s units (10 cm or 5° = 1), these
+0.01–0.27: they carry the map's near-regime noise, the folds' mostly C_map
+(``Map.map_noise["near"]``; the "near regime" line of each evaluation).
 
 ``--keep-labels`` builds every map on the labels as they are (by default ``Map.build``
 corrects them by bundle adjustment); with the
