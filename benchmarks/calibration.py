@@ -158,7 +158,7 @@ def evaluate(
     out["map_noise"]["pose_covariance_labels"] = (adjoint @ noise["pose_covariance"] @ adjoint.T).tolist()
     out["label_from_cam"] = label_from_cam.tolist()
     for mode in ("single", "sequential"):
-        results = geoloc.Localizer(m, locator=locator, global_descriptor=network).localize_sequence(test, mode)
+        results = geoloc.Localizer(m, locator=locator, global_descriptor=network).localize_sequence(test, mode)  # type: ignore[arg-type]
         if gt_reference is not None:
             ref = summarize_results(results, gt_reference)
             ref.pop("per_frame", None)
@@ -252,7 +252,7 @@ def sign_test(k: int, m: int) -> float:
     if n == 0:
         return 1.0
     tail = sum(math.comb(n, i) for i in range(min(k, m) + 1))
-    return min(1.0, 2 * tail / 2**n)
+    return min(1.0, float(2 * tail / 2**n))
 
 
 #: Factors s on C_map at which ``calibration.py`` prints each fold's coverage (and the folds' pooled one).

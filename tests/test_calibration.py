@@ -153,7 +153,9 @@ def test_a_pose_beside_the_keyframes_carries_their_variance_not_c_map(
     keyframes = m.camera_poses
     spacing = [np.sort(pose_distances(k, keyframes))[1] for k in keyframes]
     assert near["spacing"] == pytest.approx(np.median(spacing), rel=1e-9)
-    sigma_m, sigma_deg = m.labels["label_sigma_m"], m.labels["label_sigma_deg"]
+    labels = m.labels
+    assert labels is not None
+    sigma_m, sigma_deg = labels["label_sigma_m"], labels["label_sigma_deg"]
     want = np.minimum(np.r_[[sigma_m**2] * 3, [np.radians(sigma_deg) ** 2] * 3], np.diag(noise["pose_covariance"]))
     np.testing.assert_allclose(np.diag(near["covariance"]), want, rtol=1e-12)
     c, c_near, n_bar = noise["pose_covariance"], near["covariance"], noise["holdout_inliers"]
