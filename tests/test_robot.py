@@ -226,10 +226,12 @@ def test_geoloc_rs_gives_the_python_localizers_bits_on_7scenes(geoloc_rs: Path, 
     print("\n" + result.stderr)
     _assert_bit_identical(_parse(result.stdout), _python_lines(map_path, queries))
     # --camera-pose: the camera's own pose (Python's camera_pose, bit for bit), and the
-    # covariance C_cam with C_label = Ad_X C_cam Ad_Xᵀ, X = T_label⁻¹ T_cam (the map's offset)
+    # covariance C_cam = Ad_{X⁻¹} C_label Ad_{X⁻¹}ᵀ + Σ_X, X = T_label⁻¹ T_cam (the map's offset),
+    # Σ_X one matrix for every frame, its σ those the label report gives for the offset
     camera = _parse(_localize(geoloc_rs, map_path, frames, "--threads", "1", "--camera-pose").stdout)
-    loc = geoloc.Localizer(geoloc.Map.load(map_path))
-    apart = []
+    loaded = geoloc.Map.load(map_path)
+    loc = geoloc.Localizer(loaded)
+    apart, offsets = [], []
     for i, ((values, source), (label_values, _)) in enumerate(zip(camera, _parse(result.stdout))):
         r = loc.localize(queries.gray(i), float(queries.timestamps[i]))
         assert source == r.source
@@ -241,10 +243,16 @@ def test_geoloc_rs_gives_the_python_localizers_bits_on_7scenes(geoloc_rs: Path, 
         c_cam = np.zeros((6, 6))
         c_cam[UPPER] = values[8:]
         c_cam = c_cam + np.triu(c_cam, 1).T
-        ad = lie.se3_adjoint(x)
-        np.testing.assert_allclose(ad @ c_cam @ ad.T, r.covariance, rtol=1e-9, atol=1e-15)
+        ad_inv = lie.se3_adjoint(lie.se3_inverse(x))
+        offsets.append(c_cam - ad_inv @ r.covariance @ ad_inv.T)
         apart.append(np.linalg.norm(x[:3, 3]))
     assert apart and min(apart) > 0.05, apart  # the labels track the depth camera, ≈ 17 cm away
+    labels = loaded.labels
+    assert labels is not None
+    sigma = np.r_[labels["label_from_cam_translation_sigma_m"], np.radians(labels["label_from_cam_rotation_sigma_deg"])]
+    for sigma_x in offsets:
+        np.testing.assert_allclose(sigma_x, offsets[0], rtol=1e-6, atol=1e-12)
+        np.testing.assert_allclose(np.sqrt(np.diag(sigma_x)), sigma, rtol=1e-6)
 
 
 # ------------------------------------------------------------------ bad input

@@ -87,9 +87,10 @@ pub struct Args {
     /// Model locator: keyframes retrieved.
     #[arg(long, default_value_t = LocalizerOptions::default().top_k)]
     top_k: usize,
-    /// Write the camera's own pose and its covariance; by default both are in the convention
-    /// of the map's pose labels, as geoloc.Localizer returns them (they differ by the
-    /// label-to-camera offset the map estimated; `geoloc-rs info` shows it).
+    /// Write the camera's own pose and its covariance (which adds the label-to-camera offset's
+    /// uncertainty); by default both are in the convention of the map's pose labels, as
+    /// geoloc.Localizer returns them (they differ by the offset the map estimated; `geoloc-rs
+    /// info` shows it).
     #[arg(long)]
     camera_pose: bool,
 }
@@ -226,7 +227,7 @@ fn localize_frames(
         let result = localizer.localize(&frame).map_err(|e| format!("{}: frame {index}: {e}", shown(&args.input)))?;
         // in the labels' convention, as the Python Localizer returns it, unless the camera's
         // own pose is asked for
-        let result = if args.camera_pose { result } else { map.to_label_convention(result) };
+        let result = if args.camera_pose { map.to_camera_convention(result) } else { map.to_label_convention(result) };
         write_line(out, &output::line(record.timestamp, &result)).map_err(write_err)?;
         stats.push(result.timings, result.source);
     }

@@ -594,6 +594,16 @@ impl Map {
         }
     }
 
+    /// A localization against this map as the camera's own pose, with the label-to-camera
+    /// offset's covariance added ([`LabelAdjustment::localization_to_camera`]; unchanged when
+    /// the map did not apply a labels' adjustment).
+    pub fn to_camera_convention(&self, localization: crate::localizer::Localization) -> crate::localizer::Localization {
+        match &self.labels {
+            Some(l) => l.localization_to_camera(localization),
+            None => localization,
+        }
+    }
+
     /// A localization against this map in the labels' convention (unchanged when the map did
     /// not apply a labels' adjustment).
     pub fn to_label_convention(&self, localization: crate::localizer::Localization) -> crate::localizer::Localization {

@@ -143,6 +143,21 @@ impl LabelAdjustment {
         l
     }
 
+    /// A localization as the camera's own pose with the offset's uncertainty: T = (T X⁻¹) X,
+    /// so δT = Ad_{X⁻¹} δL + δ_X and the camera pose carries C + Σ_X. The localizer's C holds
+    /// the map noise a result in the labels' convention carries — near the keyframes the
+    /// label poses' own variance, which leaves the offset's error out — so the camera's pose,
+    /// which the offset's error moves, adds Σ_X (beyond the keyframes C_map's floor may hold
+    /// part of it already: conservative there). Unchanged when the adjustment is not applied.
+    pub fn localization_to_camera(&self, mut l: crate::localizer::Localization) -> crate::localizer::Localization {
+        if self.applied
+            && let Some(e) = &mut l.estimate
+        {
+            e.covariance += self.offset_covariance;
+        }
+        l
+    }
+
     /// One line for people: σ, τ, the offset, the median correction, the runs.
     pub fn summary(&self) -> String {
         let (mt, mr) = self.median_correction();
@@ -352,6 +367,29 @@ mod tests {
         assert_eq!(got, want);
         let run = record(s).runs()[1];
         assert!((run.max_translation_m - 0.11).abs() < 1e-12);
+    }
+
+    /// The camera's pose carries the offset's covariance on top: C + Σ_X when applied, C when not.
+    #[test]
+    fn the_camera_pose_adds_the_offsets_covariance() {
+        let c = Matrix6::from_fn(|r, k| 1e-4 / (1.0 + (r + k) as f64)) + Matrix6::identity() * 1e-3;
+        let localization = |c| crate::localizer::Localization {
+            estimate: Some(crate::localizer::Estimate { world_from_cam: SE3::identity(), covariance: c }),
+            source: crate::localizer::Source::Geometric,
+            reason: String::new(),
+            keyframe: 0,
+            inliers: 10,
+            map_noise_scale: 1.0,
+            novelty: Some(0.5),
+            timings: crate::localizer::Timings::default(),
+        };
+        let mut r = record(vec![0.0]);
+        r.offset_covariance = Matrix6::from_diagonal(&Vector6::new(4e-4, 1e-4, 9e-4, 1e-6, 4e-6, 1e-6));
+        let got = r.localization_to_camera(localization(c)).estimate.expect("estimate");
+        assert_eq!(got.covariance, c + r.offset_covariance);
+        r.applied = false;
+        let kept = r.localization_to_camera(localization(c)).estimate.expect("estimate");
+        assert_eq!(kept.covariance, c);
     }
 
     /// to_label and covariance_to_label agree with a perturbation pushed through T X⁻¹.
