@@ -451,13 +451,8 @@ mod map_tests {
         let back = Map::from_map_file(&file).expect("loads").0;
         assert_eq!(back.labels, adjusted.labels);
         // a damaged record is refused with the field or array named
-        let header: serde_json::Value = serde_json::from_str(&file.header).expect("json");
         let damaged = |edit: &dyn Fn(&mut serde_json::Value)| {
-            let mut h = header.clone();
-            edit(&mut h["labels"]);
-            let mut f = file.clone();
-            f.header = h.to_string();
-            Map::from_map_file(&f).expect_err("damaged labels").to_string()
+            crate::map::persist::read_with_edited_header(&file, "labels", edit).expect_err("damaged labels").to_string()
         };
         let err = damaged(&|l| l["label_from_cam"][1] = 0.5.into());
         assert!(err.contains("labels.label_from_cam"), "{err}");

@@ -83,11 +83,16 @@ pub fn pose_distance(a: &SE3, b: &SE3) -> f64 {
     t.hypot(r)
 }
 
+/// The least [`pose_distance`] from `pose` to any of `others` (∞ for none).
+fn nearest_distance<'a>(pose: &SE3, others: impl IntoIterator<Item = &'a SE3>) -> f64 {
+    others.into_iter().map(|o| pose_distance(o, pose)).fold(f64::INFINITY, f64::min)
+}
+
 impl Map {
     /// ν of `world_from_cam`: its [`pose_distance`] from the nearest keyframe (∞ for a map
     /// without keyframes).
     pub fn novelty(&self, world_from_cam: &SE3) -> f64 {
-        self.keyframes.iter().map(|k| pose_distance(&k.world_from_cam, world_from_cam)).fold(f64::INFINITY, f64::min)
+        nearest_distance(world_from_cam, self.keyframes.iter().map(|k| &k.world_from_cam))
     }
 }
 
@@ -222,10 +227,8 @@ fn holdout_residuals(map: &Map, loc: &mut Localizer, options: &NoiseOptions) -> 
         let delta = (map.keyframes[k].world_from_cam.inverse() * estimate.world_from_cam).log();
         let rotation = delta.fixed_rows::<3>(3).norm();
         if delta.fixed_rows::<3>(0).norm() <= options.max_error_m && rotation <= options.max_error_rad {
-            let kept = (0..n).filter(|j| !excluded.contains(j));
-            let novelty = kept
-                .map(|j| pose_distance(&map.keyframes[j].world_from_cam, &map.keyframes[k].world_from_cam))
-                .fold(f64::INFINITY, f64::min);
+            let kept = (0..n).filter(|j| !excluded.contains(j)).map(|j| &map.keyframes[j].world_from_cam);
+            let novelty = nearest_distance(&map.keyframes[k].world_from_cam, kept);
             samples.push(HoldoutSample {
                 keyframe: k,
                 delta,
@@ -313,12 +316,7 @@ fn near_noise(map: &Map, samples: &[HoldoutSample], c_map: &Matrix6<f64>) -> Opt
 fn keyframe_spacing(map: &Map) -> Option<f64> {
     let poses = map.poses();
     let mut nearest: Vec<f64> = (0..poses.len())
-        .map(|k| {
-            (0..poses.len())
-                .filter(|&j| j != k)
-                .map(|j| pose_distance(&poses[k], &poses[j]))
-                .fold(f64::INFINITY, f64::min)
-        })
+        .map(|k| nearest_distance(&poses[k], poses.iter().enumerate().filter(|&(j, _)| j != k).map(|(_, p)| p)))
         .filter(|d| d.is_finite())
         .collect();
     median(&mut nearest, EvenMedian::Mean)

@@ -950,6 +950,21 @@ fn read_vocabulary(file: &MapFile) -> Result<VocabularyArrays> {
     })
 }
 
+/// `file` with its header's `section` (e.g. `"labels"`, `"map_noise"`) changed by `edit`,
+/// read back: how the tests damage one field of a stored record.
+#[cfg(test)]
+pub(crate) fn read_with_edited_header(
+    file: &MapFile,
+    section: &str,
+    edit: &dyn Fn(&mut serde_json::Value),
+) -> Result<(Map, MapHeader)> {
+    let mut header: serde_json::Value = serde_json::from_str(&file.header).expect("the header is JSON");
+    edit(&mut header[section]);
+    let mut edited = file.clone();
+    edited.header = header.to_string();
+    Map::from_map_file(&edited)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -1214,14 +1229,7 @@ mod tests {
         assert!(back.noise.velocity_prior.is_none());
         assert_eq!(back.noise.acceleration_psd, original.noise.acceleration_psd);
         // the near regime: absent in an older file (C_map at every distance), checked when present
-        let header: serde_json::Value = serde_json::from_str(&file.header).expect("json");
-        let with_near = |edit: &dyn Fn(&mut serde_json::Value)| {
-            let mut h = header.clone();
-            edit(&mut h["map_noise"]);
-            let mut f = file.clone();
-            f.header = h.to_string();
-            Map::from_map_file(&f)
-        };
+        let with_near = |edit: &dyn Fn(&mut serde_json::Value)| read_with_edited_header(&file, "map_noise", edit);
         let back = with_near(&|n| {
             n.as_object_mut().expect("object").remove("near");
         })
