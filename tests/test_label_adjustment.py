@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from geoloc import Localizer, Map, datasets
+from geoloc import Localizer, Map, datasets, lie
 from geoloc.datasets import Sequence
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -68,6 +68,21 @@ def test_the_labels_record_survives_the_file_and_results_keep_the_labels_convent
     camera_poses = back.camera_poses
     expected = np.linalg.inv(back.keyframe_poses[0]) @ camera_poses[0]
     np.testing.assert_allclose(offset, expected, atol=1e-9)
+    # the camera pose's covariance: the labels' one moved by the offset, plus the offset's own
+    assert result.covariance is not None and result.camera_covariance is not None
+    ad_inv = lie.se3_adjoint(lie.se3_inverse(offset))
+    sigma_x = result.camera_covariance - ad_inv @ result.covariance @ ad_inv.T
+    if report["applied"]:
+        sigma = np.r_[report["label_from_cam_translation_sigma_m"], np.radians(report["label_from_cam_rotation_sigma_deg"])]
+        assert sigma.min() > 0
+        np.testing.assert_allclose(np.sqrt(np.diag(sigma_x)), sigma, rtol=1e-6)
+    else:
+        np.testing.assert_allclose(sigma_x, 0.0, atol=1e-15)
+    # labels that are the camera's: the same pose and covariance, bit for bit
+    same = Localizer(plain).localize(full.gray(25), 0.0)
+    assert same.covariance is not None and same.camera_covariance is not None
+    assert same.pose is not None and same.camera_pose is not None
+    assert np.array_equal(same.camera_covariance, same.covariance) and np.array_equal(same.camera_pose, same.pose)
 
 
 @pytest.fixture(scope="module")

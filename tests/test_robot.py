@@ -243,6 +243,8 @@ def test_geoloc_rs_gives_the_python_localizers_bits_on_7scenes(geoloc_rs: Path, 
         c_cam = np.zeros((6, 6))
         c_cam[UPPER] = values[8:]
         c_cam = c_cam + np.triu(c_cam, 1).T
+        assert r.camera_covariance is not None
+        assert np.array_equal(np.array(values[8:]).view(np.uint64), r.camera_covariance[UPPER].view(np.uint64)), i
         ad_inv = lie.se3_adjoint(lie.se3_inverse(x))
         offsets.append(c_cam - ad_inv @ r.covariance @ ad_inv.T)
         apart.append(np.linalg.norm(x[:3, 3]))

@@ -50,7 +50,10 @@ class Localization:
     ``keyframes``, ``map_points``, ``matching``, ``pnp``, ``motion_fusion``; from an image
     also ``decode`` and ``features``; ``total``). When the map adjusted its labels, ``pose`` is
     in the labels' convention (world_from_label, what the sequence's poses were) and
-    ``camera_pose`` is the camera's own world_from_cam; otherwise the two are equal.
+    ``camera_pose`` is the camera's own world_from_cam, with ``camera_covariance`` its 6×6
+    covariance: Ad_{X⁻¹} C Ad_{X⁻¹}ᵀ + Σ_X for the offset X = pose⁻¹ · camera_pose and its
+    covariance Σ_X (``Map.labels``' offset σ); otherwise the two poses and the two
+    covariances are equal.
     ``map_noise_scale`` is the factor on the map's C_map inside ``covariance``: w·max(1, n̄/n)
     for a pose resting on n inliers when the map's held-out keyframes had a median n̄
     (``Map.map_noise["holdout_inliers"]``; a motion-only frame takes the last measurement's
@@ -69,6 +72,7 @@ class Localization:
     camera_pose: NDArray[np.float64] | None = None
     map_noise_scale: float = 1.0
     novelty: float | None = None
+    camera_covariance: NDArray[np.float64] | None = None
 
     @property
     def timings_ms(self) -> dict[str, float]:
@@ -81,7 +85,7 @@ def _from_core(r: Any, timings: dict[str, float] | None = None) -> Localization:
     stages = dict(timings or {})
     stages.update(r.timings_ms)
     return Localization(r.pose, r.covariance, r.source, r.reason, r.keyframe, r.inliers, stages, r.camera_pose,
-                        r.map_noise_scale, r.novelty)
+                        r.map_noise_scale, r.novelty, r.camera_covariance)
 
 
 class Localizer:

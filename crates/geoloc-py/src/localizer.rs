@@ -287,7 +287,8 @@ impl FeatureMap {
 #[pyclass(module = "geoloc._core", frozen, name = "Localization")]
 pub struct Localization {
     inner: CoreLocalization,
-    /// The camera pose (world_from_cam), when the map's labels sit on another frame.
+    /// The camera pose (world_from_cam) and its covariance, when the map's labels sit on
+    /// another frame.
     camera: Option<geoloc_core::localizer::Estimate>,
 }
 
@@ -306,6 +307,15 @@ impl Localization {
     #[getter]
     fn camera_pose<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyArray2<f64>>>> {
         self.camera.or(self.inner.estimate).map(|e| square(py, &e.world_from_cam.matrix())).transpose()
+    }
+
+    /// The camera pose's 6×6 covariance (right perturbation, translation first):
+    /// Ad_{X⁻¹} C Ad_{X⁻¹}ᵀ + Σ_X for the labels' `covariance` C and the label-to-camera
+    /// offset X with its covariance Σ_X; `covariance` when the labels are the camera's; None
+    /// when lost.
+    #[getter]
+    fn camera_covariance<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyArray2<f64>>>> {
+        self.camera.or(self.inner.estimate).map(|e| square::<6>(py, &e.covariance)).transpose()
     }
 
     /// The pose in the labels' convention (world_from_cam when the labels are the camera's)
@@ -435,7 +445,7 @@ impl FeatureLocalizer {
             .detach(|| self.inner.lock().ok().map(|mut loc| loc.localize(&frame)))
             .ok_or_else(|| invalid("localizer", "a previous call panicked; create a new localizer"))?
             .map_err(to_py_err)?;
-        let camera = inner.estimate;
+        let camera = self.map.to_camera_convention(inner.clone()).estimate;
         let inner = self.map.to_label_convention(inner);
         Ok(Localization { camera: self.map.labels.as_ref().and(camera), inner })
     }
