@@ -76,6 +76,10 @@ def test_the_labels_record_survives_the_file_and_results_keep_the_labels_convent
         sigma = np.r_[report["label_from_cam_translation_sigma_m"], np.radians(report["label_from_cam_rotation_sigma_deg"])]
         assert sigma.min() > 0
         np.testing.assert_allclose(np.sqrt(np.diag(sigma_x)), sigma, rtol=1e-6)
+        # the whole Σ_X, correlations included, is the report's
+        offset_covariance = np.array(report["label_from_cam_covariance"])
+        assert offset_covariance.shape == (6, 6) and np.array_equal(offset_covariance, offset_covariance.T)
+        np.testing.assert_allclose(sigma_x, offset_covariance, rtol=1e-6, atol=1e-9 * float(np.abs(offset_covariance).max()))
     else:
         np.testing.assert_allclose(sigma_x, 0.0, atol=1e-15)
     # labels that are the camera's: the same pose and covariance, bit for bit

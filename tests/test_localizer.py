@@ -206,8 +206,8 @@ def test_a_camera_other_than_the_maps_is_refused_whatever_differs() -> None:
 def test_global_descriptors_are_used_or_refused_never_ignored() -> None:
     """from_features(global_descriptors=G) without retrieval= built a bag-of-words map and
     dropped G; a network given to the localizer of a bag-of-words map ran on every query for
-    nothing. G now makes the map fused (as Map.build with a network), retrieval='bow' with G
-    and a network for a bag-of-words map are refused by name."""
+    nothing. G now makes the map fused (as Map.build with a network), retrieval='bow' with G,
+    a network for a bag-of-words map and a frame's global descriptor for one are refused by name."""
     poses, kps, descs = _tiny_map_inputs()
     plain = {"branching": 2, "depth": 2, "estimate_noise": False, "refine_intrinsics": False, "adjust_labels": False}
     g = np.random.default_rng(5).normal(size=(3, 16)).astype(np.float32)
@@ -218,6 +218,11 @@ def test_global_descriptors_are_used_or_refused_never_ignored() -> None:
     bow = Map.from_features(CAM, poses, kps, descs, **plain)
     with pytest.raises(geoloc.InvalidInputError, match=r"^global_descriptor: this map retrieves by bag of words alone"):
         Localizer(bow, global_descriptor=lambda images: np.zeros((len(images), 16), np.float32), locator="paper")
+    # ... and so is a frame's global descriptor, which that map would drop
+    loc = Localizer(bow, locator="paper")
+    with pytest.raises(geoloc.InvalidInputError, match=r"^global_descriptor: this map retrieves by bag of words alone"):
+        loc.localize_features(0.0, kps[0], descs[0], global_descriptor=g[0])
+    assert isinstance(loc.localize_features(0.0, kps[0], descs[0]), geoloc.Localization)  # without it: accepted
 
 
 def test_a_network_that_misbehaves_is_named_as_the_argument_that_gave_it() -> None:

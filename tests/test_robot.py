@@ -228,7 +228,11 @@ def test_geoloc_rs_gives_the_python_localizers_bits_on_7scenes(geoloc_rs: Path, 
     # --camera-pose: the camera's own pose (Python's camera_pose, bit for bit), and the
     # covariance C_cam = Ad_{X⁻¹} C_label Ad_{X⁻¹}ᵀ + Σ_X, X = T_label⁻¹ T_cam (the map's offset),
     # Σ_X one matrix for every frame, its σ those the label report gives for the offset
-    camera = _parse(_localize(geoloc_rs, map_path, frames, "--threads", "1", "--camera-pose").stdout)
+    camera_out = _localize(geoloc_rs, map_path, frames, "--threads", "1", "--camera-pose").stdout
+    # the header says which pose the file holds
+    assert camera_out.splitlines()[0].endswith("; pose: world_from_cam: the camera's own pose")
+    assert result.stdout.splitlines()[0].endswith("; pose: world_from_cam in the convention of the map's pose labels")
+    camera = _parse(camera_out)
     loaded = geoloc.Map.load(map_path)
     loc = geoloc.Localizer(loaded)
     apart, offsets = [], []
@@ -252,9 +256,11 @@ def test_geoloc_rs_gives_the_python_localizers_bits_on_7scenes(geoloc_rs: Path, 
     labels = loaded.labels
     assert labels is not None
     sigma = np.r_[labels["label_from_cam_translation_sigma_m"], np.radians(labels["label_from_cam_rotation_sigma_deg"])]
+    offset_covariance = np.array(labels["label_from_cam_covariance"])
     for sigma_x in offsets:
         np.testing.assert_allclose(sigma_x, offsets[0], rtol=1e-6, atol=1e-12)
         np.testing.assert_allclose(np.sqrt(np.diag(sigma_x)), sigma, rtol=1e-6)
+        np.testing.assert_allclose(sigma_x, offset_covariance, rtol=1e-6, atol=1e-9 * float(np.abs(offset_covariance).max()))
 
 
 # ------------------------------------------------------------------ bad input

@@ -125,7 +125,12 @@ def test_an_output_that_is_a_fifo_or_ends_in_a_separator_is_refused(tmp_path: Pa
         check_output_path(str(tmp_path / "x") + "/", "out")
     with pytest.raises(geoloc.InvalidInputError, match="^out: the file name .* the folder allows"):
         check_output_path(tmp_path / ("a" * 300 + ".geoloc"), "out")
-    assert sorted(os.listdir(tmp_path)) == ["out.fifo"]
+    # a file where a folder of the path should be: named as such, not as a missing folder
+    (tmp_path / "afile").write_text("x")
+    for path in (tmp_path / "afile" / "map.geoloc", tmp_path / "afile" / "sub" / "map.geoloc"):
+        with pytest.raises(geoloc.InvalidInputError, match=r"^out: '.*afile' is a regular file, not a folder: cannot write"):
+            check_output_path(path, "out")
+    assert sorted(os.listdir(tmp_path)) == ["afile", "out.fifo"]
 
 
 # ------------------------------------------------------------------ outputs that alias inputs

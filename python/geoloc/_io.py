@@ -79,6 +79,18 @@ def _kind(mode: int) -> str:
     return next((what for test, what in _KINDS if test(mode)), "not a regular file")
 
 
+def _not_a_folder_above(folder: Path) -> tuple[Path, str] | None:
+    """The nearest existing path among ``folder`` and its parents, with what it is, when it
+    is not a folder (a file in the way of a path to write); None otherwise."""
+    for p in (folder, *folder.parents):
+        try:
+            mode = os.stat(p).st_mode
+        except OSError:
+            continue
+        return None if stat.S_ISDIR(mode) else (p, "a regular file" if stat.S_ISREG(mode) else _kind(mode))
+    return None
+
+
 def _reason(e: OSError) -> str:
     if e.errno == errno.ENAMETOOLONG:
         return "its name is too long for the file system"
@@ -162,6 +174,10 @@ def check_output_path(path: Any, name: str = "path") -> Path:
     if mode is not None and not stat.S_ISREG(mode):
         raise InvalidInputError(f"{name}: {str(target)!r} is {_kind(mode)}, not a regular file to replace")
     if not parent.is_dir():
+        blocking = _not_a_folder_above(parent)
+        if blocking is not None:
+            where, what = blocking
+            raise InvalidInputError(f"{name}: {str(where)!r} is {what}, not a folder: cannot write {str(target)!r}")
         raise InvalidInputError(f"{name}: folder {str(parent)!r} does not exist (create it first)")
     if not os.access(parent, os.W_OK | os.X_OK):
         raise InvalidInputError(f"{name}: folder {str(parent)!r} is not writable")

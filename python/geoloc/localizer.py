@@ -52,7 +52,7 @@ class Localization:
     in the labels' convention (world_from_label, what the sequence's poses were) and
     ``camera_pose`` is the camera's own world_from_cam, with ``camera_covariance`` its 6×6
     covariance: Ad_{X⁻¹} C Ad_{X⁻¹}ᵀ + Σ_X for the offset X = pose⁻¹ · camera_pose and its
-    covariance Σ_X (``Map.labels``' offset σ); otherwise the two poses and the two
+    covariance Σ_X (``Map.labels["label_from_cam_covariance"]``, a full 6×6); otherwise the two poses and the two
     covariances are equal.
     ``map_noise_scale`` is the factor on the map's C_map inside ``covariance``: w·max(1, n̄/n)
     for a pose resting on n inliers when the map's held-out keyframes had a median n̄
@@ -174,6 +174,7 @@ class Localizer:
         if global_descriptor is not None:
             check_network(global_descriptor, "global_descriptor")
         self._global = global_descriptor
+        self._bow_only = recorded == "bow"
         self._core = _core.FeatureLocalizer(map._core, options=options)
 
     @staticmethod
@@ -233,6 +234,11 @@ class Localizer:
         d = _local_descriptors(descriptors, "descriptors")
         k = keypoint_rows(keypoints, "keypoints", len(d))
         g = None
+        if global_descriptor is not None and self._bow_only:
+            raise InvalidInputError(
+                "global_descriptor: this map retrieves by bag of words alone and would not use it; "
+                "build the map with a network to retrieve by one"
+            )
         if global_descriptor is not None:
             g = np.asarray(global_descriptor)
             if g.ndim != 1:

@@ -358,7 +358,8 @@ class Map:
         (not checked: …)" when no track linked the keyframes), ``label_sigma_m`` /
         ``label_sigma_deg`` (the labels' σ the
         adjustment estimated), the label-to-camera offset (``label_from_cam_translation_m``,
-        ``label_from_cam_rotation_deg`` and their σ), the median correction, ``rms_px`` (the
+        ``label_from_cam_rotation_deg`` and their σ; ``label_from_cam_covariance``, its full 6×6
+        covariance Σ_X as nested lists, right perturbation, translation first), the median correction, ``rms_px`` (the
         tracks' reprojection error with the labels and after), ``observations`` (used,
         rejected) and ``runs``: consecutive keyframes (≥ 3) whose corrections are significant
         (beyond the χ²₆ 99.9 % quantile of their covariance), with the largest correction."""

@@ -208,7 +208,7 @@ fn localize_frames(
     start: Instant,
 ) -> Result<(), String> {
     let write_err = |e: std::io::Error| format!("--output {}: {e}", shown(&args.output));
-    write_line(out, output::HEADER).map_err(write_err)?;
+    write_line(out, &output::header(args.camera_pose)).map_err(write_err)?;
     let loaded = start.elapsed();
     let loop_start = Instant::now();
     let mut stats = Stats::default();

@@ -1,7 +1,7 @@
 //! The pose lines `geoloc-rs localize` writes.
 //!
 //! ```text
-//! # timestamp tx ty tz qx qy qz qw source cov_upper_21(row-major, right perturbation, translation first)
+//! # timestamp tx ty tz qx qy qz qw source cov_upper_21(row-major, right perturbation, translation first); pose: …
 //! t tx ty tz qx qy qz qw source c11 c12 c13 c14 c15 c16 c22 c23 … c66
 //! ```
 //! The first eight columns are the TUM trajectory format (world_from_cam: the camera centre
@@ -17,9 +17,19 @@ use std::fmt::Write as _;
 
 use geoloc_core::localizer::{Localization, Source};
 
-/// The header comment line (without the newline).
-pub const HEADER: &str =
-    "# timestamp tx ty tz qx qy qz qw source cov_upper_21(row-major, right perturbation, translation first)";
+/// The header comment line (without the newline): the columns, then which pose they hold —
+/// the camera's own (`camera_pose`) or the pose in the convention of the map's labels — so
+/// that a logged file says which frame it is in.
+pub fn header(camera_pose: bool) -> String {
+    let pose = if camera_pose {
+        "world_from_cam: the camera's own pose"
+    } else {
+        "world_from_cam in the convention of the map's pose labels"
+    };
+    format!(
+        "# timestamp tx ty tz qx qy qz qw source cov_upper_21(row-major, right perturbation, translation first); pose: {pose}"
+    )
+}
 
 /// Number of upper-triangle entries of a 6×6 matrix.
 pub const COV_ENTRIES: usize = 21;

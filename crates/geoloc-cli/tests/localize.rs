@@ -182,6 +182,7 @@ fn localize_matches_the_core_in_process_bit_for_bit_from_a_file_and_from_stdin()
         assert!(!hung && out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
         let got = lines(&out);
         assert!(got[0].starts_with("# timestamp tx ty tz qx qy qz qw source cov_upper_21"));
+        assert!(got[0].ends_with("; pose: world_from_cam in the convention of the map's pose labels"), "{}", got[0]);
         assert_eq!(got.len(), 1 + records.len());
         for (line, want) in got[1..].iter().zip(&want) {
             assert_eq!(&parsed_bits(line), want, "{line}");

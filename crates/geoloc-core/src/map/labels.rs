@@ -198,7 +198,8 @@ impl LabelAdjustment {
         }
     }
 
-    /// The report as JSON: σ, offset (translation m, rotation deg, their σ), medians, runs.
+    /// The report as JSON: σ, offset (translation m, rotation deg, their σ, and its full 6×6
+    /// covariance Σ_X: right perturbation of label_from_cam, translation first), medians, runs.
     pub fn report_json(&self) -> serde_json::Value {
         let (mt, mr) = self.median_correction();
         let offset = self.offset.log();
@@ -213,6 +214,9 @@ impl LabelAdjustment {
             "label_from_cam_translation_sigma_m": [sd(0), sd(1), sd(2)],
             "label_from_cam_rotation_deg": se3::phi(&offset).norm().to_degrees(),
             "label_from_cam_rotation_sigma_deg": [sd(3).to_degrees(), sd(4).to_degrees(), sd(5).to_degrees()],
+            "label_from_cam_covariance": (0..6)
+                .map(|i| (0..6).map(|j| self.offset_covariance[(i, j)]).collect::<Vec<_>>())
+                .collect::<Vec<_>>(),
             "median_correction_m": mt,
             "median_correction_deg": mr.to_degrees(),
             "rms_px": [self.rms_px.0, self.rms_px.1],

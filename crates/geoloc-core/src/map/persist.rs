@@ -396,7 +396,8 @@ impl NoiseHeader {
         })
     }
 
-    /// Checks and converts: 36 + 6 finite values, C_map symmetric PSD, q ≥ 0, n̄ finite ≥ 0.
+    /// Checks and converts: 36 + 6 finite values, C_map symmetric PSD, q ≥ 0, n̄ finite ≥ 0, a
+    /// near regime within C_map and not all zero.
     fn to_noise(&self) -> Result<MapNoise> {
         if self.pose_covariance.len() != 36 || self.acceleration_psd.len() != 6 {
             return Err(format_error("map_noise: expected 36 pose_covariance and 6 acceleration_psd values"));
@@ -429,6 +430,20 @@ impl NoiseHeader {
             n => return Err(format_error(format!("map_noise.resolved: expected 6 values, got {n}"))),
         };
         let near = self.near.as_ref().map(NearHeader::to_near).transpose()?;
+        if let Some(n) = &near {
+            // C_near is the keyframe poses' variance capped at C_map per axis, and a map whose
+            // poses have none has no near regime
+            if (0..6).any(|a| n.covariance[(a, a)] > c[(a, a)]) {
+                return Err(format_error(
+                    "map_noise.near.covariance: exceeds pose_covariance on an axis (C_near is capped at C_map)",
+                ));
+            }
+            if (0..6).all(|a| n.covariance[(a, a)] <= 0.0) {
+                return Err(format_error(
+                    "map_noise.near.covariance: all zero (a map without pose variances has none)",
+                ));
+            }
+        }
         Ok(MapNoise {
             pose_covariance: c,
             acceleration_psd: q,
@@ -1244,6 +1259,8 @@ mod tests {
                     as &dyn Fn(&mut serde_json::Value),
             ),
             ("near.covariance", &|n| n["near"]["covariance"] = serde_json::json!([1.0])),
+            ("near.covariance: exceeds", &|n| n["near"]["covariance"][0] = 1.0.into()),
+            ("near.covariance: all zero", &|n| n["near"]["covariance"] = serde_json::Value::from(vec![0.0; 36])),
             ("map_noise.near", &|n| n["near"]["spacing"] = 2.0.into()),
             ("map_noise.near", &|n| n["near"]["spacing"] = (-0.1).into()),
         ] {
