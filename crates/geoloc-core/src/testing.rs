@@ -104,6 +104,22 @@ mod tests {
 /// Bytes of the binary descriptors of a [`LandmarkScene`].
 pub const LANDMARK_DESCRIPTOR_BYTES: usize = 32;
 
+/// A frame of what [`LandmarkScene::observe`] returned, taken at `timestamp`: binary
+/// descriptors of [`LANDMARK_DESCRIPTOR_BYTES`], no global descriptor, the default pixel σ.
+pub fn landmark_frame<'a>(
+    timestamp: f64,
+    keypoints: &'a [nalgebra::Vector2<f64>],
+    data: &'a [u8],
+) -> crate::localizer::Frame<'a> {
+    crate::localizer::Frame {
+        timestamp,
+        keypoints,
+        descriptors: crate::matching::Descriptors::Binary { data, width: LANDMARK_DESCRIPTOR_BYTES },
+        global: None,
+        pixel_sigmas: None,
+    }
+}
+
 /// A field of landmarks at depth 3–6 m in front of the x axis, each with a random binary
 /// descriptor: the simulated scene of the localizer tests (core, calibration, geoloc-rs).
 #[derive(Clone, Debug)]

@@ -6,9 +6,8 @@
 use std::sync::Arc;
 
 use geoloc_core::lie::SE3;
-use geoloc_core::localizer::{Frame, Localizer, LocalizerOptions, Locator, NoiseOptions, Source};
+use geoloc_core::localizer::{Localizer, LocalizerOptions, Locator, NoiseOptions, Source};
 use geoloc_core::map::{DescriptorSet, Keyframe, Map, RetrievalKind};
-use geoloc_core::matching::Descriptors;
 use geoloc_core::stats::chi2::CHI2_6_95;
 use geoloc_core::testing::{self, LandmarkScene, SplitMix64};
 
@@ -77,13 +76,7 @@ fn map_noise_covers_injected_label_noise() {
         let label = truth * SE3::exp(&rng.pose_noise(LABEL_SIGMA_M, LABEL_SIGMA_RAD));
         let (keypoints, data) = world.observe(&mut rng, &truth, 3);
         loc.reset();
-        let frame = Frame {
-            timestamp: t,
-            keypoints: &keypoints,
-            descriptors: Descriptors::Binary { data: &data, width: WIDTH },
-            global: None,
-            pixel_sigmas: None,
-        };
+        let frame = testing::landmark_frame(t, &keypoints, &data);
         let Some(e) = loc.localize(&frame).expect("valid").estimate else { continue };
         let d = (label.inverse() * e.world_from_cam).log();
         let nees = (d.transpose() * e.covariance.try_inverse().expect("spd") * d)[0];
@@ -115,13 +108,7 @@ fn a_jump_reinitializes_and_a_long_failure_is_lost_then_recovers() {
         if (60..75).contains(&f) {
             data.iter_mut().for_each(|b| *b = (rng.next_u64() & 0xff) as u8);
         }
-        let frame = Frame {
-            timestamp: t,
-            keypoints: &keypoints,
-            descriptors: Descriptors::Binary { data: &data, width: WIDTH },
-            global: None,
-            pixel_sigmas: None,
-        };
+        let frame = testing::landmark_frame(t, &keypoints, &data);
         let r = loc.localize(&frame).expect("valid");
         errors.push(r.estimate.map_or(f64::INFINITY, |e| (e.world_from_cam.translation - truth.translation).norm()));
         sources.push(r.source);
@@ -192,13 +179,7 @@ fn the_localizer_covers_the_truth_when_labels_sit_on_another_sensor_and_a_run_is
             let cam = testing::walk(t, [0.0, 0.03, 0.1, 0.5][q % 4], -2.5);
             let (keypoints, data) = observe(&world, &mut rng, &cam);
             loc.reset();
-            let frame = Frame {
-                timestamp: t,
-                keypoints: &keypoints,
-                descriptors: Descriptors::Binary { data: &data, width: WIDTH },
-                global: None,
-                pixel_sigmas: None,
-            };
+            let frame = testing::landmark_frame(t, &keypoints, &data);
             let result = map.to_label_convention(loc.localize(&frame).expect("valid"));
             let Some(e) = result.estimate else { continue };
             let d = (e.world_from_cam.inverse() * (cam * offset.inverse())).log();

@@ -99,13 +99,7 @@ fn run_with_jump(corrupt_fraction: f64, frames: usize, noise: MapNoise, single: 
             }
             data = shuffled;
         }
-        let frame = Frame {
-            timestamp: t,
-            keypoints: &keypoints,
-            descriptors: Descriptors::Binary { data: &data, width: WIDTH },
-            global: None,
-            pixel_sigmas: None,
-        };
+        let frame = testing::landmark_frame(t, &keypoints, &data);
         if single {
             localizer.reset();
         }

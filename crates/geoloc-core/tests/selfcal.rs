@@ -9,9 +9,8 @@ use std::sync::Arc;
 
 use geoloc_core::camera::{Camera, Distortion};
 use geoloc_core::lie::SE3;
-use geoloc_core::localizer::{Frame, Localizer, LocalizerOptions};
+use geoloc_core::localizer::{Localizer, LocalizerOptions};
 use geoloc_core::map::{DescriptorSet, Keyframe, Map, RetrievalKind};
-use geoloc_core::matching::Descriptors;
 use geoloc_core::selfcal::{IntrinsicsCorrection, SelfCalibrationOptions};
 use geoloc_core::testing::{self, LandmarkScene, SplitMix64};
 use nalgebra::{Vector2, Vector3};
@@ -91,13 +90,7 @@ fn median_error(map: Arc<Map>, world: &LandmarkScene, seed: u64) -> (f64, Vec<u6
     for i in 0..40 {
         let truth = pose(0.35 + i as f64 * 0.2, 0.15);
         let (keypoints, data) = observe(world, &mut rng, &truth);
-        let frame = Frame {
-            timestamp: i as f64,
-            keypoints: &keypoints,
-            descriptors: Descriptors::Binary { data: &data, width: WIDTH },
-            global: None,
-            pixel_sigmas: None,
-        };
+        let frame = testing::landmark_frame(i as f64, &keypoints, &data);
         loc.reset();
         let out = loc.localize(&frame).expect("valid frame");
         let e = out.estimate.map_or(f64::INFINITY, |e| (e.world_from_cam.translation - truth.translation).norm());
