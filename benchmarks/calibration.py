@@ -49,6 +49,19 @@ folds need about the same s. The fifth and sixth give each mode's coverage with 
 by 0.1, 0.25, 0.5, 1 (as answered) and 2, and a last line per mode the same over the
 frames of all folds run, pooled: how the coverage of each fold, and of all, moves with one
 factor on every map's noise.
+
+The "block structure" line asks what coverage a block *could* have: a block's errors are
+largely one offset shared by its frames, plus a rest correlated over several frames, and a
+block of such errors is covered either almost all or much less, whatever the covariance. Per
+mode it gives, per axis of the whitened errors, φ (the shared fraction of their second
+moment) and τ (the rest's integrated autocorrelation time, frames), and from a seeded
+simulation of errors with that structure under a covariance that is exactly right: the
+chance p that such a block is covered within 88–99 % (in NEES, and in NEES and every axis),
+and how often it would be covered in NEES at least as well as the answers' covariance
+covered it. The folds' last lines multiply these over the folds (independent blocks): the
+chance that a right covariance puts every block in the band, the number of blocks it would
+put there on average, and the chance that it covers every block at least as well as the
+answers did.
 """
 
 from __future__ import annotations
@@ -255,6 +268,105 @@ def sign_test(k: int, m: int) -> float:
     return min(1.0, float(2 * tail / 2**n))
 
 
+#: The coverage band asked of a 95 % region on every 100-frame block.
+COVERAGE_BAND = (0.88, 0.99)
+
+
+def integrated_autocorrelation_time(x: Any) -> float:
+    """τ = 1 + 2 Σ_{k=1..M} ρ_k of the series ``x`` (ρ_k its lag-k autocorrelation about its
+    mean), summed up to the first M ≥ 5τ (Sokal's window; at most n/2): the number of
+    consecutive frames that carry about one sample's information. At least 1."""
+    x = np.asarray(x, dtype=float) - np.mean(x)
+    n, variance = len(x), float(x @ x) / len(x)
+    if n < 4 or variance <= 0.0:
+        return 1.0
+    tau = 1.0
+    for m in range(1, n // 2):
+        tau += 2.0 * float(x[:-m] @ x[m:]) / (n - m) / variance
+        if m >= 5.0 * tau:
+            break
+    return max(1.0, tau)
+
+
+def block_structure(frames: list[dict[str, Any]], key: str) -> tuple[Any, Any] | None:
+    """(φ, τ) per axis of a block's errors in capture order (δ under ``key``, whitened by the
+    frame's own σ, z = δ_a/√C_aa): φ the fraction of their second moment that is one offset
+    shared by the whole block, (z̄²/mean z² − τ/n)/(1 − τ/n) clipped to [0, 1] (the sample
+    mean of n correlated frames carries τ/n of the variance by itself), and τ the integrated
+    autocorrelation time of the rest. None for fewer than 10 answered frames."""
+    z = np.array([np.asarray(f[key]) / np.sqrt(np.diag(np.asarray(f["covariance"])))
+                  for f in frames if f[key] is not None and f["covariance"] is not None])
+    if len(z) < 10:
+        return None
+    n = len(z)
+    tau = np.array([integrated_autocorrelation_time(z[:, a]) for a in range(6)])
+    raw = z.mean(axis=0) ** 2 / np.mean(z**2, axis=0)
+    phi = np.clip((raw - tau / n) / np.maximum(1.0 - tau / n, 1e-9), 0.0, 1.0)
+    return phi, tau
+
+
+def simulated_block_coverage(phi: Any, tau: Any, n: int = BLOCK, trials: int = 4000, seed: int = 0) -> tuple[Any, Any]:
+    """(NEES coverage, lowest per-axis coverage) of ``trials`` simulated blocks of ``n``
+    frames whose covariance is *exactly right*, their errors with the structure of
+    :func:`block_structure`. Seeded, so the same every run. Per axis a (independent),
+    z_t = b + √(1 − φ_a)·e_t with b ~ N(0, φ_a) drawn once per block and e an AR(1) series of
+    unit variance and integrated autocorrelation time τ_a (ρ = (τ − 1)/(τ + 1)); the
+    covariance is I, NEES coverage the fraction of frames with ‖z‖² inside χ²₆ 95 %, axis
+    coverage the fraction with |z_a| ≤ 1.96."""
+    phi, tau = np.asarray(phi, dtype=float), np.asarray(tau, dtype=float)
+    rho = (tau - 1.0) / (tau + 1.0)
+    rng = np.random.default_rng(seed)
+    shared = rng.standard_normal((trials, 1, 6)) * np.sqrt(phi)
+    e = np.empty((trials, n, 6))
+    e[:, 0] = rng.standard_normal((trials, 6))
+    for t in range(1, n):
+        e[:, t] = rho * e[:, t - 1] + np.sqrt(1.0 - rho**2) * rng.standard_normal((trials, 6))
+    z = shared + np.sqrt(1.0 - phi) * e
+    nees = np.mean(np.sum(z**2, axis=-1) <= CHI2_6_95, axis=1)
+    axis = np.min(np.mean(np.abs(z) <= COVERAGE_Z, axis=1), axis=-1)
+    return nees, axis
+
+
+def calibrated_band_probability(phi: Any, tau: Any, n: int = BLOCK, band: tuple[float, float] = COVERAGE_BAND,
+                                trials: int = 4000, seed: int = 0) -> tuple[float, float]:
+    """(p_NEES, p_both): how often a block whose covariance is exactly right
+    (:func:`simulated_block_coverage`) has its NEES coverage — and that and its lowest
+    per-axis coverage — inside ``band``. With independent frames (φ = 0, τ = 1) p_NEES is
+    the binomial P(88 ≤ Bin(100, 0.95) ≤ 99) = 0.99; a block that is one shared offset
+    (φ = 1) is covered 0 or 100 %, never in between."""
+    nees, axis = simulated_block_coverage(phi, tau, n, trials, seed)
+    lo, hi = band
+    in_nees = (nees >= lo) & (nees <= hi)
+    return float(np.mean(in_nees)), float(np.mean(in_nees & (axis >= lo) & (axis <= hi)))
+
+
+def nees_coverage(frames: list[dict[str, Any]], key: str) -> float | None:
+    """The fraction of answered frames (δ under ``key``) inside their χ²₆ 95 % region."""
+    nees = [np.asarray(f[key]) @ np.linalg.solve(np.asarray(f["covariance"]), np.asarray(f[key]))
+            for f in frames if f[key] is not None and f["covariance"] is not None]
+    return float(np.mean(np.array(nees) <= CHI2_6_95)) if nees else None
+
+
+def block_structure_line(frames: dict[str, list[dict[str, Any]]], key: str) -> str:
+    """Per mode: the errors' block structure (:func:`block_structure`), the chance p that a
+    covariance exactly right for them would put this block in the coverage band
+    (:func:`calibrated_band_probability`), and how often it would cover the block at least as
+    well as the answers' covariance did in NEES (a one-sided p of over-coverage)."""
+    cells = []
+    for mode, fr in frames.items():
+        structure = block_structure(fr, key)
+        observed = nees_coverage(fr, key)
+        if structure is None or observed is None:
+            cells.append(f"{mode} —")
+            continue
+        phi, tau = structure
+        nees, _ = simulated_block_coverage(phi, tau, len([f for f in fr if f[key] is not None]))
+        p_nees, p_both = calibrated_band_probability(phi, tau)
+        cells.append(f"{mode} φ {np.round(phi, 2).tolist()} τ {np.round(tau, 1).tolist()}: p {p_nees:.2f} / {p_both:.2f}, "
+                     f"NEES coverage ≥ {percent(observed)} % with p {np.mean(nees >= observed - 1e-9):.2f}")
+    return "; ".join(cells)
+
+
 #: Factors s on C_map at which ``calibration.py`` prints each fold's coverage (and the folds' pooled one).
 MAP_NOISE_SCALES = (0.1, 0.25, 0.5, 1.0, 2.0)
 
@@ -383,6 +495,10 @@ def print_evaluation(name: str, r: dict[str, Any], against_reference: bool) -> N
         print(f"{'':<10} {coverage_sweep_line(against, mode, pairs)}", flush=True)
     print(f"{'':<10} outside the 99.9 % region against the {against}: "
           + ", ".join("{} {} of {}".format(mode, *outside_region(r["frames"][mode], key)) for mode in r["frames"]), flush=True)
+    lo, hi = COVERAGE_BAND
+    print(f"{'':<10} block structure against the {against} (φ shared fraction, τ frames per axis) and the chance p that a "
+          f"covariance exactly right for such errors covers this block at {lo:.0%}–{hi:.0%} (NEES / NEES and every axis): "
+          f"{block_structure_line(r['frames'], key)}", flush=True)
     n = r["map_noise"]
     novelty = [f["novelty"] for f in r["frames"]["single"] if f.get("novelty") is not None]
     if n.get("near") is not None and novelty:
@@ -463,6 +579,21 @@ def main() -> int:
                 report[name]["frames"][mode], key, report[name]["map_noise"]["pose_covariance_labels"])]
             print(f"folds {','.join(folds)} pooled ({len(pairs)} frames), {coverage_sweep_line(against, mode, pairs)}",
                   flush=True)
+        for mode in ("single", "sequential"):
+            chances, at_least = [], []
+            for name in folds:
+                fr = report[name]["frames"][mode]
+                structure, observed = block_structure(fr, key), nees_coverage(fr, key)
+                if structure is None or observed is None:
+                    continue
+                chances.append(calibrated_band_probability(*structure))
+                nees, _ = simulated_block_coverage(*structure, n=len([f for f in fr if f[key] is not None]))
+                at_least.append(float(np.mean(nees >= observed - 1e-9)))
+            print(f"folds {','.join(folds)}, {mode}: a covariance exactly right for each fold's errors would put all "
+                  f"{len(chances)} blocks in the band with p {np.prod([c[0] for c in chances]):.3f} (NEES) / "
+                  f"{np.prod([c[1] for c in chances]):.3f} (NEES and every axis), expected blocks in it "
+                  f"{sum(c[0] for c in chances):.1f} / {sum(c[1] for c in chances):.1f}; and cover every block at least as "
+                  f"well as the answers did (NEES) with p {np.prod(at_least):.1e}", flush=True)
         print(f"folds {','.join(folds)} pooled, outside the 99.9 % region against the {against}: " + ", ".join(
             "{} {} of {}".format(mode, *np.sum([outside_region(report[name]["frames"][mode], key) for name in folds], axis=0))
             for mode in ("single", "sequential")), flush=True)

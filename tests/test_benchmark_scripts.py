@@ -153,3 +153,51 @@ def test_the_written_keyframe_poses_read_back_as_a_reference(tmp_path: Path) -> 
     np.testing.assert_allclose(read, poses, rtol=0, atol=1e-14)
     with pytest.raises(ValueError, match="did not keep every frame"):
         label_adjustment.write_reference(path, frames[:3], poses)
+
+
+def test_the_integrated_autocorrelation_time_of_an_ar1_series_is_its_closed_form() -> None:
+    """AR(1) x_t = ρx_{t−1} + √(1 − ρ²)ε_t has ρ_k = ρ^k, so τ = 1 + 2Σρ^k = (1 + ρ)/(1 − ρ): 4 for
+    ρ = 0.6, 1 for white noise (estimated on 20 000 samples, within 10 %)."""
+    cal = _calibration_module()
+    rng = np.random.default_rng(3)
+    for rho, expected in ((0.6, 4.0), (0.0, 1.0)):
+        x = np.empty(20_000)
+        x[0] = rng.standard_normal()
+        for t in range(1, len(x)):
+            x[t] = rho * x[t - 1] + np.sqrt(1 - rho**2) * rng.standard_normal()
+        assert cal.integrated_autocorrelation_time(x) == pytest.approx(expected, rel=0.1)
+    assert cal.integrated_autocorrelation_time(np.ones(50)) == 1.0, "no variance: one sample per frame"
+
+
+def test_a_block_that_is_one_offset_is_all_shared_and_white_noise_none() -> None:
+    """block_structure: errors that are one offset plus a trace of noise have φ ≈ 1 on every
+    axis; independent errors have φ ≈ 0 and τ ≈ 1; lost frames are skipped."""
+    cal = _calibration_module()
+    rng = np.random.default_rng(4)
+    offset = np.array([0.02, -0.01, 0.015, 0.003, -0.002, 0.001])
+    frames = [{"d": offset + 1e-5 * rng.standard_normal(6), "covariance": 1e-4 * np.eye(6)} for _ in range(100)]
+    frames.append({"d": None, "covariance": None})
+    phi, _ = cal.block_structure(frames, "d")
+    assert np.all(phi > 0.99), phi
+    white = [{"d": 0.01 * rng.standard_normal(6), "covariance": 1e-4 * np.eye(6)} for _ in range(2000)]
+    phi, tau = cal.block_structure(white, "d")
+    assert np.all(phi < 0.01) and np.all(np.abs(tau - 1) < 0.2), (phi, tau)
+    assert cal.block_structure(frames[:5], "d") is None
+
+
+def test_a_right_covariance_lands_independent_frames_in_the_band_as_the_binomial_says() -> None:
+    """With independent frames (φ = 0, τ = 1) a right covariance covers each frame with
+    probability 0.95, so a block of 100 is in 88–99 % with P(88 ≤ Bin(100, 0.95) ≤ 99), a
+    closed form; a block that is one shared offset (φ = 1) is covered 0 or 100 %, never in
+    the band; the same seed gives the same value."""
+    import math
+
+    cal = _calibration_module()
+    binomial = sum(math.comb(100, k) * 0.95**k * 0.05 ** (100 - k) for k in range(88, 100))
+    p_nees, p_both = cal.calibrated_band_probability(np.zeros(6), np.ones(6), trials=20_000)
+    assert abs(p_nees - binomial) < 4 * math.sqrt(binomial * (1 - binomial) / 20_000), (p_nees, binomial)
+    assert p_both <= p_nees
+    assert cal.calibrated_band_probability(np.ones(6), np.ones(6), trials=500) == (0.0, 0.0)
+    shared = cal.calibrated_band_probability(np.full(6, 0.5), np.full(6, 5.0), trials=500)
+    assert shared == cal.calibrated_band_probability(np.full(6, 0.5), np.full(6, 5.0), trials=500)
+    assert shared[0] < p_nees - 0.2, "a shared offset makes a block's coverage all or nothing"
