@@ -89,7 +89,7 @@ def real_scalar(value: Any, name: str) -> float:
     try:
         return float(value)
     except OverflowError:
-        raise InvalidInputError(f"{name}: {value} does not fit a float64") from None
+        raise InvalidInputError(f"{name}: an integer of {len(str(abs(int(value))))} digits does not fit a float64") from None
 
 
 def choice(value: Any, name: str, choices: tuple[str, ...]) -> str:
