@@ -115,6 +115,7 @@ use crate::error::{GeolocError, Result};
 use crate::lie::SE3;
 use crate::map::SceneModel;
 use crate::map::model::project_in_front;
+use crate::map::noise::pose_distance;
 use crate::matching::{MatchOptions, match_descriptors};
 use crate::parallel::map_slice;
 use crate::pnp::{PnpResult, PointUncertainty, solve_pnp_with_pixel_sigmas};
@@ -209,11 +210,6 @@ pub(super) fn widened_to_hold(estimate: &Estimate, other: &Estimate) -> Estimate
     let (delta, _) = correction(&estimate.world_from_cam, &other.world_from_cam, &estimate.covariance);
     Estimate { covariance: estimate.covariance + delta * delta.transpose(), ..*estimate }
 }
-
-/// Step 9's scale of a keyframe's distance from the pose in translation (m) ...
-pub const NEAREST_SCALE_M: f64 = crate::map::noise::POSE_DISTANCE_SCALE_M;
-/// ... and in rotation (degrees): 10 cm count as much as 5° ([`crate::map::noise::pose_distance`]).
-pub const NEAREST_SCALE_DEG: f64 = crate::map::noise::POSE_DISTANCE_SCALE_DEG;
 
 /// Of the answer from the retrieved keyframes and the one from the keyframes nearest it (step
 /// 9): the first when the second is refused; the one with more inliers (ties: the first) when
@@ -662,17 +658,11 @@ fn near_keyframes(loc: &Localizer, pose: &SE3, excluded: &Range<usize>) -> Vec<u
 }
 
 /// Step 9: the `n` keyframes nearest `pose`, not excluded, increasing: nearest by
-/// d² = (‖t_k − t‖ / [`NEAREST_SCALE_M`])² + (∠(R_kᵀR) / [`NEAREST_SCALE_DEG`])² (ties: the lower
-/// index).
+/// [`pose_distance`] (10 cm or 5° count 1; ties: the lower index).
 fn nearest_keyframes(loc: &Localizer, pose: &SE3, n: usize, excluded: &Range<usize>) -> Vec<usize> {
     let mut by_distance: Vec<(f64, usize)> = (0..loc.map.keyframes.len())
         .filter(|k| !excluded.contains(k))
-        .map(|k| {
-            let kf = &loc.map.keyframes[k].world_from_cam;
-            let t = (kf.translation - pose.translation).norm() / NEAREST_SCALE_M;
-            let r = kf.rotation.distance(&pose.rotation).to_degrees() / NEAREST_SCALE_DEG;
-            (t * t + r * r, k)
-        })
+        .map(|k| (pose_distance(&loc.map.keyframes[k].world_from_cam, pose), k))
         .collect();
     by_distance.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
     let mut nearest: Vec<usize> = by_distance.into_iter().take(n).map(|(_, k)| k).collect();
