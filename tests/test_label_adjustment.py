@@ -70,6 +70,9 @@ def test_the_labels_record_survives_the_file_and_results_keep_the_labels_convent
     np.testing.assert_allclose(offset, expected, atol=1e-9)
     # the camera pose's covariance: the labels' one moved by the offset, plus the offset's own
     assert result.covariance is not None and result.camera_covariance is not None
+    assert np.array_equal(result.covariance, result.covariance.T)
+    if report["applied"]:
+        np.testing.assert_allclose(np.array(report["label_from_cam"]), offset, atol=1e-9)
     ad_inv = lie.se3_adjoint(lie.se3_inverse(offset))
     sigma_x = result.camera_covariance - ad_inv @ result.covariance @ ad_inv.T
     if report["applied"]:

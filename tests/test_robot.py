@@ -249,12 +249,20 @@ def test_geoloc_rs_gives_the_python_localizers_bits_on_7scenes(geoloc_rs: Path, 
         c_cam = c_cam + np.triu(c_cam, 1).T
         assert r.camera_covariance is not None
         assert np.array_equal(np.array(values[8:]).view(np.uint64), r.camera_covariance[UPPER].view(np.uint64)), i
+        # both covariances exactly symmetric: a file keeps one triangle, a Cholesky reads the other
+        assert np.array_equal(r.covariance, r.covariance.T) and np.array_equal(r.camera_covariance, r.camera_covariance.T)
         ad_inv = lie.se3_adjoint(lie.se3_inverse(x))
         offsets.append(c_cam - ad_inv @ r.covariance @ ad_inv.T)
         apart.append(np.linalg.norm(x[:3, 3]))
     assert apart and min(apart) > 0.05, apart  # the labels track the depth camera, ≈ 17 cm away
     labels = loaded.labels
     assert labels is not None
+    # the offset in full: Map.labels and geoloc-rs info give the X every answer applies, exactly
+    offset = np.array(labels["label_from_cam"])
+    np.testing.assert_allclose(offset, x, atol=1e-12)
+    line = next(s for s in _run(geoloc_rs, "info", str(map_path)).stdout.splitlines() if s.startswith("label_from_cam"))
+    rows = line[line.index("[") + 1:line.index("]")].split(";")
+    assert np.array_equal(np.array([[float(v) for v in row.split()] for row in rows]), offset[:3]), (line, offset)
     sigma = np.r_[labels["label_from_cam_translation_sigma_m"], np.radians(labels["label_from_cam_rotation_sigma_deg"])]
     offset_covariance = np.array(labels["label_from_cam_covariance"])
     for sigma_x in offsets:

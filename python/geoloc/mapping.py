@@ -357,7 +357,8 @@ class Map:
         ``state`` (that in words: "adjusted", "kept (the images agree with them)", or "kept
         (not checked: …)" when no track linked the keyframes), ``label_sigma_m`` /
         ``label_sigma_deg`` (the labels' σ the
-        adjustment estimated), the label-to-camera offset (``label_from_cam_translation_m``,
+        adjustment estimated), the label-to-camera offset (``label_from_cam``, the 4×4 X with
+        T_cam = T_label·X, as nested lists; ``label_from_cam_translation_m``,
         ``label_from_cam_rotation_deg`` and their σ; ``label_from_cam_covariance``, its full 6×6
         covariance Σ_X as nested lists, right perturbation, translation first), the median correction, ``rms_px`` (the
         tracks' reprojection error with the labels and after), ``observations`` (used,

@@ -113,6 +113,10 @@ def _detect_format(path: Path, rows: list[tuple[int, list[str]]]) -> str:
     )
 
 
+#: The largest frame index a reference file may give (int64, the keys' type).
+MAX_FRAME_INDEX = int(np.iinfo(np.int64).max)
+
+
 def _read_7scenes_reference(path: Path, rows: list[tuple[int, list[str]]]) -> tuple[NDArray[np.int64], Array]:
     where = f"reference file {str(path)!r}"
     indices = np.empty(len(rows), dtype=np.int64)
@@ -123,9 +127,15 @@ def _read_7scenes_reference(path: Path, rows: list[tuple[int, list[str]]]) -> tu
             raise DatasetError(
                 f"{where}, line {number}: {len(fields)} values, expected 13 (index and the 12 numbers of the 3×4 pose)"
             )
+        if fields[0].startswith("\ufeff"):
+            raise DatasetError(f"{where}, line {number}: starts with a byte-order mark (U+FEFF); save the file as "
+                               "UTF-8 without one")
         if not (fields[0].isascii() and fields[0].isdigit()):
             raise DatasetError(f"{where}, line {number}: the frame index {fields[0]!r} is not an integer ≥ 0")
         index = int(fields[0])
+        if index > MAX_FRAME_INDEX:
+            raise DatasetError(f"{where}, line {number}: the frame index has {len(fields[0])} digits; "
+                               f"a frame index is at most {MAX_FRAME_INDEX}")
         if index in first_line:
             raise DatasetError(f"{where}, line {number}: frame {index} again (first on line {first_line[index]})")
         first_line[index] = number

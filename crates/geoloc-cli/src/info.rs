@@ -29,6 +29,9 @@ fn summary(path: &Path, bytes: u64, map: &Map, h: &MapHeader) -> String {
     let _ = writeln!(s, "camera estimate   {}", self_calibration(h));
     let labels = map.labels.as_ref().map_or_else(|| "as given (not adjusted)".to_string(), |l| l.summary());
     let _ = writeln!(s, "pose labels       {labels}");
+    if let Some(l) = &map.labels {
+        let _ = writeln!(s, "label_from_cam    {}", top_rows(&l.offset.matrix()));
+    }
     let per = h.keypoints as f64 / h.keyframes.max(1) as f64;
     let _ = writeln!(s, "keyframes         {}", h.keyframes);
     let _ = writeln!(s, "keypoints         {} ({per:.1} per keyframe)", h.keypoints);
@@ -46,6 +49,15 @@ fn summary(path: &Path, bytes: u64, map: &Map, h: &MapHeader) -> String {
     }
     let _ = writeln!(s, "frontend          {}", compact_frontend(f));
     s
+}
+
+/// The top 3×4 of a pose, row-major, rows separated by ";", every value as Rust's shortest
+/// representation that reads back to the same f64 (the offset X with T_cam = T_label·X, which
+/// the map applies: a robot converting poses itself needs it exactly).
+fn top_rows(m: &nalgebra::Matrix4<f64>) -> String {
+    let rows: Vec<String> =
+        (0..3).map(|i| (0..4).map(|j| m[(i, j)].to_string()).collect::<Vec<_>>().join(" ")).collect();
+    format!("[{}] (top 3×4, row-major; T_cam = T_label · label_from_cam)", rows.join("; "))
 }
 
 /// The 3D model's size; a model too small for the model locator to place a frame says so

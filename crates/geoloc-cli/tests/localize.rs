@@ -552,6 +552,20 @@ fn an_output_that_is_an_input_is_refused_and_the_inputs_kept() {
     assert_eq!(std::fs::read_to_string(&poses).expect("written").lines().count(), 1 + records.len());
     let temps: Vec<String> = file_names(&d).into_iter().filter(|n| n.ends_with(".tmp")).collect();
     assert!(temps.is_empty(), "{temps:?}");
+    // a folder given as the output is named by the value given ("./": no file name at all;
+    // "d/.": the folder it is)
+    let out = Command::new(env!("CARGO_BIN_EXE_geoloc-rs"))
+        .args(["localize", "--map", &s(&map), "--input", &s(&input), "--output", "./"])
+        .current_dir(&d)
+        .output()
+        .expect("runs");
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(err.contains("--output ./: expected a file path, not a folder"), "{err}");
+    let folder = format!("{}/.", s(&d));
+    let (out, _) = run(&["localize", "--map", &s(&map), "--input", &s(&input), "--output", &folder], b"");
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.code() == Some(1) && err.contains("not a regular file (a folder)"), "{err}");
     // a device is written as it is, never replaced
     let (out, _) = run(&["localize", "--map", &s(&map), "--input", &s(&input), "--output", "/dev/null"], b"");
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));

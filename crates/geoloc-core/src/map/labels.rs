@@ -119,13 +119,16 @@ impl LabelAdjustment {
         if self.applied { *world_from_cam * self.offset.inverse() } else { *world_from_cam }
     }
 
-    /// A covariance of T (right perturbation) as one of T X⁻¹: Ad_X Σ Ad_Xᵀ.
+    /// A covariance of T (right perturbation) as one of T X⁻¹: Ad_X Σ Ad_Xᵀ, made exactly
+    /// symmetric (the product's two triangles differ in the last bits, and a user's Cholesky
+    /// or a file that keeps one triangle must not depend on which).
     pub fn covariance_to_label(&self, covariance: &Matrix6<f64>) -> Matrix6<f64> {
         if !self.applied {
             return *covariance;
         }
         let a = self.offset.adjoint();
-        a * covariance * a.transpose()
+        let c = a * covariance * a.transpose();
+        (c + c.transpose()) * 0.5
     }
 
     /// A localizer's estimate (camera pose) in the labels' convention.
@@ -198,8 +201,9 @@ impl LabelAdjustment {
         }
     }
 
-    /// The report as JSON: σ, offset (translation m, rotation deg, their σ, and its full 6×6
-    /// covariance Σ_X: right perturbation of label_from_cam, translation first), medians, runs.
+    /// The report as JSON: σ, offset (label_from_cam X as a 4×4 matrix, T_cam = T_label·X; its
+    /// translation m, rotation deg, their σ, and its full 6×6 covariance Σ_X: right
+    /// perturbation of X, translation first), medians, runs.
     pub fn report_json(&self) -> serde_json::Value {
         let (mt, mr) = self.median_correction();
         let offset = self.offset.log();
@@ -210,6 +214,9 @@ impl LabelAdjustment {
             "label_sigma_m": self.label_sigma.translation_m,
             "label_sigma_deg": self.label_sigma.rotation_rad.to_degrees(),
             "correlation_keyframes": [self.correlation_keyframes.0, self.correlation_keyframes.1],
+            "label_from_cam": (0..4)
+                .map(|i| (0..4).map(|j| self.offset.matrix()[(i, j)]).collect::<Vec<_>>())
+                .collect::<Vec<_>>(),
             "label_from_cam_translation_m": [self.offset.translation.x, self.offset.translation.y, self.offset.translation.z],
             "label_from_cam_translation_sigma_m": [sd(0), sd(1), sd(2)],
             "label_from_cam_rotation_deg": se3::phi(&offset).norm().to_degrees(),
@@ -408,6 +415,27 @@ mod tests {
         let moved = r.to_label(&(t * SE3::exp(&d)));
         let a = r.offset.adjoint();
         assert!(((label.inverse() * moved).log() - a * d).norm() < 1e-8);
+    }
+
+    /// Ad_X Σ Ad_Xᵀ comes back exactly symmetric (the plain product's triangles differ in the
+    /// last bits for almost any X) and equal to the product to rounding.
+    #[test]
+    fn a_covariance_in_the_labels_convention_is_exactly_symmetric() {
+        let mut rng = crate::testing::SplitMix64::new(5);
+        let mut r = record(vec![0.0]);
+        let mut asymmetric_products = 0;
+        for _ in 0..20 {
+            r.offset = SE3::exp(&rng.twist(0.2, 0.1));
+            let b = nalgebra::Matrix6::from_fn(|_, _| rng.normal());
+            let c = b * b.transpose() + nalgebra::Matrix6::identity() * 1e-3;
+            let a = r.offset.adjoint();
+            let product = a * c * a.transpose();
+            asymmetric_products += usize::from(product != product.transpose());
+            let label = r.covariance_to_label(&c);
+            assert_eq!(label, label.transpose());
+            assert!((label - product).norm() <= 1e-14 * product.norm());
+        }
+        assert!(asymmetric_products > 0, "the test must see products whose triangles differ");
     }
 }
 
