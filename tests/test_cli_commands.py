@@ -399,3 +399,29 @@ def test_build_map_gives_the_camera_estimates_median_residual_before_the_rms() -
              "observations": 91556, "correction_sigma_px": 0.13, "reason": "ok"}
     line = describe_self_calibration(found)
     assert "track residuals median 1.02 -> 0.95 px, rms 2.15 -> 2.31 px over 91556 observations" in line, line
+
+
+def test_localize_names_the_option_behind_a_bad_frame_or_camera(tmp_path: Path) -> None:
+    """An image of --images that cannot be decoded is named under --images (it was the
+    loader's internal "path:"); frames of the synthetic room against a map of another camera
+    are blamed on --format synthetic, not on an --intrinsics never given."""
+    import cv2
+
+    room = datasets.synthetic_room(n_frames=12, seed=0)
+    geoloc.Map.build(room[:10:2]).save(tmp_path / "room.geoloc")
+    images = tmp_path / "im"
+    images.mkdir()
+    for i in range(3):
+        cv2.imwrite(str(images / f"{i}.png"), room.gray(i))
+    (images / "7.png").write_bytes(b"")
+    _one_line_error(_run("localize", "--map", str(tmp_path / "room.geoloc"), "--images", str(images), "--out", str(tmp_path / "p.txt")),
+                    "--images: image file:", "7.png", "cannot be read as an image")
+    # the room's frames described with another camera make a map of that camera
+    keep = np.arange(0, 10, 2)
+    zoomed = datasets.Sequence("zoomed", geoloc.Camera(600.0, 600.0, 319.5, 239.5), room.timestamps[keep], room.poses[keep],
+                               lambda i, gray: room.gray(int(keep[i])))  # Map.build reads grey frames only
+    geoloc.Map.build(zoomed).save(tmp_path / "other.geoloc")
+    result = _run("localize", "--map", str(tmp_path / "other.geoloc"), "--format", "synthetic", "--synthetic-frames", "20",
+                  "--out", str(tmp_path / "q.txt"))
+    line = _one_line_error(result, "--format synthetic: the frames' intrinsics", "(600.0, 600.0, 319.5, 239.5)")
+    assert "--intrinsics" not in line

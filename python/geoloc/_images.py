@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 
 from ._io import read_bytes, write_bytes_atomic
 from ._opencv import import_cv2
-from .exceptions import InvalidInputError
+from .exceptions import FileAccessError, InvalidInputError
 
 __all__ = ["read_image", "write_image"]
 
@@ -29,7 +29,8 @@ def read_image(
     (H, W) grey; ``error`` naming ``name`` and the path when it is missing, not a regular
     file, or not an image OpenCV can decode."""
     cv2 = import_cv2("reading images")
-    data = read_bytes(path, name, error)
+    # a file that cannot be read is an access error unless the caller names its own (a dataset's)
+    data = read_bytes(path, name, FileAccessError if error is InvalidInputError else error)
     flag = cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_COLOR
     image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), flag) if data else None
     if image is None:

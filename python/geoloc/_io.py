@@ -29,7 +29,7 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Any, Callable, TextIO
 
-from .exceptions import InvalidInputError
+from .exceptions import FileAccessError, InvalidInputError
 
 __all__ = [
     "check_input_file",
@@ -107,7 +107,7 @@ def special_kind(path: Any) -> str | None:
     return None if stat.S_ISREG(mode) else _kind(mode)
 
 
-def check_input_file(path: Any, name: str = "path", error: type[InvalidInputError] = InvalidInputError) -> Path:
+def check_input_file(path: Any, name: str = "path", error: type[InvalidInputError] = FileAccessError) -> Path:
     """``path`` as a Path when it is an existing regular file (symlinks followed); else
     ``error`` naming ``name``, the path, and what it is (missing, a folder, a FIFO …)."""
     target = as_path(path, name)
@@ -122,7 +122,7 @@ def check_input_file(path: Any, name: str = "path", error: type[InvalidInputErro
     return target
 
 
-def read_bytes(path: Any, name: str = "path", error: type[InvalidInputError] = InvalidInputError) -> bytes:
+def read_bytes(path: Any, name: str = "path", error: type[InvalidInputError] = FileAccessError) -> bytes:
     """The contents of the regular file ``path`` (see :func:`check_input_file`). Opened
     non-blocking and checked again on the open descriptor, so a FIFO swapped in after the
     check cannot block the read."""
@@ -143,12 +143,12 @@ def read_bytes(path: Any, name: str = "path", error: type[InvalidInputError] = I
 
 def check_output_path(path: Any, name: str = "path") -> Path:
     """``path`` as a Path to a file whose parent folder exists and is writable; else
-    InvalidInputError naming ``name``. A path ending in a separator names a folder and is
+    FileAccessError naming ``name``. A path ending in a separator names a folder and is
     refused; so is a name longer than the file system allows, and a symlink to nothing."""
     target = as_path(path, name)
     text = os.fspath(path)
     if text.endswith(os.sep) or (os.altsep is not None and text.endswith(os.altsep)):
-        raise InvalidInputError(f"{name}: {text!r} ends in {text[-1]!r}, which names a folder; expected a file path")
+        raise FileAccessError(f"{name}: {text!r} ends in {text[-1]!r}, which names a folder; expected a file path")
     parent = target.parent
     try:
         name_max = os.pathconf(parent, "PC_NAME_MAX")
@@ -156,9 +156,9 @@ def check_output_path(path: Any, name: str = "path") -> Path:
         name_max = 255
     size = len(os.fsencode(target.name))
     if size > name_max:
-        raise InvalidInputError(f"{name}: the file name {target.name[:40]!r}… is {size} bytes; the folder allows {name_max}")
+        raise FileAccessError(f"{name}: the file name {target.name[:40]!r}… is {size} bytes; the folder allows {name_max}")
     if os.path.islink(target) and not os.path.exists(target):
-        raise InvalidInputError(
+        raise FileAccessError(
             f"{name}: {str(target)!r} is a symlink to a file that does not exist (not written through a dangling link)"
         )
     try:
@@ -167,20 +167,20 @@ def check_output_path(path: Any, name: str = "path") -> Path:
         mode = None
     except OSError as e:
         if e.errno != errno.ENOTDIR:
-            raise InvalidInputError(f"{name}: cannot write {str(target)!r} ({_reason(e)})") from None
+            raise FileAccessError(f"{name}: cannot write {str(target)!r} ({_reason(e)})") from None
         mode = None
     if mode is not None and stat.S_ISDIR(mode):
-        raise InvalidInputError(f"{name}: {str(target)!r} is a folder, expected a file path")
+        raise FileAccessError(f"{name}: {str(target)!r} is a folder, expected a file path")
     if mode is not None and not stat.S_ISREG(mode):
-        raise InvalidInputError(f"{name}: {str(target)!r} is {_kind(mode)}, not a regular file to replace")
+        raise FileAccessError(f"{name}: {str(target)!r} is {_kind(mode)}, not a regular file to replace")
     if not parent.is_dir():
         blocking = _not_a_folder_above(parent)
         if blocking is not None:
             where, what = blocking
-            raise InvalidInputError(f"{name}: {str(where)!r} is {what}, not a folder: cannot write {str(target)!r}")
-        raise InvalidInputError(f"{name}: folder {str(parent)!r} does not exist (create it first)")
+            raise FileAccessError(f"{name}: {str(where)!r} is {what}, not a folder: cannot write {str(target)!r}")
+        raise FileAccessError(f"{name}: folder {str(parent)!r} does not exist (create it first)")
     if not os.access(parent, os.W_OK | os.X_OK):
-        raise InvalidInputError(f"{name}: folder {str(parent)!r} is not writable")
+        raise FileAccessError(f"{name}: folder {str(parent)!r} is not writable")
     return target
 
 

@@ -37,6 +37,8 @@ class FileFormatError(InvalidInputError):
     such a file is loaded."""
 
 
-class FileAccessError(GeolocError, OSError):
-    """A file cannot be read or written (missing, a folder, not writable, disk full); the
-    message names the path."""
+class FileAccessError(InvalidInputError, OSError):
+    """A file cannot be read or written (missing, a folder, a FIFO, not writable); the
+    message names the argument and the path. Both an :class:`OSError` (``except OSError``
+    catches it, as it catches the builtins' file errors) and an :class:`InvalidInputError`
+    (the path is an argument like any other)."""

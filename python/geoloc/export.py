@@ -15,6 +15,7 @@ poses and covariances (tests/test_robot.py checks it).
 
 from __future__ import annotations
 
+import math
 import os
 from typing import Any, Callable, Iterable, Literal
 
@@ -22,25 +23,43 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ._core import FrameWriter
+from ._validation import real_scalar
 from .exceptions import InvalidInputError
-from .localizer import Localizer
+from .localizer import check_map_camera, check_map_network, check_progress, query_gray
 from .mapping import GlobalDescriptor, Map
 
 __all__ = ["export_frames"]
 
 
-def _frames(frames: Any) -> Iterable[tuple[float, Any]]:
+def _frames(frames: Any, map: Map) -> Iterable[tuple[float, Any]]:
     """(timestamp, image) pairs: a Sequence's grey frames (``Sequence.gray``, as the CLI's
-    localize uses), or the caller's own pairs."""
+    localize uses; its camera must be the map's), or the caller's own pairs, each checked —
+    a pair, a finite real timestamp, increasing as the localizer needs them — before it is
+    written, naming ``frames`` and the position."""
     from .datasets import Sequence
 
     if isinstance(frames, Sequence):
+        check_map_camera(frames.camera, map, "frames")
         return ((float(frames.timestamps[i]), frames.gray(i)) for i in range(len(frames)))
     if isinstance(frames, (str, bytes, os.PathLike)) or not isinstance(frames, Iterable):
         raise InvalidInputError(
             f"frames: expected a geoloc.datasets.Sequence or an iterable of (timestamp, image), got {type(frames).__name__}"
         )
-    return ((float(t), image) for t, image in frames)
+    return _checked_pairs(frames)
+
+
+def _checked_pairs(frames: Iterable[Any]) -> Iterable[tuple[float, Any]]:
+    last = -math.inf
+    for i, pair in enumerate(frames):
+        if not (isinstance(pair, tuple) and len(pair) == 2):
+            raise InvalidInputError(f"frames[{i}]: expected a (timestamp, image) pair, got {type(pair).__name__}")
+        t = real_scalar(pair[0], f"frames[{i}] timestamp")
+        if not math.isfinite(t):
+            raise InvalidInputError(f"frames[{i}] timestamp: {t} is not finite")
+        if t <= last:
+            raise InvalidInputError(f"frames[{i}] timestamp: {t!r} does not increase (the frame before is at {last!r})")
+        last = t
+        yield t, pair[1]
 
 
 def export_frames(
@@ -74,12 +93,14 @@ def export_frames(
 
     target = check_output_path(path, "path")
     refuse_alias(target, "path", [("frames", f) for f in getattr(frames, "files", ())])
-    # The Localizer checks the network against the map and decodes images as localize does.
-    localizer = Localizer(map, global_descriptor=global_descriptor)
+    # the network is checked against the map, and images decoded, as the Localizer does
+    check_map_network(global_descriptor, map)
+    check_progress(progress)
+    pairs = _frames(frames, map)
     writer = FrameWriter(os.fspath(target), format=format)
     try:
-        for done, (timestamp, image) in enumerate(_frames(frames), start=1):
-            gray = localizer._gray(image, extractor)
+        for done, (timestamp, image) in enumerate(pairs, start=1):
+            gray = query_gray(image, extractor, map.camera)
             f = extractor(gray, map.camera)
             g: NDArray[np.float32] | None = None
             if global_descriptor is not None:

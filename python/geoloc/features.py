@@ -106,6 +106,8 @@ class FeatureExtractor:
             raise InvalidInputError(f"n_features: expected a positive integer, got {n_features!r}")
         if n_features > MAX_FEATURES:  # OpenCV takes a C int: 2**63 raised OverflowError
             raise InvalidInputError(f"n_features: must be at most {MAX_FEATURES}, got {n_features}")
+        if not isinstance(root_sift, (bool, np.bool_)):
+            raise InvalidInputError(f"root_sift: expected True or False, got {root_sift!r:.40}")
         if root_sift and kind != "sift":
             raise InvalidInputError("root_sift: only applies to SIFT features (kind / features 'sift')")
         cv2 = import_cv2("feature extraction")

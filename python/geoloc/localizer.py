@@ -88,6 +88,65 @@ def _from_core(r: Any, timings: dict[str, float] | None = None) -> Localization:
                         r.map_noise_scale, r.novelty, r.camera_covariance)
 
 
+
+def check_map_camera(camera: Camera, map: Map, name: str) -> None:
+    """InvalidInputError naming ``name`` unless ``camera`` is the map's — intrinsics, image
+    size and distortion alike: the queries' keypoints are corrected with the map's camera, so
+    frames of another camera would be localized as if taken with it."""
+    if camera == map.camera:
+        return
+    differ = [
+        f"{what} {mine} where the map has {theirs}"
+        for what, mine, theirs in (
+            ("intrinsics", camera.intrinsics, map.camera.intrinsics),
+            ("image size", (camera.width, camera.height), (map.camera.width, map.camera.height)),
+            ("distortion", camera.dist, map.camera.dist),
+        )
+        if mine != theirs
+    ]
+    raise InvalidInputError(
+        f"{name}: not the map's camera — {'; '.join(differ)}; queries must be described with the map's camera"
+    )
+
+
+def check_map_network(global_descriptor: GlobalDescriptor | None, map: Map) -> None:
+    """InvalidInputError naming ``global_descriptor`` unless it is what the map retrieves
+    with: None for a bag-of-words map, the network (same sha256) it was built with otherwise."""
+    recorded = map.settings["retrieval"]
+    if recorded == "bow" and global_descriptor is not None:
+        raise InvalidInputError(
+            "global_descriptor: this map retrieves by bag of words alone and would not use a network "
+            "(it ran on every query for nothing); build the map with the network to use one"
+        )
+    if isinstance(recorded, dict) and global_descriptor is None:
+        raise InvalidInputError("global_descriptor: this map retrieves by a network; pass the same network here")
+    if isinstance(recorded, dict) and "sha256" in recorded:
+        if getattr(global_descriptor, "sha256", None) != recorded["sha256"]:
+            raise InvalidInputError(
+                f"global_descriptor: the map was built with network {recorded.get('name', '?')!r} "
+                f"(sha256 {str(recorded['sha256'])[:12]}…); this is another model"
+            )
+    if global_descriptor is not None:
+        check_network(global_descriptor, "global_descriptor")
+
+
+def check_progress(progress: Any) -> None:
+    """InvalidInputError naming ``progress`` unless it is None or callable (checked before
+    any work, not when it is first called)."""
+    if progress is not None and not callable(progress):
+        raise InvalidInputError(f"progress: expected a callable or None, got {type(progress).__name__}")
+
+
+def query_gray(image: Any, extractor: FeatureExtractor, camera: Camera) -> NDArray[np.uint8]:
+    """A query's grey image, as Map.build described its keyframes: a path decoded straight to
+    grey, a BGR image converted (``extractor.gray``); the features and a global-descriptor
+    network both see it (``Localizer.localize`` and ``export_frames``)."""
+    if isinstance(image, (str, os.PathLike)):
+        from ._images import read_image
+
+        return extractor.gray(read_image(image, "image", gray=True), camera)
+    return extractor.gray(np.asarray(image), camera)
+
 class Localizer:
     """Localizes frames against a :class:`geoloc.Map`, frame after frame, keeping the motion
     history.
@@ -131,34 +190,10 @@ class Localizer:
             )
         if camera is not None and not isinstance(camera, Camera):
             raise InvalidInputError(f"camera: expected a geoloc.Camera, got {type(camera).__name__}")
-        if camera is not None and camera != map.camera:
-            # intrinsics, image size and distortion alike: the queries' keypoints are corrected with it
-            differ = [
-                f"{name} {mine} where the map has {theirs}"
-                for name, mine, theirs in (
-                    ("intrinsics", camera.intrinsics, map.camera.intrinsics),
-                    ("image size", (camera.width, camera.height), (map.camera.width, map.camera.height)),
-                    ("distortion", camera.dist, map.camera.dist),
-                )
-                if mine != theirs
-            ]
-            raise InvalidInputError(
-                f"camera: not the map's camera — {'; '.join(differ)}; queries must be described with the map's camera"
-            )
+        if camera is not None:
+            check_map_camera(camera, map, "camera")
+        check_map_network(global_descriptor, map)
         recorded = map.settings["retrieval"]
-        if recorded == "bow" and global_descriptor is not None:
-            raise InvalidInputError(
-                "global_descriptor: this map retrieves by bag of words alone and would not use a network "
-                "(it ran on every query for nothing); build the map with the network to use one"
-            )
-        if isinstance(recorded, dict) and global_descriptor is None:
-            raise InvalidInputError("global_descriptor: this map retrieves by a network; pass the same network here")
-        if isinstance(recorded, dict) and "sha256" in recorded:
-            if getattr(global_descriptor, "sha256", None) != recorded["sha256"]:
-                raise InvalidInputError(
-                    f"global_descriptor: the map was built with network {recorded.get('name', '?')!r} "
-                    f"(sha256 {str(recorded['sha256'])[:12]}…); this is another model"
-                )
         if locator is not None and not isinstance(locator, str):
             raise InvalidInputError(f"locator: expected 'paper' or 'model', got {locator!r:.40}")
         options = given_options(
@@ -171,8 +206,6 @@ class Localizer:
         )
         self.map = map
         self.camera = camera or map.camera
-        if global_descriptor is not None:
-            check_network(global_descriptor, "global_descriptor")
         self._global = global_descriptor
         self._bow_only = recorded == "bow"
         self._core = _core.FeatureLocalizer(map._core, options=options)
@@ -253,14 +286,8 @@ class Localizer:
         return _from_core(self._core.localize(real_scalar(timestamp, "timestamp"), k, d, g, s))
 
     def _gray(self, image: Any, extractor: FeatureExtractor) -> NDArray[np.uint8]:
-        """The query's grey image, as Map.build described its keyframes: a path decoded
-        straight to grey, a BGR image converted (``extractor.gray``); the features and a
-        global-descriptor network both see it (``localize`` and ``export_frames``)."""
-        if isinstance(image, (str, os.PathLike)):
-            from ._images import read_image
-
-            return extractor.gray(read_image(image, "image", gray=True), self.camera)
-        return extractor.gray(np.asarray(image), self.camera)
+        """The query's grey image (:func:`query_gray`)."""
+        return query_gray(image, extractor, self.camera)
 
     def reset(self) -> None:
         """Forget the motion history and the last frame's keyframe (the next frame is
@@ -270,14 +297,21 @@ class Localizer:
     def localize_sequence(
         self, sequence: Any, mode: str = "sequential", progress: ProgressCallback | None = None
     ) -> list[Localization]:
-        """Localize every frame of ``sequence`` (a :class:`geoloc.datasets.Sequence`) in order,
-        from an empty motion history. ``mode`` ``"sequential"`` keeps the history from frame to
+        """Localize every frame of ``sequence`` (a :class:`geoloc.datasets.Sequence`, whose
+        camera must be the map's) in order, from an empty motion history. ``mode`` ``"sequential"`` keeps the history from frame to
         frame (motion model + gated fusion); ``"single"`` resets it before every frame (the
         geometric locator alone). Each result's ``timings`` gets ``decode`` (reading the image
         as grey — rendering it, for the synthetic room) and its ``total`` includes it.
         ``progress(done, total)`` is called after every frame."""
+        # a Sequence, or anything with its frames' interface (len, gray(i), timestamps)
+        if not all(hasattr(sequence, a) for a in ("__len__", "gray", "timestamps")):
+            raise InvalidInputError(f"sequence: expected a geoloc.datasets.Sequence, got {type(sequence).__name__}")
         if mode not in SEQUENCE_MODES:
             raise InvalidInputError(f"mode: expected one of {', '.join(SEQUENCE_MODES)}, got {mode!r}")
+        camera = getattr(sequence, "camera", None)
+        if camera is not None:
+            check_map_camera(camera, self.map, "sequence")
+        check_progress(progress)
         self.reset()
         results = []
         n = len(sequence)

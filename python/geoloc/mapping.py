@@ -213,14 +213,18 @@ class Map:
             raise InvalidInputError(f"sequence: expected a geoloc.datasets.Sequence, got {type(sequence).__name__}")
         if sequence.poses is None:
             raise InvalidInputError(f"sequence: {sequence.name!r} has no poses; a map needs world_from_cam poses")
-        step = _as_int(keyframe_step, "keyframe_step", 1)
+        # a step past the sequence keeps its first frame alone, as a step of its length does
+        step = min(_as_int(keyframe_step, "keyframe_step", 1), max(1, len(sequence)))
         if isinstance(retrieval, str) and retrieval != "bow":
             raise InvalidInputError(f"retrieval: expected 'bow' or a global-descriptor network, got {retrieval!r}")
         if not isinstance(retrieval, str) and not callable(retrieval):
             raise InvalidInputError(f"retrieval: expected 'bow' or a callable network, got {type(retrieval).__name__}")
         options = _build_options(branching, depth, seed, estimate_noise, model, refine_intrinsics, intrinsics_model, adjust_labels)
         kind = choice(features, "features", ("orb", "sift"))
-        extractor = FeatureExtractor(kind, _as_int(n_features, "n_features", 1), root_sift=bool(root_sift))  # type: ignore[arg-type]
+        root = bool(_flag(root_sift, "root_sift"))
+        if progress is not None and not callable(progress):
+            raise InvalidInputError(f"progress: expected a callable or None, got {type(progress).__name__}")
+        extractor = FeatureExtractor(kind, _as_int(n_features, "n_features", 1), root_sift=root)  # type: ignore[arg-type]
         indices = np.arange(0, len(sequence), step)
         camera = sequence.camera
         keypoints, descriptors, images = [], [], []
@@ -472,7 +476,9 @@ class Map:
         descs = _local_descriptors(descriptors, "descriptors")
         kps = keypoint_rows(keypoints, "keypoints", len(descs))
         g = None if global_descriptor is None else _f32_rows(np.asarray(global_descriptor)[None], "global_descriptor")[0]
-        return [int(i) for i in self._core.retrieve(kps, descs, g, _as_int(k, "k", 1))]
+        # more than every keyframe is every keyframe (a count past the core's integer range too)
+        count = min(_as_int(k, "k", 1), max(1, len(self)))
+        return [int(i) for i in self._core.retrieve(kps, descs, g, count)]
 
     def __len__(self) -> int:
         return len(self._core)

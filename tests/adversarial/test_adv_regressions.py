@@ -274,3 +274,92 @@ def test_triangulate_with_no_poses() -> None:
     with pytest.raises(geoloc.InvalidInputError, match="cam_ids|poses"):
         geometry.triangulate(np.zeros((0, 4, 4)), geoloc.Camera(525, 525, 320, 240), [0, 1], [0, 0],
                              np.full((2, 2), 300.0), pose_covariances=np.zeros((0, 6, 6)))
+
+
+@pytest.fixture(scope="module")
+def small_map() -> tuple[datasets.Sequence, geoloc.Map]:
+    room = datasets.synthetic_room(n_frames=20, seed=0)
+    return room, geoloc.Map.build(room[:12:2])
+
+
+def test_front_door_arguments_are_checked_before_any_work(small_map: tuple[datasets.Sequence, geoloc.Map]) -> None:
+    """Each was a raw numpy/Python error, a late TypeError or silently accepted: a huge
+    keyframe step, a root_sift that is not a bool (any truthy value turned RootSIFT on), a
+    progress that is not callable, a localize_sequence argument that is not a Sequence, a
+    huge retrieval count."""
+    room, m = small_map
+    assert len(geoloc.Map.build(room[:5], keyframe_step=2**70)) == 1, "a step past the sequence keeps its first frame"
+    for bad, name in ((dict(root_sift="no"), "root_sift"), (dict(root_sift=np.nan), "root_sift"), (dict(progress=5), "progress")):
+        calls: list[tuple[int, int]] = []
+        with pytest.raises(geoloc.InvalidInputError, match=f"^{name}: "):
+            geoloc.Map.build(room[:5], features="sift", **bad, **({} if "progress" in bad else {"progress": lambda d, n: calls.append((d, n))}))
+        assert not calls, "refused before any keyframe was described"
+    with pytest.raises(geoloc.InvalidInputError, match="^root_sift: "):
+        features.FeatureExtractor("sift", root_sift="no")  # type: ignore[arg-type]
+    loc = geoloc.Localizer(m)
+    for bad in ([room[0]], None):
+        with pytest.raises(geoloc.InvalidInputError, match="^sequence: expected a geoloc.datasets.Sequence"):
+            loc.localize_sequence(bad)
+    with pytest.raises(geoloc.InvalidInputError, match="^progress: "):
+        loc.localize_sequence(room[12:14], progress=3)  # type: ignore[arg-type]
+    f = m.features(room.gray(13), room.camera)
+    assert sorted(m.retrieve_features(f.keypoints, f.descriptors, k=2**70)) == list(range(len(m)))
+
+
+def test_a_sequence_of_another_camera_is_refused_not_localized_as_the_maps(
+    small_map: tuple[datasets.Sequence, geoloc.Map], tmp_path: Path
+) -> None:
+    """localize_sequence and export_frames ran a sequence of another camera with the map's
+    (Localizer(camera=...) refused it); both refuse it now, naming the argument, and nothing
+    is written."""
+    room, m = small_map
+    other = geoloc.Camera(600.0, 600.0, room.camera.cx, room.camera.cy, room.camera.width, room.camera.height)
+    foreign = datasets.Sequence("foreign", other, room.timestamps[12:14], room.poses[12:14], lambda i, gray: room.gray(12 + i))
+    with pytest.raises(geoloc.InvalidInputError, match=r"^sequence: not the map's camera — intrinsics \(600.0"):
+        geoloc.Localizer(m).localize_sequence(foreign)
+    out = tmp_path / "frames.bin"
+    with pytest.raises(geoloc.InvalidInputError, match=r"^frames: not the map's camera"):
+        geoloc.export_frames(m, foreign, out)
+    assert not out.exists()
+
+
+def test_export_frames_checks_each_pair_and_needs_no_model(small_map: tuple[datasets.Sequence, geoloc.Map], tmp_path: Path) -> None:
+    """Pairs that are not (finite, increasing timestamp, image) are refused by position before
+    anything is written (a decreasing pair used to be written and stop geoloc-rs at it); a map
+    only the paper's locator can use (one keyframe: no 3D model) is exported as any other."""
+    room, m = small_map
+    g = room.gray(13)
+    out = tmp_path / "frames.bin"
+    for frames, needle in (
+        ([("abc", g)], r"^frames\[0\] timestamp: expected a real number"),
+        ([g], r"^frames\[0\]: expected a \(timestamp, image\) pair"),
+        ([(1.0, g), (0.5, g)], r"^frames\[1\] timestamp: 0.5 does not increase"),
+        ([(float("nan"), g)], r"^frames\[0\] timestamp: nan is not finite"),
+    ):
+        with pytest.raises(geoloc.InvalidInputError, match=needle):
+            geoloc.export_frames(m, frames, out)
+        assert not out.exists()
+    with pytest.raises(geoloc.InvalidInputError, match="^progress: "):
+        geoloc.export_frames(m, room[12:14], out, progress="yes")  # type: ignore[arg-type]
+    one = geoloc.Map.build(room[:1])
+    assert geoloc.export_frames(one, room[1:3], out) == 2
+
+
+def test_a_path_that_cannot_be_read_or_written_is_an_oserror_and_names_the_argument(
+    small_map: tuple[datasets.Sequence, geoloc.Map], tmp_path: Path
+) -> None:
+    """The documented FileAccessError (an OSError) for a missing file, a folder or a missing
+    folder — it was InvalidInputError alone, which ``except OSError`` does not catch; it is
+    still an InvalidInputError (a ValueError) naming the argument."""
+    room, m = small_map
+    cases = (
+        (lambda: m.save(tmp_path / "nope" / "x.geoloc"), "^path: folder .* does not exist"),
+        (lambda: m.save(tmp_path), "^path: .* is a folder"),
+        (lambda: geoloc.Localizer(m).localize(tmp_path / "missing.png", 0.0), "^image: file .* does not exist"),
+        (lambda: geoloc.export_frames(m, room[12:14], tmp_path / "nope" / "f.bin"), "^path: folder .* does not exist"),
+        (lambda: geoloc.Map.load(tmp_path / "missing.geoloc"), "missing.geoloc"),
+    )
+    for call, needle in cases:
+        with pytest.raises(OSError, match=needle) as raised:
+            call()
+        assert isinstance(raised.value, geoloc.FileAccessError) and isinstance(raised.value, geoloc.InvalidInputError)

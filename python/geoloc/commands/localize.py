@@ -92,8 +92,11 @@ def run(args: argparse.Namespace) -> int:
                 f"the map's camera is {camera.width}×{camera.height}"
             )
         if sequence.camera.intrinsics != camera.intrinsics:
+            # the frames' camera comes from --intrinsics when given, else from the dataset (the
+            # synthetic room has its own)
+            source = "--intrinsics" if args.intrinsics is not None else f"--format {args.format}"
             raise InvalidInputError(
-                f"--intrinsics: {sequence.camera.intrinsics} differ from the map's {camera.intrinsics} "
+                f"{source}: the frames' intrinsics {sequence.camera.intrinsics} differ from the map's {camera.intrinsics} "
                 "(queries must use the map's camera)"
             )
     option = "--images" if args.images is not None else "--dataset"
@@ -103,7 +106,11 @@ def run(args: argparse.Namespace) -> int:
     unread = [] if folder is None else [(option, p) for p in (Path(folder) / "traj.txt",) if p.is_file()]
     refuse_alias(out, "--out", dataset_inputs(sequence, option) + unread)
     sequence = select(sequence, args.frames, "--frames")
-    results = localize_sequence(Localizer(the_map, global_descriptor=network, locator=args.locator), sequence, args.mode, Progress("localize"))
+    localizer = Localizer(the_map, global_descriptor=network, locator=args.locator)
+    try:
+        results = localize_sequence(localizer, sequence, args.mode, Progress("localize"))
+    except DatasetError as e:  # a frame's file, read as it is localized: the option that named it
+        raise InvalidInputError(option_message(str(e), option)) from None
     kept = [k for k, r in enumerate(results) if r.pose is not None]
     shown_out = "standard output" if to_stdout else shown(args.out)
     if not kept:

@@ -53,7 +53,7 @@ def load_image(path: str | os.PathLike[str], camera: Camera, gray: bool = False)
     """
     from .._images import read_image
 
-    image = read_image(path, "path", gray, DatasetError)
+    image = read_image(path, "image file", gray, DatasetError)
     check_image_size(image, camera, f"image file {os.fspath(path)!r}")
     return np.ascontiguousarray(image, dtype=np.uint8)
 

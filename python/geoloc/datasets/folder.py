@@ -62,7 +62,7 @@ def load_folder(
         raise DatasetError(f"path: {str(root)!r} has no images ({', '.join(sorted(IMAGE_EXTENSIONS))})")
     if intrinsics is None:
         raise DatasetError(f"intrinsics: a plain image folder has no calibration; pass intrinsics=(fx, fy, cx, cy) for {str(root)!r}")
-    first = read_image(files[0], "path", gray=True, error=DatasetError)
+    first = read_image(files[0], "image file", gray=True, error=DatasetError)
     camera = resolve_camera(intrinsics, root, (first.shape[1], first.shape[0]))
     name_times = _name_timestamps(files)
     if name_times is not None:
