@@ -92,6 +92,13 @@ def real_scalar(value: Any, name: str) -> float:
         raise InvalidInputError(f"{name}: an integer of {len(str(abs(int(value))))} digits does not fit a float64") from None
 
 
+def check_progress(progress: Any) -> None:
+    """InvalidInputError naming ``progress`` unless it is None or callable (checked before
+    any work, not when it is first called)."""
+    if progress is not None and not callable(progress):
+        raise InvalidInputError(f"progress: expected a callable or None, got {type(progress).__name__}")
+
+
 def choice(value: Any, name: str, choices: tuple[str, ...]) -> str:
     """``value`` when it is one of ``choices``; else an InvalidInputError naming ``name``."""
     if not isinstance(value, str) or value not in choices:

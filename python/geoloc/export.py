@@ -23,9 +23,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ._core import FrameWriter
-from ._validation import real_scalar
+from ._validation import check_progress, real_scalar
 from .exceptions import InvalidInputError
-from .localizer import check_map_camera, check_map_network, check_progress, query_gray
+from .localizer import check_map_camera, check_map_network, query_gray
 from .mapping import GlobalDescriptor, Map
 
 __all__ = ["export_frames"]

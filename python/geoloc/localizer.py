@@ -25,7 +25,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from . import _core
-from ._validation import as_float64, check_network, given_options, keypoint_rows, network_rows, real_scalar
+from ._validation import as_float64, check_network, check_progress, given_options, keypoint_rows, network_rows, real_scalar
 from .camera import Camera
 from .exceptions import InvalidInputError
 from .features import FeatureExtractor
@@ -88,7 +88,6 @@ def _from_core(r: Any, timings: dict[str, float] | None = None) -> Localization:
                         r.map_noise_scale, r.novelty, r.camera_covariance)
 
 
-
 def check_map_camera(camera: Camera, map: Map, name: str) -> None:
     """InvalidInputError naming ``name`` unless ``camera`` is the map's — intrinsics, image
     size and distortion alike: the queries' keypoints are corrected with the map's camera, so
@@ -130,13 +129,6 @@ def check_map_network(global_descriptor: GlobalDescriptor | None, map: Map) -> N
         check_network(global_descriptor, "global_descriptor")
 
 
-def check_progress(progress: Any) -> None:
-    """InvalidInputError naming ``progress`` unless it is None or callable (checked before
-    any work, not when it is first called)."""
-    if progress is not None and not callable(progress):
-        raise InvalidInputError(f"progress: expected a callable or None, got {type(progress).__name__}")
-
-
 def query_gray(image: Any, extractor: FeatureExtractor, camera: Camera) -> NDArray[np.uint8]:
     """A query's grey image, as Map.build described its keyframes: a path decoded straight to
     grey, a BGR image converted (``extractor.gray``); the features and a global-descriptor
@@ -146,6 +138,7 @@ def query_gray(image: Any, extractor: FeatureExtractor, camera: Camera) -> NDArr
 
         return extractor.gray(read_image(image, "image", gray=True), camera)
     return extractor.gray(np.asarray(image), camera)
+
 
 class Localizer:
     """Localizes frames against a :class:`geoloc.Map`, frame after frame, keeping the motion

@@ -26,7 +26,7 @@ from numpy.typing import ArrayLike, NDArray
 from . import _core
 from ._frontend import FRONTEND_VERSION, camera_record, descriptor_record, frontend_parts
 from ._io import shown
-from ._validation import as_batch, as_float64, choice, given_options, keypoint_rows, network_rows, real_scalar
+from ._validation import as_batch, as_float64, check_progress, choice, given_options, keypoint_rows, network_rows, real_scalar
 from .camera import Camera
 from .exceptions import FileAccessError, InvalidInputError
 from .features import DEFAULT_KIND, DEFAULT_N_FEATURES, FeatureExtractor
@@ -222,8 +222,7 @@ class Map:
         options = _build_options(branching, depth, seed, estimate_noise, model, refine_intrinsics, intrinsics_model, adjust_labels)
         kind = choice(features, "features", ("orb", "sift"))
         root = bool(_flag(root_sift, "root_sift"))
-        if progress is not None and not callable(progress):
-            raise InvalidInputError(f"progress: expected a callable or None, got {type(progress).__name__}")
+        check_progress(progress)
         extractor = FeatureExtractor(kind, _as_int(n_features, "n_features", 1), root_sift=root)  # type: ignore[arg-type]
         indices = np.arange(0, len(sequence), step)
         camera = sequence.camera
