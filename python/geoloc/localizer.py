@@ -137,6 +137,8 @@ def query_gray(image: Any, extractor: FeatureExtractor, camera: Camera) -> NDArr
         from ._images import read_image
 
         return extractor.gray(read_image(image, "image", gray=True), camera)
+    if isinstance(image, (bytes, bytearray)):  # numpy would make it a one-string array
+        raise InvalidInputError(f"image: expected a path (str or os.PathLike) or an image array, got {type(image).__name__}")
     return extractor.gray(np.asarray(image), camera)
 
 

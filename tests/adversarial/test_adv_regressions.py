@@ -304,6 +304,9 @@ def test_front_door_arguments_are_checked_before_any_work(small_map: tuple[datas
         loc.localize_sequence(room[12:14], progress=3)  # type: ignore[arg-type]
     f = m.features(room.gray(13), room.camera)
     assert sorted(m.retrieve_features(f.keypoints, f.descriptors, k=2**70)) == list(range(len(m)))
+    # a path given as bytes was read as a one-string array: "expected uint8 pixels, got dtype |S6"
+    with pytest.raises(geoloc.InvalidInputError, match=r"^image: expected a path \(str or os.PathLike\) or an image array, got bytes"):
+        loc.localize(b"/x.png", 0.0)
 
 
 def test_a_sequence_of_another_camera_is_refused_not_localized_as_the_maps(
