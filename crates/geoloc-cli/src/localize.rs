@@ -390,11 +390,7 @@ impl Output {
             let device = std::fs::OpenOptions::new().write(true).open(path);
             device.map(Self::Device).map_err(|e| format!("--output {}: {e}", shown(path)))
         } else {
-            AtomicFile::create(path).map(Self::File).map_err(|e| match e {
-                // the core names its argument "path"; here it is the value given to --output
-                geoloc_core::GeolocError::InvalidInput { reason, .. } => format!("--output {}: {reason}", shown(path)),
-                e => format!("--output {e}"),
-            })
+            AtomicFile::create(path).map(Self::File).map_err(|e| format!("--output {e}"))
         }
     }
 

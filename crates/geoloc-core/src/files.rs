@@ -92,17 +92,19 @@ impl AtomicFile {
     /// Creates a new, unique temp file beside `path`.
     ///
     /// # Errors
-    /// `InvalidInput` named `path` when `path` has no file name; `Io` naming `path` when its
-    /// folder does not exist or is not writable, or `path` exists and is not a regular file
-    /// (a folder, a FIFO, a device: replacing it by a regular file would be a surprise).
+    /// `Io` naming `path` when `path` has no file name (it names a folder), when its folder
+    /// does not exist or is not writable, or when `path` exists and is not a regular file (a
+    /// folder, a FIFO, a device: replacing it by a regular file would be a surprise).
     pub fn create(path: &Path) -> Result<Self> {
         let path = &written_through(path)?;
         let folder = match path.parent() {
             Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
             _ => PathBuf::from("."),
         };
-        let name =
-            path.file_name().ok_or_else(|| GeolocError::invalid("path", "expected a file path, not a folder"))?;
+        let name = path.file_name().ok_or_else(|| GeolocError::Io {
+            path: path.display().to_string(),
+            reason: "expected a file path, not a folder".into(),
+        })?;
         if !folder.is_dir() {
             return Err(io_error(path, "folder does not exist", &std::io::Error::from(std::io::ErrorKind::NotFound)));
         }

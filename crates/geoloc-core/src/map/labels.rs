@@ -214,16 +214,12 @@ impl LabelAdjustment {
             "label_sigma_m": self.label_sigma.translation_m,
             "label_sigma_deg": self.label_sigma.rotation_rad.to_degrees(),
             "correlation_keyframes": [self.correlation_keyframes.0, self.correlation_keyframes.1],
-            "label_from_cam": (0..4)
-                .map(|i| (0..4).map(|j| self.offset.matrix()[(i, j)]).collect::<Vec<_>>())
-                .collect::<Vec<_>>(),
+            "label_from_cam": rows(&self.offset.matrix()),
             "label_from_cam_translation_m": [self.offset.translation.x, self.offset.translation.y, self.offset.translation.z],
             "label_from_cam_translation_sigma_m": [sd(0), sd(1), sd(2)],
             "label_from_cam_rotation_deg": se3::phi(&offset).norm().to_degrees(),
             "label_from_cam_rotation_sigma_deg": [sd(3).to_degrees(), sd(4).to_degrees(), sd(5).to_degrees()],
-            "label_from_cam_covariance": (0..6)
-                .map(|i| (0..6).map(|j| self.offset_covariance[(i, j)]).collect::<Vec<_>>())
-                .collect::<Vec<_>>(),
+            "label_from_cam_covariance": rows(&self.offset_covariance),
             "median_correction_m": mt,
             "median_correction_deg": mr.to_degrees(),
             "rms_px": [self.rms_px.0, self.rms_px.1],
@@ -284,6 +280,11 @@ pub(crate) fn camera_frame_variance(offset: &SE3, covariances: &[Matrix6<f64>]) 
         let mut v: Vec<f64> = covariances.iter().map(|c| (a * c * a.transpose())[(axis, axis)].max(0.0)).collect();
         median(&mut v, EvenMedian::Mean).unwrap_or(0.0)
     })
+}
+
+/// A matrix as nested lists, one per row (the report's JSON form of X and Σ_X).
+fn rows<const R: usize, const C: usize>(m: &nalgebra::SMatrix<f64, R, C>) -> Vec<Vec<f64>> {
+    m.row_iter().map(|r| r.iter().copied().collect()).collect()
 }
 
 #[cfg(test)]
