@@ -232,13 +232,9 @@ def coverage_by_inliers(frames: list[dict[str, Any]]) -> str:
     "<20: 82 % (28)  20-39: ..." — where a covariance is too small or too large."""
     cells = []
     for lo, hi in INLIER_BINS:
-        nees = [
-            float(np.asarray(f["delta"]) @ np.linalg.solve(np.asarray(f["covariance"]), np.asarray(f["delta"])))
-            for f in frames
-            if f["delta"] is not None and f["covariance"] is not None and lo <= f["inliers"] and (hi is None or f["inliers"] < hi)
-        ]
+        nees = frame_nees([f for f in frames if lo <= f["inliers"] and (hi is None or f["inliers"] < hi)], "delta")
         label = f"<{hi}" if lo == 0 else (f"≥{lo}" if hi is None else f"{lo}-{hi - 1}")
-        cells.append(f"{label}: " + ("—" if not nees else f"{np.mean(np.array(nees) <= CHI2_6_95):.0%} ({len(nees)})"))
+        cells.append(f"{label}: " + ("—" if not len(nees) else f"{np.mean(nees <= CHI2_6_95):.0%} ({len(nees)})"))
     return "  ".join(cells)
 
 
@@ -340,30 +336,45 @@ def calibrated_band_probability(phi: Any, tau: Any, n: int = BLOCK, band: tuple[
     return float(np.mean(in_nees)), float(np.mean(in_nees & (axis >= lo) & (axis <= hi)))
 
 
+def frame_nees(frames: list[dict[str, Any]], key: str) -> Any:
+    """NEES δᵀC⁻¹δ of every answered frame (δ under ``key``, with a covariance)."""
+    return np.array([np.asarray(f[key]) @ np.linalg.solve(np.asarray(f["covariance"]), np.asarray(f[key]))
+                     for f in frames if f[key] is not None and f["covariance"] is not None])
+
+
 def nees_coverage(frames: list[dict[str, Any]], key: str) -> float | None:
     """The fraction of answered frames (δ under ``key``) inside their χ²₆ 95 % region."""
-    nees = [np.asarray(f[key]) @ np.linalg.solve(np.asarray(f["covariance"]), np.asarray(f[key]))
-            for f in frames if f[key] is not None and f["covariance"] is not None]
-    return float(np.mean(np.array(nees) <= CHI2_6_95)) if nees else None
+    nees = frame_nees(frames, key)
+    return float(np.mean(nees <= CHI2_6_95)) if len(nees) else None
+
+
+def block_chances(frames: list[dict[str, Any]], key: str) -> dict[str, Any] | None:
+    """Of one block's answers (δ under ``key``): their structure φ, τ (:func:`block_structure`),
+    the chances p_nees, p_both that a covariance exactly right for them puts the block in the
+    coverage band (:func:`calibrated_band_probability`), their NEES coverage and
+    p_at_least, how often that right covariance covers the block at least as well in NEES (a
+    one-sided p of over-coverage). None when there are too few answers."""
+    structure, observed = block_structure(frames, key), nees_coverage(frames, key)
+    if structure is None or observed is None:
+        return None
+    phi, tau = structure
+    nees, _ = simulated_block_coverage(phi, tau, len([f for f in frames if f[key] is not None]))
+    p_nees, p_both = calibrated_band_probability(phi, tau)
+    return {"phi": phi, "tau": tau, "p_nees": p_nees, "p_both": p_both, "observed": observed,
+            "p_at_least": float(np.mean(nees >= observed - 1e-9))}
 
 
 def block_structure_line(frames: dict[str, list[dict[str, Any]]], key: str) -> str:
-    """Per mode: the errors' block structure (:func:`block_structure`), the chance p that a
-    covariance exactly right for them would put this block in the coverage band
-    (:func:`calibrated_band_probability`), and how often it would cover the block at least as
-    well as the answers' covariance did in NEES (a one-sided p of over-coverage)."""
+    """Per mode: the errors' block structure and the chances of :func:`block_chances`."""
     cells = []
     for mode, fr in frames.items():
-        structure = block_structure(fr, key)
-        observed = nees_coverage(fr, key)
-        if structure is None or observed is None:
+        c = block_chances(fr, key)
+        if c is None:
             cells.append(f"{mode} —")
             continue
-        phi, tau = structure
-        nees, _ = simulated_block_coverage(phi, tau, len([f for f in fr if f[key] is not None]))
-        p_nees, p_both = calibrated_band_probability(phi, tau)
-        cells.append(f"{mode} φ {np.round(phi, 2).tolist()} τ {np.round(tau, 1).tolist()}: p {p_nees:.2f} / {p_both:.2f}, "
-                     f"NEES coverage ≥ {percent(observed)} % with p {np.mean(nees >= observed - 1e-9):.2f}")
+        cells.append(f"{mode} φ {np.round(c['phi'], 2).tolist()} τ {np.round(c['tau'], 1).tolist()}: "
+                     f"p {c['p_nees']:.2f} / {c['p_both']:.2f}, "
+                     f"NEES coverage ≥ {percent(c['observed'])} % with p {c['p_at_least']:.2f}")
     return "; ".join(cells)
 
 
@@ -396,9 +407,8 @@ def outside_region(frames: list[dict[str, Any]], key: str) -> tuple[int, int]:
     """(k, n): of the n answered frames with an error under ``key``, the k outside their
     99.9 % region (NEES δᵀC⁻¹δ above the χ²₆ 99.9 % quantile) — the answers the covariance
     does not hold at all."""
-    nees = [np.asarray(f[key]) @ np.linalg.solve(np.asarray(f["covariance"]), np.asarray(f[key]))
-            for f in frames if f[key] is not None and f["covariance"] is not None]
-    return int(np.sum(np.array(nees) > CHI2_6_999)), len(nees)
+    nees = frame_nees(frames, key)
+    return int(np.sum(nees > CHI2_6_999)), len(nees)
 
 
 def percent(fraction: float) -> str:
@@ -580,20 +590,13 @@ def main() -> int:
             print(f"folds {','.join(folds)} pooled ({len(pairs)} frames), {coverage_sweep_line(against, mode, pairs)}",
                   flush=True)
         for mode in ("single", "sequential"):
-            chances, at_least = [], []
-            for name in folds:
-                fr = report[name]["frames"][mode]
-                structure, observed = block_structure(fr, key), nees_coverage(fr, key)
-                if structure is None or observed is None:
-                    continue
-                chances.append(calibrated_band_probability(*structure))
-                nees, _ = simulated_block_coverage(*structure, n=len([f for f in fr if f[key] is not None]))
-                at_least.append(float(np.mean(nees >= observed - 1e-9)))
+            chances = [c for name in folds if (c := block_chances(report[name]["frames"][mode], key)) is not None]
+            p_nees, p_both = [c["p_nees"] for c in chances], [c["p_both"] for c in chances]
             print(f"folds {','.join(folds)}, {mode}: a covariance exactly right for each fold's errors would put all "
-                  f"{len(chances)} blocks in the band with p {np.prod([c[0] for c in chances]):.3f} (NEES) / "
-                  f"{np.prod([c[1] for c in chances]):.3f} (NEES and every axis), expected blocks in it "
-                  f"{sum(c[0] for c in chances):.1f} / {sum(c[1] for c in chances):.1f}; and cover every block at least as "
-                  f"well as the answers did (NEES) with p {np.prod(at_least):.1e}", flush=True)
+                  f"{len(chances)} blocks in the band with p {np.prod(p_nees):.3f} (NEES) / "
+                  f"{np.prod(p_both):.3f} (NEES and every axis), expected blocks in it "
+                  f"{sum(p_nees):.1f} / {sum(p_both):.1f}; and cover every block at least as "
+                  f"well as the answers did (NEES) with p {np.prod([c['p_at_least'] for c in chances]):.1e}", flush=True)
         print(f"folds {','.join(folds)} pooled, outside the 99.9 % region against the {against}: " + ", ".join(
             "{} {} of {}".format(mode, *np.sum([outside_region(report[name]["frames"][mode], key) for name in folds], axis=0))
             for mode in ("single", "sequential")), flush=True)

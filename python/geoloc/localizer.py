@@ -230,7 +230,7 @@ class Localizer:
                 "image: this map was built from features (Map.from_features); localize it with localize_features"
             )
         start = time.perf_counter()
-        gray = self._gray(image, extractor)
+        gray = query_gray(image, extractor, self.camera)
         decoded = time.perf_counter()
         f = extractor(gray, self.camera)
         described = time.perf_counter()
@@ -279,10 +279,6 @@ class Localizer:
                 raise InvalidInputError(f"pixel_sigmas: expected shape ({len(k)},), got {s.shape}")
             s = np.ascontiguousarray(s)
         return _from_core(self._core.localize(real_scalar(timestamp, "timestamp"), k, d, g, s))
-
-    def _gray(self, image: Any, extractor: FeatureExtractor) -> NDArray[np.uint8]:
-        """The query's grey image (:func:`query_gray`)."""
-        return query_gray(image, extractor, self.camera)
 
     def reset(self) -> None:
         """Forget the motion history and the last frame's keyframe (the next frame is
