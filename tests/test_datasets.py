@@ -326,3 +326,72 @@ def test_import_geoloc_needs_numpy_only() -> None:
     code = "import sys, geoloc, geoloc.datasets, geoloc.evaluation, geoloc.features, geoloc.plots; print(sorted({'cv2', 'matplotlib'} & set(sys.modules)))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
     assert out == "[]"
+
+
+def test_write_tum_refuses_to_write_over_the_folder_it_was_read_from(tum_folder: tuple[Path, datasets.Sequence],
+                                                                     tmp_path: Path) -> None:
+    """``seq[0:3].write_tum(its own folder)`` replaced rgb.txt, groundtruth.txt and images."""
+    root, seq = tum_folder
+    copy = tmp_path / "room"
+    shutil.copytree(root, copy)
+    before = {p: p.read_bytes() for p in copy.rglob("*") if p.is_file()}
+    loaded = datasets.load_tum(copy)
+    with pytest.raises(geoloc.InvalidInputError, match=r"^path: .*rgb.* is the same file as the input sequence"):
+        loaded[0:3].write_tum(copy)
+    assert {p: p.read_bytes() for p in copy.rglob("*") if p.is_file()} == before
+    assert len(datasets.load_tum(copy)) == len(seq)
+    assert len(datasets.load_tum(loaded[0:3].write_tum(tmp_path / "other"))) == 3  # another folder is written
+
+
+def test_write_tum_keeps_frames_a_tenth_of_a_microsecond_apart(tmp_path: Path) -> None:
+    """Names of six decimals gave both frames one image file and load_tum refused the folder."""
+    room = datasets.synthetic_room(n_frames=2, seed=0)
+    folder = tmp_path / "close"
+    folder.mkdir()
+    for i, name in enumerate(("1.0000001", "1.0000002")):
+        cv2.imwrite(str(folder / f"{name}.png"), room[i].image)
+    seq = datasets.load_folder(folder, trajectory=None, intrinsics=room.camera)
+    loaded = datasets.load_tum(seq.write_tum(tmp_path / "tum"))
+    assert loaded.timestamps.tolist() == [1.0000001, 1.0000002]  # exact: shortest round-trip repr
+    assert np.array_equal(loaded[0].image, room[0].image) and np.array_equal(loaded[1].image, room[1].image)
+
+
+def test_tum_file_names_keep_their_commas_and_spaces(tum_folder: tuple[Path, datasets.Sequence], tmp_path: Path) -> None:
+    """rgb.txt's 'rgb/a,b.png' was read as 'rgb/a b.png', and 'c  d.png' as 'c d.png'."""
+    root, seq = tum_folder
+    copy = tmp_path / "room"
+    shutil.copytree(root, copy)
+    (copy / "groundtruth.txt").unlink()
+    names = ["rgb/a,b.png", "rgb/c  d.png", "rgb/e.png"]
+    lines = []
+    for i, name in enumerate(names):
+        cv2.imwrite(str(copy / name), seq[i].image)
+        lines.append(f"{i}.5{',' if i == 2 else ' '}{name}")  # the TUM tools also take a comma as separator
+    (copy / "rgb.txt").write_text("\n".join(lines) + "\n")
+    loaded = datasets.load_tum(copy)
+    assert [p.name for p in loaded.files[1:4]] == ["a,b.png", "c  d.png", "e.png"]
+    assert all(np.array_equal(loaded[i].image, seq[i].image) for i in range(3))
+
+
+@pytest.mark.parametrize("stems", [("20230101_120000", "20230101_120001"), ("nan", "1"), ("١", "٢"), ("1e1", "1_5")])
+def test_folder_image_names_are_timestamps_only_when_they_are_decimal_numbers(tmp_path: Path,
+                                                                              stems: tuple[str, str]) -> None:
+    """float() read '20230101_120000' (a camera's date_time name) as 20230101120000 s."""
+    room = datasets.synthetic_room(n_frames=2, seed=0)
+    for i, stem in enumerate(stems):
+        cv2.imwrite(str(tmp_path / f"{stem}.png"), room[i].image)
+    seq = datasets.load_folder(tmp_path, trajectory=None, intrinsics=room.camera)
+    assert seq.timestamps[0] == 0.0 and seq.timestamps[1] > 0  # not numbers: frames by name at the fallback rate
+    assert [p.stem for p in seq.files] == sorted(stems)
+
+
+def test_data_files_hold_decimal_numbers_only(tum_folder: tuple[Path, datasets.Sequence], tmp_path: Path) -> None:
+    root, _ = tum_folder
+    copy = tmp_path / "room"
+    shutil.copytree(root, copy)
+    (copy / "groundtruth.txt").write_text("0.0 1_0 2 3 0 0 0 1\n")
+    with pytest.raises(geoloc.DatasetError, match="entry 1 is not numbers: '0.0 1_0"):
+        datasets.load_tum(copy)
+    (copy / "groundtruth.txt").write_text("0.0 1e999 2 3 0 0 0 1\n")
+    with pytest.raises(geoloc.DatasetError, match="entry 1 has a non-finite number"):
+        datasets.load_tum(copy)

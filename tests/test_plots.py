@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -60,3 +61,35 @@ def test_bad_input(tmp_path: Path) -> None:
         plots.plot_error_cdf(_results(), tmp_path / "missing" / "cdf.png")
     with pytest.raises(geoloc.InvalidInputError, match="parent folder"):
         plots.write_all(_results(), tmp_path / "a" / "b")
+
+
+@pytest.mark.parametrize("suffix", ["svg", "pdf", "eps"])
+def test_vector_plots_are_the_same_bytes_in_every_run(tmp_path: Path, suffix: str) -> None:
+    """They carried the creation time and (SVG) random clip-path ids."""
+    results = _results()
+    first = plots.plot_trajectory(results, tmp_path / f"a.{suffix}").read_bytes()
+    second = plots.plot_trajectory(results, tmp_path / f"b.{suffix}").read_bytes()
+    assert first == second
+    assert b"CreationDate" not in first and b"<dc:date>" not in first
+    assert first.startswith({"svg": b"<?xml", "pdf": b"%PDF", "eps": b"%!PS"}[suffix])
+
+
+def test_a_run_with_every_frame_lost_plots_without_warnings(tmp_path: Path) -> None:
+    """The calibration plot's legend had no labelled artist and matplotlib warned on stderr."""
+    results = dict(_results())
+    results["per_frame"] = [{**f, "nees": None} for f in results["per_frame"]]  # type: ignore[attr-defined]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        plots.plot_calibration(results, tmp_path / "calibration.png")
+
+
+@pytest.mark.parametrize("per_frame", [[{"a": 1}], "abc", [1, 2], [{"position_gt": [0, 0, 0]}]])
+def test_malformed_results_are_refused_naming_results(tmp_path: Path, per_frame: object) -> None:
+    """A KeyError 'position_gt', a TypeError or an AttributeError came out of the plot functions."""
+    for plot in (plots.plot_trajectory, plots.plot_errors_over_time, plots.plot_error_cdf, plots.plot_calibration):
+        with pytest.raises(geoloc.InvalidInputError, match="^results: "):
+            plot({"per_frame": per_frame}, tmp_path / "p.png")
+    bad = dict(_results())
+    bad["per_frame"] = [{**f, "nees": "x"} for f in bad["per_frame"]]  # type: ignore[attr-defined]
+    with pytest.raises(geoloc.InvalidInputError, match="^results: per_frame entries' 'nees' must be numbers"):
+        plots.plot_calibration(bad, tmp_path / "p.png")

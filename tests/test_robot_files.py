@@ -164,6 +164,19 @@ def test_export_frames_refuses_to_overwrite_one_of_its_frames(tmp_path: Path, sm
     assert (tmp_path / "1.png").read_bytes() == before
 
 
+def test_export_frames_refuses_to_overwrite_an_image_of_its_pairs(tmp_path: Path, small_map: geoloc.Map) -> None:
+    """It replaced the image: only a Sequence's files were checked, not (timestamp, path) pairs."""
+    room = datasets.synthetic_room(n_frames=12, seed=0)
+    for i in (0, 1):
+        write_image(tmp_path / f"{i}.png", room[10 + i].image)
+    before = (tmp_path / "1.png").read_bytes()
+    pairs = [(0.0, tmp_path / "0.png"), (1.0, str(tmp_path / "1.png"))]
+    with pytest.raises(geoloc.InvalidInputError, match=r"^path: .* same file as the input frames\[1\] image"):
+        geoloc.export_frames(small_map, pairs, tmp_path / "1.png")
+    assert (tmp_path / "1.png").read_bytes() == before
+    assert geoloc.export_frames(small_map, pairs, tmp_path / "frames.bin") == 2
+
+
 @pytest.mark.parametrize("alias", ["image", "symlink", "hardlink", "trajectory"])
 def test_map_save_refuses_to_overwrite_a_file_the_map_was_built_from(tmp_path: Path, alias: str) -> None:
     """It replaced the image: ``Map.save`` checked only that the path was writable."""

@@ -31,11 +31,12 @@ from .mapping import GlobalDescriptor, Map
 __all__ = ["export_frames"]
 
 
-def _frames(frames: Any, map: Map) -> Iterable[tuple[float, Any]]:
+def _frames(frames: Any, map: Map, target: Any) -> Iterable[tuple[float, Any]]:
     """(timestamp, image) pairs: a Sequence's grey frames (``Sequence.gray``, as the CLI's
     localize uses; its camera must be the map's), or the caller's own pairs, each checked —
-    a pair, a finite real timestamp, increasing as the localizer needs them — before it is
-    written, naming ``frames`` and the position."""
+    a pair, a finite real timestamp, increasing as the localizer needs them, an image path
+    that is not the output ``target`` — before it is written, naming ``frames`` and the
+    position."""
     from .datasets import Sequence
 
     if isinstance(frames, Sequence):
@@ -45,10 +46,12 @@ def _frames(frames: Any, map: Map) -> Iterable[tuple[float, Any]]:
         raise InvalidInputError(
             f"frames: expected a geoloc.datasets.Sequence or an iterable of (timestamp, image), got {type(frames).__name__}"
         )
-    return _checked_pairs(frames)
+    return _checked_pairs(frames, target)
 
 
-def _checked_pairs(frames: Iterable[Any]) -> Iterable[tuple[float, Any]]:
+def _checked_pairs(frames: Iterable[Any], target: Any) -> Iterable[tuple[float, Any]]:
+    from ._io import refuse_alias
+
     last = -math.inf
     for i, pair in enumerate(frames):
         if not (isinstance(pair, tuple) and len(pair) == 2):
@@ -59,6 +62,9 @@ def _checked_pairs(frames: Iterable[Any]) -> Iterable[tuple[float, Any]]:
         if t <= last:
             raise InvalidInputError(f"frames[{i}] timestamp: {t!r} does not increase (the frame before is at {last!r})")
         last = t
+        if isinstance(pair[1], (str, os.PathLike)):
+            # the output replaces its target only at the end, after this image was read
+            refuse_alias(target, "path", [(f"frames[{i}] image", pair[1])])
         yield t, pair[1]
 
 
@@ -96,7 +102,7 @@ def export_frames(
     # the network is checked against the map, and images decoded, as the Localizer does
     check_map_network(global_descriptor, map)
     check_progress(progress)
-    pairs = _frames(frames, map)
+    pairs = _frames(frames, map, target)
     writer = FrameWriter(os.fspath(target), format=format)
     try:
         for done, (timestamp, image) in enumerate(pairs, start=1):

@@ -21,6 +21,7 @@ from __future__ import annotations
 import io
 import math
 import os
+import re
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -49,34 +50,55 @@ AXIS_NAMES = ("x", "y", "z")
 Results = Mapping[str, Any]
 
 
-def _frames(results: Results) -> list[dict[str, Any]]:
+def _frames(results: Results, keys: tuple[str, ...]) -> list[Mapping[str, Any]]:
+    """``results["per_frame"]``, each entry a mapping holding ``keys`` (what the plot reads);
+    InvalidInputError naming ``results`` and the first entry and key missing otherwise."""
     frames = results.get("per_frame") if isinstance(results, Mapping) else None
-    if not frames:
+    if not frames or not isinstance(frames, (list, tuple)):
         raise InvalidInputError("results: expected the dictionary of geoloc.evaluation.summarize with per_frame entries")
+    for i, f in enumerate(frames):
+        missing = [k for k in keys if k not in f] if isinstance(f, Mapping) else list(keys)
+        if missing:
+            raise InvalidInputError(
+                f"results: per_frame[{i}] has no {missing[0]!r} (expected the entries of geoloc.evaluation.summarize)"
+            )
     return list(frames)
 
 
 def _save(fig: Any, path: str | os.PathLike[str]) -> Path:
-    """Render ``fig`` as PNG in memory, then write it atomically (never a half-written file;
-    matplotlib never gets the path)."""
+    """Render ``fig`` in memory in the format of ``path``'s suffix (PNG without one), then
+    write it atomically (never a half-written file; matplotlib never gets the path). The same
+    figure gives the same bytes in every run: the vector formats' creation dates are left out
+    and SVG ids are hashed with a fixed salt."""
+    import matplotlib
+
     target = check_output_path(path, "path")
     buffer = io.BytesIO()
     fmt = target.suffix.lstrip(".").lower() or "png"
+    undated = {"pdf": {"CreationDate": None}, "svg": {"Date": None}}.get(fmt)
     try:
-        fig.savefig(buffer, format=fmt, dpi=FIGURE_DPI)
+        with matplotlib.rc_context({"svg.hashsalt": "geoloc"}):
+            fig.savefig(buffer, format=fmt, dpi=FIGURE_DPI, metadata=undated)
     except ValueError as e:  # a format matplotlib does not write
         raise InvalidInputError(f"path: cannot write a plot as {fmt!r} ({e})") from None
-    write_bytes_atomic(target, buffer.getvalue(), "path")
+    data = buffer.getvalue()
+    if fmt in ("ps", "eps"):  # PostScript takes no metadata to drop the date: its comment line goes
+        data = re.sub(rb"^%%CreationDate: [^\n]*\n", b"", data, count=1, flags=re.MULTILINE)
+    write_bytes_atomic(target, data, "path")
     return target
 
 
-def _errors(frames: list[dict[str, Any]], key: str) -> np.ndarray:
-    return np.array([np.nan if f[key] is None else f[key] for f in frames], dtype=np.float64)
+def _errors(frames: list[Mapping[str, Any]], key: str) -> np.ndarray:
+    """The frames' ``key`` as floats, NaN where it is None (a lost frame)."""
+    try:
+        return np.array([np.nan if f[key] is None else f[key] for f in frames], dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InvalidInputError(f"results: per_frame entries' {key!r} must be numbers or None") from None
 
 
 def plot_trajectory(results: Results, path: str | os.PathLike[str]) -> Path:
     """Top view: estimate vs ground truth with 95 % position ellipses (see the module doc)."""
-    frames = _frames(results)
+    frames = _frames(results, ("position_gt", "position", "position_covariance"))
     gt = np.array([f["position_gt"] for f in frames], dtype=np.float64)
     spread = gt.max(axis=0) - gt.min(axis=0)
     a, b = sorted(np.argsort(spread)[::-1][:2].tolist())
@@ -120,7 +142,7 @@ def plot_trajectory(results: Results, path: str | os.PathLike[str]) -> Path:
 def plot_errors_over_time(results: Results, path: str | os.PathLike[str]) -> Path:
     """Translation (cm) and rotation (deg) error per frame over time, coloured by source;
     lost frames are marked along the bottom."""
-    frames = _frames(results)
+    frames = _frames(results, ("timestamp", "translation_error_m", "rotation_error_deg", "source"))
     t = np.array([f["timestamp"] for f in frames], dtype=np.float64)
     trans, rot = _errors(frames, "translation_error_m") * 100, _errors(frames, "rotation_error_deg")
     sources = np.array([f["source"] for f in frames])
@@ -146,7 +168,7 @@ def plot_errors_over_time(results: Results, path: str | os.PathLike[str]) -> Pat
 
 def plot_error_cdf(results: Results, path: str | os.PathLike[str]) -> Path:
     """Empirical CDFs of translation (cm) and rotation (deg) error over all frames."""
-    frames = _frames(results)
+    frames = _frames(results, ("translation_error_m", "rotation_error_deg"))
     n = len(frames)
     Figure = import_figure()
     fig = Figure(figsize=(8.0, 3.6))
@@ -170,7 +192,7 @@ def plot_error_cdf(results: Results, path: str | os.PathLike[str]) -> Path:
 def plot_calibration(results: Results, path: str | os.PathLike[str]) -> Path:
     """Q–Q plot: sorted NEES against χ²₆ quantiles, with the diagonal and the 95 % line;
     NEES beyond CALIBRATION_Y_RANGE × the x range are marked at the top edge."""
-    frames = _frames(results)
+    frames = _frames(results, ("nees",))
     values = np.sort(_errors(frames, "nees"))
     values = values[np.isfinite(values)]
     Figure = import_figure()
@@ -191,11 +213,11 @@ def plot_calibration(results: Results, path: str | os.PathLike[str]) -> Path:
         ax.set_ylim(0, max(top, min(float(values.max()), ceiling)) * 1.05)
         inside = float(np.mean(values <= CHI2_6_95))
         ax.set_title(f"NEES calibration: {inside:.1%} ≤ χ²₆(0.95)")
+        ax.legend(loc="upper left", fontsize=8)
     else:
         ax.set_title("NEES calibration: no covariances")
     ax.set_xlabel("χ²₆ quantile")
     ax.set_ylabel("NEES (sorted)")
-    ax.legend(loc="upper left", fontsize=8)
     ax.grid(True, alpha=0.3)
     fig.tight_layout()
     return _save(fig, path)

@@ -8,7 +8,9 @@ loaders (:mod:`.tum`, :mod:`.sevenscenes`, :mod:`.folder`) and :mod:`.sequence` 
 
 from __future__ import annotations
 
+import math
 import os
+import re
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -25,7 +27,9 @@ __all__ = [
     "ImageLoader",
     "associate",
     "check_image_size",
+    "data_lines",
     "data_rows",
+    "decimal_number",
     "existing_folder",
     "file_loader",
     "floats",
@@ -86,8 +90,8 @@ def existing_folder(path: str | os.PathLike[str]) -> Path:
     return root
 
 
-def data_rows(path: Path) -> list[list[str]]:
-    """Whitespace/comma-separated fields of the non-comment lines of a text file."""
+def data_lines(path: Path) -> list[str]:
+    """The non-comment lines of a text file, stripped (blank lines and ``#`` lines left out)."""
     from .._io import read_bytes
 
     data = read_bytes(path, "path", DatasetError)  # a FIFO or folder in its place is refused, never opened
@@ -95,21 +99,38 @@ def data_rows(path: Path) -> list[list[str]]:
         text = data.decode("utf-8", errors="strict")
     except UnicodeDecodeError as exc:
         raise DatasetError(f"file {str(path)!r} cannot be read as text ({exc})") from None
-    rows = []
-    for line in text.splitlines():
-        line = line.strip()
-        if line and not line.startswith("#"):
-            rows.append(line.replace(",", " ").split())
-    return rows
+    return [line for line in (raw.strip() for raw in text.splitlines()) if line and not line.startswith("#")]
+
+
+def data_rows(path: Path) -> list[list[str]]:
+    """Whitespace/comma-separated fields of the non-comment lines of a text file."""
+    return [line.replace(",", " ").split() for line in data_lines(path)]
+
+
+# a decimal number as data files and file names write it: digits, one point, an exponent;
+# not Python's float() syntax, which also takes "1_000", "nan", "inf" and non-ASCII digits
+_DECIMAL = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
+
+
+def decimal_number(text: str) -> float | None:
+    """The finite number ``text`` spells (``_DECIMAL``), or None when it is not one."""
+    if _DECIMAL.fullmatch(text) is None:
+        return None
+    value = float(text)
+    return value if math.isfinite(value) else None
 
 
 def floats(fields: list[str], path: Path, line: int) -> list[float]:
-    try:
-        values = [float(f) for f in fields]
-    except ValueError:
-        raise DatasetError(f"file {str(path)!r}: entry {line} is not numbers: {' '.join(fields)!r}") from None
-    if not all(np.isfinite(values)):
-        raise DatasetError(f"file {str(path)!r}: entry {line} has a non-finite number")
+    """The numbers of one data line (``decimal_number``); DatasetError naming the file and
+    the entry when a field is not a decimal number or is not finite (nan, inf, 1e999)."""
+    values = []
+    for f in fields:
+        value = decimal_number(f)
+        if value is None:
+            if _DECIMAL.fullmatch(f) or f.lstrip("+-").lower() in ("nan", "inf", "infinity"):
+                raise DatasetError(f"file {str(path)!r}: entry {line} has a non-finite number")
+            raise DatasetError(f"file {str(path)!r}: entry {line} is not numbers: {' '.join(fields)!r}")
+        values.append(value)
     return values
 
 

@@ -31,7 +31,7 @@ from .._validation import real_scalar
 from ..camera import Camera
 from ..exceptions import DatasetError, InvalidInputError
 from .._io import read_bytes
-from ._files import existing_folder, file_loader, refuse_repeated_times
+from ._files import decimal_number, existing_folder, file_loader, refuse_repeated_times
 from .sequence import Sequence
 from .tum import associate, read_tum_trajectory, resolve_camera
 
@@ -100,25 +100,17 @@ def load_folder(
     )
 
 
-def _number(stem: str) -> float | None:
-    try:
-        value = float(stem)
-    except ValueError:
-        return None
-    return value if math.isfinite(value) else None
-
-
 def _in_order(files: list[Path]) -> list[Path]:
     """The images in time order: by the number when every name is a number (``9.png`` before
     ``10.png``, as their timestamps say), else by name."""
-    numbers = [_number(p.stem) for p in files]
+    numbers = [decimal_number(p.stem) for p in files]
     if files and all(n is not None for n in numbers):
         return [p for _, p in sorted(zip(numbers, files), key=lambda pair: (pair[0], pair[1].name))]
     return sorted(files)
 
 
 def _name_timestamps(files: list[Path]) -> np.ndarray | None:
-    numbers = [_number(f.stem) for f in files]
+    numbers = [decimal_number(f.stem) for f in files]
     if any(n is None for n in numbers):
         return None
     return np.array(numbers, dtype=np.float64)

@@ -197,25 +197,35 @@ class Sequence:
         Creates the folder ``path`` (its parent must exist) holding ``rgb/<timestamp>.png``
         (lossless), ``rgb.txt``, ``groundtruth.txt`` (when the sequence has poses; TUM
         order ``timestamp tx ty tz qx qy qz qw``) and ``camera.txt`` (see
-        :func:`geoloc.datasets.tum.write_camera_file`). Returns the folder.
+        :func:`geoloc.datasets.tum.write_camera_file`). Timestamps are written exactly
+        (shortest round-trip repr), so frames 0.1 µs apart keep their own images. A file
+        the sequence was read from (:attr:`files`) is never written over: such a ``path`` is
+        refused before anything is written. Returns the folder.
         """
         from .._images import write_image
-        from .._io import write_text_atomic
+        from .._io import refuse_alias, write_text_atomic
         from ..evaluation import write_tum_trajectory
         from ._files import write_camera_file
 
         root = Path(path)
         if not root.parent.is_dir():
             raise DatasetError(f"path: parent folder {str(root.parent)!r} does not exist")
+        stamps = [repr(float(t)) for t in self._timestamps]
+        if len(set(stamps)) != len(stamps):
+            raise DatasetError("path: the sequence has two frames with one timestamp; their images would share one file")
+        names = [f"rgb/{t}.png" for t in stamps]
+        outputs = [root / n for n in names] + [root / "rgb.txt", root / "groundtruth.txt", root / "camera.txt"]
+        inputs = [("sequence", f) for f in self._files]
+        for out in outputs:
+            refuse_alias(out, "path", inputs)
         try:
             (root / "rgb").mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise DatasetError(f"path: cannot create {str(root)!r} ({exc.strerror})") from None
         lines = ["# color images", "# written by geoloc", "# timestamp filename"]
-        for frame in self:
-            name = f"rgb/{frame.timestamp:.6f}.png"
+        for frame, stamp, name in zip(self, stamps, names):
             write_image(root / name, frame.image, "path")
-            lines.append(f"{frame.timestamp:.6f} {name}")
+            lines.append(f"{stamp} {name}")
         write_text_atomic(root / "rgb.txt", "\n".join(lines) + "\n", "path")
         if self._poses is not None:
             write_tum_trajectory(root / "groundtruth.txt", self._timestamps, self._poses)

@@ -34,7 +34,7 @@ from ..exceptions import DatasetError, InvalidInputError
 from ._files import (  # the TUM trajectory and camera file formats: defined in ._files (no Sequence there), public here
     CAMERA_FILE_HEADER,
     associate,
-    data_rows,
+    data_lines,
     existing_folder,
     file_loader,
     floats,
@@ -102,7 +102,8 @@ def load_tum(
     if not math.isfinite(real_scalar(max_time_difference, "max_time_difference")) or max_time_difference < 0:
         raise InvalidInputError(f"max_time_difference: expected seconds ≥ 0, got {max_time_difference!r}")
     rgb = root / "rgb.txt"
-    rows = data_rows(rgb)
+    # 'timestamp filename': the name is the rest of the line, spaces and commas included
+    rows = [re.split(r"[\s,]+", line, maxsplit=1) for line in data_lines(rgb)]
     if not rows:
         raise DatasetError(f"{str(rgb)!r} lists no images")
     for k, row in enumerate(rows):
@@ -117,7 +118,7 @@ def load_tum(
             f"{str(rgb)!r}: entry {k + 1} has the timestamp {float(times[k])!r}, before entry {k}'s "
             f"{float(times[k - 1])!r} (the entries must be in time order)"
         )
-    files = [root / " ".join(r[1:]) for r in rows]
+    files = [root / r[1] for r in rows]
     camera = _tum_camera(intrinsics, root)
     gt_file = root / "groundtruth.txt"
     read = [rgb, *files, *(p for p in (gt_file, root / "camera.txt") if p.exists())]
