@@ -10,6 +10,8 @@ from pathlib import Path
 import pytest
 
 import geoloc
+from geoloc.datasets.synthetic import MAX_FRAMES as SYNTHETIC_MAX_FRAMES
+from geoloc.montecarlo import MAX_TRIALS
 
 
 def _run(*args: str) -> subprocess.CompletedProcess[str]:
@@ -77,6 +79,11 @@ def test_bad_option_values_are_refused() -> None:
         (("montecarlo", "--seed", str(2**70)), "--seed"),
         (("selfcheck", "--samples", "1000000000"), "--samples"),
         (("montecarlo", "--covariance", "magic"), "--covariance"),
+        # one past the function's own bound: refused by the option, not later by the argument
+        (("montecarlo", "--trials", str(MAX_TRIALS + 1)), "--trials"),
+        (("demo", "--frames", str(SYNTHETIC_MAX_FRAMES + 1)), "--frames"),
+        (("evaluate", "--format", "synthetic", "--synthetic-frames", str(SYNTHETIC_MAX_FRAMES + 1)),
+         "--synthetic-frames"),
     ],
 )
 def test_out_of_range_options_are_one_line_naming_the_option(args: tuple[str, ...], names: str) -> None:
@@ -85,6 +92,16 @@ def test_out_of_range_options_are_one_line_naming_the_option(args: tuple[str, ..
     assert "Traceback" not in result.stderr
     error_lines = [line for line in result.stderr.splitlines() if "error" in line]
     assert len(error_lines) == 1 and names in error_lines[0], result.stderr
+
+
+def test_an_unknown_option_of_a_command_is_refused_with_that_commands_usage() -> None:
+    """It printed the top level's usage and "geoloc: error: unrecognized arguments"."""
+    result = _run("evaluate", "--format", "synthetic", "--dim", "3")
+    assert result.returncode == 2
+    assert "usage: geoloc evaluate" in result.stderr
+    assert result.stderr.splitlines()[-1] == "geoloc evaluate: error: unrecognized arguments: --dim 3"
+    top = _run("--dim", "3")
+    assert top.returncode == 2 and "usage: geoloc [-h]" in top.stderr
 
 
 def test_output_in_a_missing_folder_is_refused_and_not_created(tmp_path: Path) -> None:

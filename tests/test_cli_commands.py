@@ -425,3 +425,18 @@ def test_localize_names_the_option_behind_a_bad_frame_or_camera(tmp_path: Path) 
                   "--out", str(tmp_path / "q.txt"))
     line = _one_line_error(result, "--format synthetic: the frames' intrinsics", "(600.0, 600.0, 319.5, 239.5)")
     assert "--intrinsics" not in line
+
+
+def test_a_map_without_a_model_names_the_locator_option() -> None:
+    """The core's refusal said "locator: … use the paper's locator": a Python argument."""
+    result = _run("evaluate", "--format", "synthetic", "--synthetic-frames", "20", "--train", "0:2", "--test", "2:4")
+    _one_line_error(result, "--locator", "use --locator paper")
+
+
+@pytest.mark.parametrize(("trajectory", "says"), [("", "expected a file name"), (".", "is a folder")])
+def test_a_trajectory_that_names_no_file_says_so(tmp_path: Path, trajectory: str, says: str) -> None:
+    """``--trajectory ""`` said "file 'fold' does not exist" of the dataset folder itself."""
+    (tmp_path / "fold").mkdir()
+    result = _run("evaluate", "--dataset", str(tmp_path / "fold"), "--format", "folder", "--intrinsics", "525,525,320,240",
+                  "--trajectory", trajectory)
+    _one_line_error(result, "--trajectory", says)

@@ -182,6 +182,23 @@ def test_summarize_results_and_table() -> None:
         evaluation.summarize(est[:3], gt)
 
 
+def test_malformed_inputs_of_the_summaries_are_refused_by_name() -> None:
+    """Each raised a bare ValueError, TypeError, AttributeError or IndexError."""
+    est, gt, covs, sources = _summary_inputs()
+    n = len(gt)
+    cases = [
+        (lambda: evaluation.summarize(est, gt, timings_ms=[{"total": "x"}] * n), r"^timings_ms\[0\]\['total'\]: expected a real"),
+        (lambda: evaluation.summarize(est, gt, timings_ms=[5] * n), r"^timings_ms\[0\]: expected a mapping"),
+        (lambda: evaluation.summarize_results(None, gt), "^results: expected a sequence"),  # type: ignore[arg-type]
+        (lambda: evaluation.summarize_results([1, 2, 3, 4], gt), r"^results\[0\]: expected a localizer result"),
+        (lambda: evaluation.format_table({"a": 5}), "^summaries: expected a mapping"),  # type: ignore[dict-item]
+        (lambda: evaluation.format_table({"a": {}}, reference={"a": (1,)}), r"^reference: expected a mapping of row name to \(metres"),
+    ]
+    for call, message in cases:
+        with pytest.raises(geoloc.InvalidInputError, match=message):
+            call()
+
+
 def test_format_tum_line() -> None:
     T = np.eye(4)
     T[:3, :3] = lie.so3_exp([0.0, 0.0, math.pi / 2])

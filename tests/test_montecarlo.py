@@ -76,6 +76,28 @@ def test_bad_arguments() -> None:
         montecarlo.montecarlo(trials=1, models=("exact",))
 
 
+@pytest.mark.parametrize(
+    ("kwargs", "names"),
+    [
+        ({"sigmas": (-1.0,)}, "sigmas: expected finite standard deviations"),
+        ({"sigmas": (float("nan"),)}, "sigmas: expected finite standard deviations"),
+        ({"sigmas": 1.0}, "sigmas: expected a sequence"),
+        ({"sigmas": ()}, "sigmas: expected at least one"),
+        ({"label_noise": ((-0.01, -0.5),)}, r"label_noise\[0\]: expected finite standard deviations"),
+        ({"label_noise": ((float("nan"), 0.0),)}, r"label_noise\[0\]: expected finite standard deviations"),
+        ({"label_noise": ((0.01,),)}, r"label_noise\[0\]: expected \(metres, degrees\), 2 numbers"),
+        ({"label_noise": (0.01, 0.5)}, r"label_noise\[0\]: expected a sequence"),
+    ],
+)
+def test_noise_levels_are_checked_by_name(kwargs: dict[str, object], names: str) -> None:
+    """A negative σ raised numpy's "scale < 0"; a negative label noise ran without noise and was
+    reported as −1 cm; a scalar gave TypeError or IndexError."""
+    import geoloc
+
+    with pytest.raises(geoloc.InvalidInputError, match=f"^{names}"):
+        montecarlo.montecarlo(trials=1, **kwargs)  # type: ignore[arg-type]
+
+
 def test_command_prints_the_table_and_writes_json(tmp_path: Path) -> None:
     out = tmp_path / "mc.json"
     result = subprocess.run(

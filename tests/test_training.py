@@ -218,10 +218,37 @@ def test_config_is_checked() -> None:
         TrainConfig(epochs=0)
     with pytest.raises(geoloc.InvalidInputError, match="resume: needs a checkpoint"):
         TrainConfig(resume=True)
+    for kwargs, name in [({"lr": "0.1"}, "lr"), ({"lr": None}, "lr"), ({"validation": "0.1"}, "validation"),
+                         ({"weight_decay": "0"}, "weight_decay"), ({"threads": True}, "threads"), ({"seed": 2**70}, "seed")]:
+        # a string gave numpy's TypeError; threads=True and a 70-bit seed failed only when training started
+        with pytest.raises(geoloc.InvalidInputError, match=f"^{name}: "):
+            TrainConfig(**kwargs)  # type: ignore[arg-type]
     defaults = TrainConfig()
     assert (defaults.lr, defaults.batch_size, defaults.n_pos, defaults.n_neg, defaults.epochs, defaults.margin) == (
         1e-3, 128, 128, 128, 500, 1.0
     )
+
+
+def test_export_arguments_are_checked_by_name(tmp_path: Path) -> None:
+    net = build_network("tiny", 32)
+    cases = [
+        ({"model": None}, "model: expected a geoloc DescriptorNet"),
+        ({"path": tmp_path / "nodir" / "x.onnx"}, "path: "),  # it said "out:", a name export_onnx has not
+        ({"atol": float("nan")}, "atol: expected a finite number > 0"),  # the parity check compared against nan
+        ({"name": 5}, "name: expected a string"),
+    ]
+    for change, message in cases:
+        kwargs = {"model": net, "path": tmp_path / "m.onnx", "quiet": True, **change}
+        with pytest.raises(geoloc.InvalidInputError, match=f"^{message}"):
+            export_onnx(**kwargs)  # type: ignore[arg-type]
+    assert not (tmp_path / "m.onnx").exists()
+
+
+def test_a_missing_init_file_names_init_from(tmp_path: Path) -> None:
+    from geoloc.training.pretrained import init_weights
+
+    with pytest.raises(geoloc.InvalidInputError, match="^init_from: no file"):  # it said "checkpoint:"
+        init_weights(build_network("tiny", 32), tmp_path / "nope.pt")
 
 
 # --- the command ------------------------------------------------------------------------------
@@ -252,6 +279,15 @@ def test_train_command_errors(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -
     monkeypatch.setitem(sys.modules, "torch", None)  # as if the train extra were missing
     with pytest.raises(geoloc.GeolocError, match=r'pip install "geoloc\[train\]"'):
         _run_command(["--dataset", str(tmp_path), "--out", str(tmp_path / "m.onnx")])
+
+
+@pytest.mark.skipif(not SEVEN_SCENES.is_dir(), reason=f"shared 7-Scenes frames not found at {SEVEN_SCENES}")
+def test_too_few_frames_names_the_frames_option(tmp_path: Path) -> None:
+    """It said "frames: training needs at least 2 …", the Python argument's name."""
+    with pytest.raises(geoloc.InvalidInputError, match="^--frames: training needs at least 2"):
+        _run_command(["--dataset", str(SEVEN_SCENES), "--tiny", "--frames", "0:1", "--no-progress",
+                      "--out", str(tmp_path / "m.onnx")])
+    assert not (tmp_path / "m.onnx").exists()
 
 
 def test_an_absurd_learning_rate_is_refused_before_any_work(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

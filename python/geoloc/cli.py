@@ -34,10 +34,12 @@ from .commands._options import (
 )
 from . import _core
 from .exceptions import GeolocError, InvalidInputError
+from .montecarlo import MAX_TRIALS as MONTECARLO_MAX_TRIALS
 from .reference import REFERENCE_FORMATS
 
-#: The largest trial / sample counts the commands accept (bounded run time and memory).
-MAX_TRIALS = 1_000_000
+#: The largest trial / sample counts the commands accept (bounded run time and memory);
+#: the trials are the Monte-Carlo function's own bound.
+MAX_TRIALS = MONTECARLO_MAX_TRIALS
 MAX_SELFCHECK_SAMPLES = 100_000
 #: The largest feature count the commands accept.
 MAX_FEATURES = 100_000
@@ -368,10 +370,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     from ._io import shown
 
     parser, handlers = build_parser()
-    args = parser.parse_args(argv)
+    args, unknown = parser.parse_known_args(argv)
     if args.command is None:
+        if unknown:
+            parser.error(f"unrecognized arguments: {' '.join(unknown)}")
         parser.print_help(sys.stderr)
         return EXIT_USAGE
+    if unknown:  # the command's usage and "geoloc COMMAND: error: …", not the top level's
+        _command_parser(parser, args.command).error(f"unrecognized arguments: {' '.join(unknown)}")
     # a robot capping its CPU use with a typo must learn that the cap did not apply
     threads_warning = _core.num_threads_warning(os.environ.get("GEOLOC_NUM_THREADS"))
     if threads_warning:
@@ -400,6 +406,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_FAILURE
     finally:
         restore()
+
+
+def _command_parser(parser: argparse.ArgumentParser, command: str) -> argparse.ArgumentParser:
+    """The sub-parser of ``command`` in ``parser`` (built by :func:`build_parser`)."""
+    (commands,) = (a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    sub: argparse.ArgumentParser = commands.choices[command]
+    return sub
 
 
 def _stop_on_termination() -> Callable[[], None]:

@@ -291,9 +291,12 @@ def summarize(
     }
     timing: dict[str, float] = {}
     if timings_ms is not None and n:
+        for k, t in enumerate(timings_ms):
+            if not isinstance(t, Mapping):
+                raise InvalidInputError(f"timings_ms[{k}]: expected a mapping of stage to milliseconds, got {type(t).__name__}")
         stages = sorted({k for t in timings_ms for k in t})
         for stage in stages:
-            values = [float(t[stage]) for t in timings_ms if stage in t]
+            values = [real_scalar(t[stage], f"timings_ms[{k}][{stage!r}]") for k, t in enumerate(timings_ms) if stage in t]
             timing[f"median_{stage}"] = float(np.median(values))
     nees_ok = nees_values[has_cov]
     summary: dict[str, Any] = {
@@ -340,6 +343,11 @@ def summarize(
 def summarize_results(results: Sequence[Any], ground_truth: ArrayLike, timestamps: ArrayLike | None = None) -> dict[str, Any]:
     """:func:`summarize` of localizer results: objects with ``.pose``, ``.covariance``,
     ``.source`` and ``.timings`` (ms per stage), e.g. :class:`geoloc.Localization`."""
+    if isinstance(results, (str, bytes)) or not isinstance(results, Sequence):
+        raise InvalidInputError(f"results: expected a sequence of localizer results, got {type(results).__name__}")
+    for k, r in enumerate(results):
+        if not all(hasattr(r, a) for a in ("pose", "covariance", "source")):
+            raise InvalidInputError(f"results[{k}]: expected a localizer result (.pose, .covariance, .source), got {type(r).__name__}")
     timings = [dict(getattr(r, "timings", None) or {}) for r in results]
     return summarize(
         [r.pose for r in results],
@@ -370,6 +378,13 @@ def format_table(summaries: Mapping[str, Mapping[str, Any]], reference: Mapping[
     "0.02m, 1.10°" (over the localized frames, then over all frames with a lost one as an
     infinite error), then recall, sources and calibration. ``reference`` adds the paper's
     (or any other method's) median (m, deg) per row name."""
+    if not isinstance(summaries, Mapping) or not all(isinstance(v, Mapping) for v in summaries.values()):
+        raise InvalidInputError("summaries: expected a mapping of row name to a summary (geoloc.evaluation.summarize)")
+    if reference is not None and (
+        not isinstance(reference, Mapping)
+        or not all(isinstance(v, (tuple, list)) and len(v) == 2 for v in reference.values())
+    ):
+        raise InvalidInputError("reference: expected a mapping of row name to (metres, degrees)")
     header = ["Sequence", "Frames", "Median", "Median, lost=∞", "Mean", "5cm,5°", "25cm,2°", "10cm,1°", "NEES≤χ²₆", "Sources", "ms"]
     if reference is not None:
         header.insert(3, "Reference")

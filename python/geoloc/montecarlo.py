@@ -20,6 +20,7 @@ when label noise is present — the label covariance propagated).
 
 from __future__ import annotations
 
+import math
 import sys
 import time
 from dataclasses import asdict, dataclass, field
@@ -30,6 +31,7 @@ from numpy.typing import NDArray
 
 from . import geometry, lie
 from .camera import Camera
+from ._validation import real_scalar
 from .exceptions import InvalidInputError
 
 __all__ = ["CHI2_6DOF_95", "MAX_TRIALS", "PAPER_TABLE", "SCENES", "MonteCarloColumn", "montecarlo", "format_report"]
@@ -243,6 +245,11 @@ def montecarlo(
     for m in models:
         if m not in ("paper", "propagated"):
             raise InvalidInputError(f"models: expected 'paper' or 'propagated', got {m!r}")
+    sigmas = _nonnegative_list(sigmas, "sigmas", "pixel σ")
+    label_noise = [
+        tuple(_nonnegative_list(pair, f"label_noise[{i}]", "(metres, degrees)", length=2))  # type: ignore[misc]
+        for i, pair in enumerate(_sequence(label_noise, "label_noise"))
+    ]
     cam = Camera(525.0, 525.0, 320.0, 240.0)
     rng = np.random.default_rng(seed)
     fixed = {"short": short_baseline_scene, "ahead": short_baseline_ahead_scene}.get(scene, paper_scene)()
@@ -264,6 +271,27 @@ def montecarlo(
                 _score(col, outcomes[m])
                 columns.append(col)
     return columns
+
+
+def _sequence(values: object, name: str) -> list[object]:
+    """``values`` as a non-empty list; InvalidInputError naming ``name`` for a scalar or string."""
+    if isinstance(values, (str, bytes)) or not isinstance(values, (list, tuple, np.ndarray)):
+        raise InvalidInputError(f"{name}: expected a sequence, got {type(values).__name__} {values!r:.40}")
+    if len(values) == 0:
+        raise InvalidInputError(f"{name}: expected at least one entry")
+    return list(values)
+
+
+def _nonnegative_list(values: object, name: str, what: str, length: int | None = None) -> list[float]:
+    """``values`` as finite numbers ≥ 0 (``length`` of them when given), or InvalidInputError
+    naming ``name`` (a noise level is a standard deviation)."""
+    items = _sequence(values, name)
+    if length is not None and len(items) != length:
+        raise InvalidInputError(f"{name}: expected {what}, {length} numbers, got {len(items)}")
+    out = [real_scalar(v, name) for v in items]
+    if not all(math.isfinite(v) and v >= 0.0 for v in out):
+        raise InvalidInputError(f"{name}: expected finite standard deviations ≥ 0, got {out}")
+    return out
 
 
 def format_report(columns: list[MonteCarloColumn], trials: int, scene: str, seconds: float) -> str:

@@ -154,6 +154,10 @@ def _load_files(args: argparse.Namespace, fmt: str, root: Path, given: Any, pose
         raise InvalidInputError("--intrinsics: a plain image folder has no calibration; pass --intrinsics fx,fy,cx,cy")
     if not poses:
         return _every_image(root, given)
+    if trajectory is not None and not str(trajectory).strip():
+        raise InvalidInputError(f"--trajectory: expected a file name in {str(root)!r}, got {trajectory!r}")
+    if trajectory is not None and (root / trajectory).is_dir():
+        raise InvalidInputError(f"--trajectory: {str(root / trajectory)!r} is a folder, not a trajectory file")
     if trajectory is not None and not (root / trajectory).is_file():
         raise InvalidInputError(f"--trajectory: file {str(root / trajectory)!r} does not exist")
     return datasets.load_folder(root, trajectory=trajectory if trajectory is not None else "traj.txt", intrinsics=given)
@@ -311,6 +315,22 @@ def describe_model(the_map: Any) -> str:
     except InvalidInputError as e:
         return f"3D model: {points} points; {str(e).removeprefix('locator: ')}"
     return f"3D model: {points} points"
+
+
+def command_localizer(the_map: Any, network: Any, locator: str | None) -> Any:
+    """``Localizer(the_map, global_descriptor=network, locator=locator)`` for a command: the
+    core's refusal of the locator names the command's option (``--locator``), not the
+    Python argument."""
+    from ..localizer import Localizer
+
+    try:
+        return Localizer(the_map, global_descriptor=network, locator=locator)  # type: ignore[arg-type]
+    except InvalidInputError as e:
+        text = str(e)
+        if not text.startswith("locator: "):
+            raise
+        hint = text.removeprefix("locator: ").replace("use the paper's locator", "use --locator paper")
+        raise InvalidInputError(f"--locator: {hint}") from None
 
 
 def describe_map_noise(noise: dict[str, Any]) -> str:

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Callable
 
 from ..exceptions import GeolocError
+from ..datasets.synthetic import MAX_FRAMES as SYNTHETIC_MAX_FRAMES
 from ._common import FORMATS, FrameRange
 
 __all__ = [
@@ -37,8 +38,8 @@ __all__ = [
 
 #: Seeds are stored in 64-bit unsigned integers by the core.
 MAX_SEED = 2**63 - 1
-#: The largest synthetic room (frames) the commands accept.
-MAX_SYNTHETIC_FRAMES = 100_000
+#: The largest synthetic room (frames) the commands accept: the generator's own bound.
+MAX_SYNTHETIC_FRAMES = SYNTHETIC_MAX_FRAMES
 
 
 def bounded_int(low: int, high: int) -> Callable[[str], int]:

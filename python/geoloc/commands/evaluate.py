@@ -30,6 +30,7 @@ from ._common import (
     MAP_DONE,
     MODES,
     Progress,
+    command_localizer,
     dataset_inputs,
     describe_labels,
     describe_self_calibration,
@@ -194,7 +195,6 @@ def evaluate_split(
     reference has, and ``summaries`` ({mode: dict}) against the aligned reference.
     """
     from ..evaluation import score_against_reference, summarize_results
-    from ..localizer import Localizer
     from ..mapping import Map
     from ..reference import align_reference
 
@@ -244,7 +244,7 @@ def evaluate_split(
         }
     summaries: dict[str, Any] = {}
     for mode in modes:
-        localizer = Localizer(the_map, global_descriptor=None if network == "bow" else network, locator=locator)  # type: ignore[arg-type]
+        localizer = command_localizer(the_map, None if network == "bow" else network, locator)
         results = localize_sequence(localizer, test_seq, mode, Progress(f"{mode:>10}"))
         summary = summarize_results(results, test_seq.poses, test_seq.timestamps)
         scored = [(summaries, summary)]

@@ -20,6 +20,7 @@ from ..exceptions import DatasetError, InvalidInputError
 from ._options import EXIT_FAILURE, STDOUT
 from ._common import (
     Progress,
+    command_localizer,
     dataset_inputs,
     load_dataset,
     localize_sequence,
@@ -66,7 +67,6 @@ def run(args: argparse.Namespace) -> int:
     """The ``localize`` command."""
     from .._io import refuse_alias, shown
     from ..evaluation import tum_trajectory_text, write_tum_trajectory
-    from ..localizer import Localizer
 
     to_stdout = args.out == STDOUT
     out = None if to_stdout else args.out
@@ -106,7 +106,7 @@ def run(args: argparse.Namespace) -> int:
     unread = [] if folder is None else [(option, p) for p in (Path(folder) / "traj.txt",) if p.is_file()]
     refuse_alias(out, "--out", dataset_inputs(sequence, option) + unread)
     sequence = select(sequence, args.frames, "--frames")
-    localizer = Localizer(the_map, global_descriptor=network, locator=args.locator)
+    localizer = command_localizer(the_map, network, args.locator)
     try:
         results = localize_sequence(localizer, sequence, args.mode, Progress("localize"))
     except DatasetError as e:  # a frame's file, read as it is localized: the option that named it

@@ -199,11 +199,12 @@ def add_train_command(commands: argparse._SubParsersAction[argparse.ArgumentPars
             print(DEPRECATED, file=sys.stderr)
         print(f"geoloc train: {len(frames)} frames, {config.backbone}, D = {config.dim}, {epochs} epochs", file=sys.stderr)
         start = time.perf_counter()
-        with options_named(TrainConfig):  # the loss diverging names the learning rate
+        with options_named(TrainConfig, frames="--frames"):  # the loss diverging names the learning rate
             result = train(frames, config, init_state=init_state)
         elapsed = time.perf_counter() - start
         stats = result.pair_stats
-        report = export_onnx(result.model, args.out)
+        with options_named(TrainConfig, path="--out"):
+            report = export_onnx(result.model, args.out)
         print(
             f"trained {len(result.epoch_seconds)} epochs in {elapsed:.1f} s "
             f"({elapsed / max(len(result.epoch_seconds), 1):.2f} s/epoch incl. reading), final loss {result.losses[-1]:.4f}; "
@@ -243,13 +244,16 @@ FIELD_OPTIONS = {"n_pos": "--pairs", "n_neg": "--pairs", "init_from": "--init"}
 
 
 @contextmanager
-def options_named(config_type: Any) -> Iterator[None]:
+def options_named(config_type: Any, **arguments: str) -> Iterator[None]:
     """A refusal that names a field of ``config_type`` (``lr: …``) names the command-line
-    option instead (``--lr: …``): the user typed the option, not the field."""
+    option instead (``--lr: …``): the user typed the option, not the field; ``arguments``
+    maps other argument names to their options (``frames="--frames"``)."""
     try:
         yield
     except InvalidInputError as e:
         field, sep, reason = str(e).partition(": ")
+        if sep and field in arguments:
+            raise InvalidInputError(f"{arguments[field]}: {reason}") from None
         if not sep or field not in {f.name for f in dataclasses.fields(config_type)}:
             raise
         option = FIELD_OPTIONS.get(field, "--" + field.replace("_", "-"))

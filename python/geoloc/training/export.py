@@ -18,6 +18,7 @@ and 3) and the largest absolute difference from torch is printed and must stay b
 from __future__ import annotations
 
 import hashlib
+import math
 import os
 import sys
 import tempfile
@@ -30,6 +31,7 @@ import numpy as np
 import torch
 
 from .._io import check_output_path, write_bytes_atomic
+from .._validation import real_scalar
 from ..descriptor import INPUT_SIZE, META_NAME, META_PREPROCESS, PREPROCESS_ID
 from ..exceptions import GeolocError, InvalidInputError
 from .network import DescriptorNet
@@ -120,10 +122,17 @@ def export_onnx(
     differ by more than ``atol``; the check's result is printed to ``log`` (default: stderr)
     unless ``quiet``.
     """
+    if not isinstance(model, DescriptorNet):
+        raise InvalidInputError(f"model: expected a geoloc DescriptorNet, got {type(model).__name__}")
+    if name is not None and not isinstance(name, str):
+        raise InvalidInputError(f"name: expected a string or None, got {type(name).__name__}")
+    bound = real_scalar(atol, "atol")
+    if not (math.isfinite(bound) and bound > 0):
+        raise InvalidInputError(f"atol: expected a finite number > 0, got {atol!r}")
     try:
-        out = check_output_path(path, "out")
+        out = check_output_path(path, "path")
     except InvalidInputError as e:
-        raise InvalidInputError(str(e).replace("out: folder", "out: the folder", 1)) from None
+        raise InvalidInputError(str(e).replace("path: folder", "path: the folder", 1)) from None
     model = model.eval().cpu()
     meta = {
         META_NAME: name or out.stem,
@@ -137,5 +146,5 @@ def export_onnx(
         print(f"export: onnxruntime vs torch on random inputs (batches {PARITY_BATCHES}): max |diff| = {diff:.2e} (bound {atol:.0e})", file=log or sys.stderr)
     if not diff <= atol:
         raise GeolocError(f"export: onnxruntime and torch differ by {diff:.2e} > {atol:.0e}; the file was not written")
-    write_bytes_atomic(out, data, "out")
+    write_bytes_atomic(out, data, "path")
     return ExportReport(out, len(data), hashlib.sha256(data).hexdigest(), diff, model.dim)

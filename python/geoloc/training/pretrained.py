@@ -158,26 +158,27 @@ def _from_torchvision(model: DescriptorNet, state: dict[str, torch.Tensor], sour
     return InitReport("torchvision GoogLeNet", tuple(mapped), tuple(adapted), tuple(dropped), not_loaded)
 
 
-def load_checkpoint(path: str | os.PathLike[str]) -> dict[str, Any]:
+def load_checkpoint(path: str | os.PathLike[str], name: str = "checkpoint") -> dict[str, Any]:
     """A checkpoint written by :func:`train` (or a bare state_dict, as ``{"model": …}``);
-    loaded with ``weights_only=True`` (never runs code from the file)."""
+    loaded with ``weights_only=True`` (never runs code from the file). Refusals name the
+    argument ``name`` that gave ``path``."""
     p = Path(path)
     kind = special_kind(p)
     if kind is not None:  # never opened: torch.load would block on a FIFO
-        raise InvalidInputError(f"checkpoint: {str(p)!r} is {kind}, not a regular file")
+        raise InvalidInputError(f"{name}: {str(p)!r} is {kind}, not a regular file")
     try:
         data = torch.load(p, map_location="cpu", weights_only=True)
     except FileNotFoundError:
-        raise InvalidInputError(f"checkpoint: no file {str(p)!r}") from None
+        raise InvalidInputError(f"{name}: no file {str(p)!r}") from None
     except Exception as e:  # torch raises assorted errors for foreign or truncated files
-        raise InvalidInputError(f"checkpoint: {str(p)!r} is not a readable torch checkpoint ({type(e).__name__})") from None
+        raise InvalidInputError(f"{name}: {str(p)!r} is not a readable torch checkpoint ({type(e).__name__})") from None
     if not isinstance(data, dict):
-        raise InvalidInputError(f"checkpoint: {str(p)!r} holds a {type(data).__name__}, not a checkpoint or state_dict")
+        raise InvalidInputError(f"{name}: {str(p)!r} holds a {type(data).__name__}, not a checkpoint or state_dict")
     if data.get("format") == CHECKPOINT_FORMAT:
         return data
     if all(isinstance(v, torch.Tensor) for v in data.values()):
         return {"model": data}
-    raise InvalidInputError(f"checkpoint: {str(p)!r} is neither a geoloc checkpoint nor a state_dict")
+    raise InvalidInputError(f"{name}: {str(p)!r} is neither a geoloc checkpoint nor a state_dict")
 
 
 def load_weights(model: DescriptorNet, state: dict[str, torch.Tensor], source: str) -> None:
@@ -202,7 +203,7 @@ def init_weights(
     Raises :class:`~geoloc.InvalidInputError` for a file that is not a safe torch checkpoint,
     or whose weights do not fit ``model``."""
     if state is None:
-        state = load_checkpoint(path)["model"]
+        state = load_checkpoint(path, "init_from")["model"]
     state = {k.removeprefix("module."): v for k, v in state.items()}
     source = str(Path(path))
     if is_torchvision_googlenet(state):

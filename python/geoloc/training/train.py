@@ -26,6 +26,7 @@ normalized per mini-batch by ``geoloc.descriptor.normalize``: the same preproces
 from __future__ import annotations
 
 import io
+import math
 import os
 import sys
 import time
@@ -38,6 +39,7 @@ import torch
 from numpy.typing import NDArray
 
 from .._io import write_bytes_atomic
+from .._validation import real_scalar
 from ..descriptor import normalize
 from ..exceptions import InvalidInputError
 from .evaluate import MEASUREMENTS, VALIDATION_FRACTION, VALIDATION_MARGIN
@@ -62,6 +64,8 @@ AUGMENT_OFFSET = 0.4
 #: The largest learning rate accepted: Adam and AdamW move every weight by about lr per step,
 #: and the networks' weights are of order 0.1, so a larger rate only diverges.
 MAX_LR = 1.0
+#: torch.manual_seed takes a signed 64-bit seed.
+MAX_SEED = 2**63 - 1
 
 
 @dataclass(frozen=True)
@@ -106,23 +110,27 @@ class TrainConfig:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 0:
                 raise InvalidInputError(f"{name}: expected an integer ≥ 0, got {v!r}")
+        if self.seed > MAX_SEED:
+            raise InvalidInputError(f"seed: expected at most {MAX_SEED} (torch seeds are 64-bit), got {self.seed!r}")
         if self.n_pos + self.n_neg == 0:
             raise InvalidInputError("n_pos, n_neg: an epoch needs at least one pair")
         for name in ("lr", "margin"):
-            v = getattr(self, name)
-            if not np.isfinite(v) or v <= 0:
+            v = real_scalar(getattr(self, name), name)
+            if not math.isfinite(v) or v <= 0:
                 raise InvalidInputError(f"{name}: expected a finite number > 0, got {v!r}")
         if self.lr > MAX_LR:
             raise InvalidInputError(f"lr: expected at most {MAX_LR:g} (Adam moves every weight by about lr per step), got {self.lr!r}")
         if self.eval_every is not None and (isinstance(self.eval_every, bool) or not isinstance(self.eval_every, int) or self.eval_every < 1):
             raise InvalidInputError(f"eval_every: expected a positive integer or None, got {self.eval_every!r}")
-        if not (np.isfinite(self.validation) and 0.0 <= self.validation <= 0.5):
+        validation = real_scalar(self.validation, "validation")
+        if not (math.isfinite(validation) and 0.0 <= validation <= 0.5):
             raise InvalidInputError(f"validation: expected a fraction within [0, 0.5], got {self.validation!r}")
-        if not (np.isfinite(self.weight_decay) and self.weight_decay >= 0.0):
+        weight_decay = real_scalar(self.weight_decay, "weight_decay")
+        if not (math.isfinite(weight_decay) and weight_decay >= 0.0):
             raise InvalidInputError(f"weight_decay: expected a finite number ≥ 0, got {self.weight_decay!r}")
         if self.resume and not self.checkpoint:
             raise InvalidInputError("resume: needs a checkpoint file to resume from")
-        if self.threads is not None and (not isinstance(self.threads, int) or self.threads < 1):
+        if self.threads is not None and (isinstance(self.threads, bool) or not isinstance(self.threads, int) or self.threads < 1):
             raise InvalidInputError(f"threads: expected a positive integer or None, got {self.threads!r}")
 
     def as_dict(self) -> dict[str, Any]:
