@@ -86,9 +86,13 @@ def bounded_float(lo: float, hi: float) -> Callable[[str], float]:
 
 
 def output_file(text: str) -> str:
-    """An argparse ``type`` for a file to write: its folder must exist and be writable."""
+    """An argparse ``type`` for a file to write: its folder must exist and be writable. ``-``
+    is refused: it means standard output where an option can write there
+    (:func:`output_file_or_stdout`), and a file named ``-`` is spelled ``./-``."""
     from .._io import check_output_path
 
+    if text == STDOUT:
+        raise argparse.ArgumentTypeError("'-' (standard output) is not an output of this option; give a file name (./- for a file named '-')")
     try:
         check_output_path(text, "path")
     except GeolocError as e:
