@@ -13,6 +13,8 @@ from geoloc.datasets import Sequence
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 REDKITCHEN = DATA / "7scenes-redkitchen"
 SFM_POSES = DATA / "7scenes-redkitchen-reference" / "sfm-poses.txt"
+#: The χ²₆ 99.9 % quantile: a correction beyond it is significant (scipy.stats.chi2.ppf(0.999, 6)).
+CHI2_6_999 = 22.457744484825323
 
 
 def _rotation_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -60,6 +62,12 @@ def test_the_labels_record_survives_the_file_and_results_keep_the_labels_convent
     adjusted.save(path)
     back = Map.load(path)
     assert back.labels == report
+    # per keyframe the correction e_k = log(L_k⁻¹ B_k) and its significance, public and in the file
+    corrections, significance = np.array(report["corrections"]), np.array(report["significance"])
+    assert corrections.shape == (len(room), 6) and significance.shape == (len(room),) and (significance >= 0).all()
+    if report["applied"]:  # recomputed from the public label and adjusted poses
+        expected = [lie.se3_log(np.linalg.inv(L) @ B) for L, B in zip(adjusted.label_poses, adjusted.keyframe_poses)]
+        np.testing.assert_allclose(corrections, np.array(expected).reshape(-1, 6), atol=1e-9)
     np.testing.assert_array_equal(back.keyframe_poses, adjusted.keyframe_poses)
     result = Localizer(back).localize(full.gray(25), 0.0)
     assert result.pose is not None and result.camera_pose is not None
@@ -118,6 +126,13 @@ def test_adjusted_keyframes_agree_with_the_image_reference(kitchen: tuple[Sequen
     assert np.median(r) < 0.7 * np.median(r_labels), (np.median(r), np.median(r_labels))
     report = m.labels
     assert report is not None and report["applied"] and report["rms_px"][1] < report["rms_px"][0]
+    # the runs are the stretches of ≥ 3 keyframes whose corrections are significant (χ²₆ 99.9 %)
+    significant = np.array(report["significance"]) > CHI2_6_999
+    assert report["runs"], "the labels' drift shows as runs of significant corrections"
+    for run in report["runs"]:
+        assert run["end"] - run["start"] >= 3 and significant[run["start"]:run["end"]].all()
+        if run["end"] < len(significant):  # a run ends where the significant corrections do
+            assert not significant[run["end"]]
 
 
 @pytest.mark.slow

@@ -365,10 +365,19 @@ class Map:
         ``label_from_cam_rotation_deg`` and their σ; ``label_from_cam_covariance``, its full 6×6
         covariance Σ_X as nested lists, right perturbation, translation first), the median correction, ``rms_px`` (the
         tracks' reprojection error with the labels and after), ``observations`` (used,
-        rejected) and ``runs``: consecutive keyframes (≥ 3) whose corrections are significant
-        (beyond the χ²₆ 99.9 % quantile of their covariance), with the largest correction."""
+        rejected), ``runs``: consecutive keyframes (≥ 3) whose corrections are significant
+        (beyond the χ²₆ 99.9 % quantile of their covariance), with the largest correction, and
+        per keyframe, as lists, ``corrections`` (K × 6) e_k = log(L_k⁻¹ B_k)^∨ — label L_k to
+        adjusted pose B_k, right perturbation, translation (m) first, rotation (rad) — and
+        ``significance`` (K) e_kᵀ Σ_k⁻¹ e_k, Σ_k the adjusted pose's covariance."""
         text = self._core.labels_json
-        return None if text is None else dict(json.loads(text))
+        if text is None:
+            return None
+        report = dict(json.loads(text))
+        corrections, significance = self._core.label_corrections, self._core.label_significance
+        report["corrections"] = None if corrections is None else corrections.tolist()
+        report["significance"] = None if significance is None else significance.tolist()
+        return report
 
     @property
     def label_poses(self) -> NDArray[np.float64] | None:

@@ -176,6 +176,22 @@ impl FeatureMap {
         self.inner.labels.as_ref().map(|l| l.report_json().to_string())
     }
 
+    /// Per keyframe the labels' correction e_k = log(L_k⁻¹ B_k)^∨ (K, 6: translation m then
+    /// rotation rad, right perturbation), or None when the labels were not adjusted.
+    #[getter]
+    fn label_corrections<'py>(&self, py: Python<'py>) -> Option<Bound<'py, PyArray2<f64>>> {
+        let l = self.inner.labels.as_ref()?;
+        Some(matrices_to_array(py, &l.corrections))
+    }
+
+    /// Per keyframe the significance e_kᵀ Σ_k⁻¹ e_k of its correction (K,), or None when the
+    /// labels were not adjusted.
+    #[getter]
+    fn label_significance<'py>(&self, py: Python<'py>) -> Option<Bound<'py, numpy::PyArray1<f64>>> {
+        let l = self.inner.labels.as_ref()?;
+        Some(numpy::IntoPyArray::into_pyarray(l.significance.clone(), py))
+    }
+
     /// The pose labels as given (K, 4, 4), or None when the labels were not adjusted.
     #[getter]
     fn label_poses<'py>(&self, py: Python<'py>) -> Option<Bound<'py, numpy::PyArray3<f64>>> {
