@@ -297,6 +297,63 @@ fn best_two_words<const W: usize>(q: &[u8], rows: &[u8]) -> (usize, f32, f32) {
     (best, as_f32(d1), as_f32(d2))
 }
 
+/// Rows of the first image per block of [`mutual_best_words`] (one parallel task).
+const MUTUAL_BLOCK_ROWS: usize = 64;
+
+/// Both directions of a mutual match of binary rows of exactly `8·W` bytes, every distance
+/// computed once: per row i of `a` its best two in `b` — (index, d₁, d₂), as
+/// [`best_two_words`] — and per row j of `b` its nearest row of `a`, the first index on ties
+/// (what [`best_two_words`] of row j against `a` gives as its best). Separate scans in the two
+/// directions computed each of the |a|·|b| distances twice.
+///
+/// The rows of `a` are cut into blocks of [`MUTUAL_BLOCK_ROWS`] scanned in parallel, each
+/// keeping its own minimum per row of `b` (the first row on ties, as its rows are scanned in
+/// order); the blocks' minima are merged in block order, a later block winning only with a
+/// strictly smaller distance — the same result whatever the schedule or thread count.
+fn mutual_best_words<const W: usize>(a: &[u8], b: &[u8]) -> (BestTwo, Vec<usize>) {
+    let row_bytes = 8 * W;
+    let words = |r: &[u8]| -> [u64; W] {
+        std::array::from_fn(|w| u64::from_le_bytes(r[8 * w..8 * w + 8].try_into().expect("invariant: 8 bytes")))
+    };
+    let b_words: Vec<[u64; W]> = b.chunks_exact(row_bytes).map(words).collect();
+    let a_rows: Vec<&[u8]> = a.chunks_exact(row_bytes).collect();
+    let as_f32 = |d: u32| if d == u32::MAX { f32::INFINITY } else { d as f32 };
+    let blocks = crate::parallel::map_indices(a_rows.len().div_ceil(MUTUAL_BLOCK_ROWS), 2, |k| {
+        let start = k * MUTUAL_BLOCK_ROWS;
+        let end = (start + MUTUAL_BLOCK_ROWS).min(a_rows.len());
+        let mut nearest_in_block = vec![(u32::MAX, usize::MAX); b_words.len()];
+        let mut best_two = Vec::with_capacity(end - start);
+        for (i, row) in a_rows.iter().enumerate().take(end).skip(start) {
+            let q = words(row);
+            let (mut best, mut d1, mut d2) = (usize::MAX, u32::MAX, u32::MAX);
+            for (j, (r, nearest)) in b_words.iter().zip(nearest_in_block.iter_mut()).enumerate() {
+                let d: u32 = (0..W).map(|w| (q[w] ^ r[w]).count_ones()).sum();
+                if d < d1 {
+                    (d2, d1, best) = (d1, d, j);
+                } else if d < d2 {
+                    d2 = d;
+                }
+                if d < nearest.0 {
+                    *nearest = (d, i);
+                }
+            }
+            best_two.push((best, as_f32(d1), as_f32(d2)));
+        }
+        (best_two, nearest_in_block)
+    });
+    let mut forward = Vec::with_capacity(a_rows.len());
+    let mut nearest = vec![(u32::MAX, usize::MAX); b_words.len()];
+    for (best_two, nearest_in_block) in blocks {
+        forward.extend(best_two);
+        for (n, m) in nearest.iter_mut().zip(nearest_in_block) {
+            if m.0 < n.0 {
+                *n = m;
+            }
+        }
+    }
+    (forward, nearest.into_iter().map(|(_, i)| i).collect())
+}
+
 /// (index of the smallest, smallest, second smallest) of `distances` (first index on ties).
 #[inline]
 fn best_two_of(distances: impl Iterator<Item = f32>) -> (usize, f32, f32) {
@@ -353,6 +410,10 @@ pub fn match_descriptors(a: &Descriptors<'_>, b: &Descriptors<'_>, options: &Mat
     let (forward, backward) = match (a, b) {
         (Descriptors::Float { data: da, width }, Descriptors::Float { data: db, .. }) => {
             (float_best_two(da, db, *width)?, options.mutual.then(|| float_nearest(db, da, *width)).transpose()?)
+        }
+        (Descriptors::Binary { data: da, width: 32 }, Descriptors::Binary { data: db, .. }) if options.mutual => {
+            let (forward, backward) = mutual_best_words::<4>(da, db);
+            (forward, Some(backward))
         }
         _ => (
             crate::parallel::map_indices(a.len(), MATCH_PARALLEL_MIN_ROWS, |i| best_two(a, i, b)),
@@ -488,6 +549,29 @@ mod tests {
                 d.sort();
                 let want = (d[0].1, d[0].0 as f32, d[1].0 as f32);
                 assert_eq!(binary_best_two(&q, &rows, width), want, "width {width}");
+            }
+        }
+    }
+
+    /// The one-pass mutual scan gives what the two separate scans give — each row's best two,
+    /// each column's nearest row with the first index on ties — for sizes on and off the
+    /// block size, with many ties (descriptors of few distinct bits), on 1 and 2 threads.
+    #[test]
+    fn one_pass_mutual_scan_equals_two_scans() {
+        use crate::parallel::{Parallelism, with_parallelism};
+        use std::num::NonZero;
+        let mut rng = SplitMix64::new(21);
+        for (n_a, n_b, mask) in [(1, 1, 0xff), (64, 10, 0xff), (65, 200, 0x03), (300, 129, 0x01), (200, 300, 0xff)] {
+            let mut bytes = |n: usize| -> Vec<u8> { (0..n * 32).map(|_| (rng.next_u64() & mask) as u8).collect() };
+            let (a, b) = (bytes(n_a), bytes(n_b));
+            let (da, db) = (Descriptors::Binary { data: &a, width: 32 }, Descriptors::Binary { data: &b, width: 32 });
+            let forward: BestTwo = (0..n_a).map(|i| best_two(&da, i, &db)).collect();
+            let backward: Vec<usize> = (0..n_b).map(|j| best_two(&db, j, &da).0).collect();
+            for threads in [1, 2] {
+                let p = Parallelism::Threads(NonZero::new(threads).expect("> 0"));
+                let (f, back) = with_parallelism(&p, || mutual_best_words::<4>(&a, &b));
+                assert_eq!(f, forward, "{n_a}×{n_b}, mask {mask:#x}, {threads} thread(s)");
+                assert_eq!(back, backward, "{n_a}×{n_b}, mask {mask:#x}, {threads} thread(s)");
             }
         }
     }
