@@ -2,7 +2,8 @@
 
 Images are all files with an image extension (png, jpg, jpeg, bmp, tif, tiff), sorted by
 number when every name is a decimal number (``9.png`` before ``10.png``: the order of their
-timestamps; digits, one point, an exponent — ``20230101_120000`` is not a number), else by name. The trajectory (``traj.txt`` by default, TUM format ``timestamp tx ty tz qx qy qz
+timestamps; digits, one point, an exponent — ``20230101_120000`` is not a number), else by
+name. The trajectory (``traj.txt`` by default, TUM format ``timestamp tx ty tz qx qy qz
 qw``) is matched to them in one of two ways (``match=``):
 
 * ``"timestamp"``: every image name (without extension) is its timestamp in seconds
