@@ -187,7 +187,7 @@ def test_the_command_reads_the_init_file_once_and_trains_from_what_it_checked(
     torch.save(build_network("tiny", 8).state_dict(), init)
     reads: list[str] = []
     original = pretrained.load_checkpoint
-    monkeypatch.setattr(pretrained, "load_checkpoint", lambda p: reads.append(str(p)) or original(p))
+    monkeypatch.setattr(pretrained, "load_checkpoint", lambda p, *name: reads.append(str(p)) or original(p, *name))
     ckpt = tmp_path / "run.ckpt"
     args = ["train", "--dataset", "synthetic", "--synthetic-frames", "60", "--tiny", "--dim", "8", "--epochs", "1",
             "--pairs", "8", "--batch-size", "8", "--threads", "1", "--no-progress", "--validation", "0",
