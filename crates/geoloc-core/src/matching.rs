@@ -282,19 +282,30 @@ fn binary_best_two(q: &[u8], rows: &[u8], width: usize) -> (usize, f32, f32) {
 /// [`binary_best_two`] for rows of exactly `8·W` bytes: the same (index, best, second) as
 /// [`best_two_of`] over [`hamming`] (first index on ties; ∞ for a missing second).
 fn best_two_words<const W: usize>(q: &[u8], rows: &[u8]) -> (usize, f32, f32) {
-    let word = |b: &[u8], w: usize| u64::from_le_bytes(b[8 * w..8 * w + 8].try_into().expect("invariant: 8 bytes"));
-    let qw: [u64; W] = std::array::from_fn(|w| word(q, w));
+    let qw = row_words::<W>(q);
     let (mut best, mut d1, mut d2) = (usize::MAX, u32::MAX, u32::MAX);
     for (j, r) in rows.chunks_exact(8 * W).enumerate() {
-        let d: u32 = (0..W).map(|w| (qw[w] ^ word(r, w)).count_ones()).sum();
+        let rw = row_words::<W>(r);
+        let d: u32 = (0..W).map(|w| (qw[w] ^ rw[w]).count_ones()).sum();
         if d < d1 {
             (d2, d1, best) = (d1, d, j);
         } else if d < d2 {
             d2 = d;
         }
     }
-    let as_f32 = |d: u32| if d == u32::MAX { f32::INFINITY } else { d as f32 };
-    (best, as_f32(d1), as_f32(d2))
+    (best, bits_as_f32(d1), bits_as_f32(d2))
+}
+
+/// The first `8·W` bytes of `row` as W little-endian words.
+#[inline]
+fn row_words<const W: usize>(row: &[u8]) -> [u64; W] {
+    std::array::from_fn(|w| u64::from_le_bytes(row[8 * w..8 * w + 8].try_into().expect("invariant: 8 bytes")))
+}
+
+/// A Hamming distance in bits as a [`Row::distance`]; `u32::MAX` (no row) as ∞.
+#[inline]
+fn bits_as_f32(d: u32) -> f32 {
+    if d == u32::MAX { f32::INFINITY } else { d as f32 }
 }
 
 /// Rows of the first image per block of [`mutual_best_words`] (one parallel task).
@@ -312,19 +323,15 @@ const MUTUAL_BLOCK_ROWS: usize = 64;
 /// strictly smaller distance — the same result whatever the schedule or thread count.
 fn mutual_best_words<const W: usize>(a: &[u8], b: &[u8]) -> (BestTwo, Vec<usize>) {
     let row_bytes = 8 * W;
-    let words = |r: &[u8]| -> [u64; W] {
-        std::array::from_fn(|w| u64::from_le_bytes(r[8 * w..8 * w + 8].try_into().expect("invariant: 8 bytes")))
-    };
-    let b_words: Vec<[u64; W]> = b.chunks_exact(row_bytes).map(words).collect();
+    let b_words: Vec<[u64; W]> = b.chunks_exact(row_bytes).map(row_words::<W>).collect();
     let a_rows: Vec<&[u8]> = a.chunks_exact(row_bytes).collect();
-    let as_f32 = |d: u32| if d == u32::MAX { f32::INFINITY } else { d as f32 };
     let blocks = crate::parallel::map_indices(a_rows.len().div_ceil(MUTUAL_BLOCK_ROWS), 2, |k| {
         let start = k * MUTUAL_BLOCK_ROWS;
         let end = (start + MUTUAL_BLOCK_ROWS).min(a_rows.len());
         let mut nearest_in_block = vec![(u32::MAX, usize::MAX); b_words.len()];
         let mut best_two = Vec::with_capacity(end - start);
         for (i, row) in a_rows.iter().enumerate().take(end).skip(start) {
-            let q = words(row);
+            let q = row_words::<W>(row);
             let (mut best, mut d1, mut d2) = (usize::MAX, u32::MAX, u32::MAX);
             for (j, (r, nearest)) in b_words.iter().zip(nearest_in_block.iter_mut()).enumerate() {
                 let d: u32 = (0..W).map(|w| (q[w] ^ r[w]).count_ones()).sum();
@@ -337,7 +344,7 @@ fn mutual_best_words<const W: usize>(a: &[u8], b: &[u8]) -> (BestTwo, Vec<usize>
                     *nearest = (d, i);
                 }
             }
-            best_two.push((best, as_f32(d1), as_f32(d2)));
+            best_two.push((best, bits_as_f32(d1), bits_as_f32(d2)));
         }
         (best_two, nearest_in_block)
     });
