@@ -289,9 +289,9 @@ class Localizer:
         self, sequence: Any, mode: str = "sequential", progress: ProgressCallback | None = None
     ) -> list[Localization]:
         """Localize every frame of ``sequence`` (a :class:`geoloc.datasets.Sequence`, whose
-        camera must be the map's) in order, from an empty motion history. ``mode`` ``"sequential"`` keeps the history from frame to
-        frame (motion model + gated fusion); ``"single"`` resets it before every frame (the
-        geometric locator alone). Each result's ``timings`` gets ``decode`` (reading the image
+        camera must be the map's) in order, from an empty motion history. ``mode``
+        ``"sequential"`` keeps the history from frame to frame (motion model + gated fusion);
+        ``"single"`` resets it before every frame (the geometric locator alone). Each result's ``timings`` gets ``decode`` (reading the image
         as grey — rendering it, for the synthetic room) and its ``total`` includes it.
         ``progress(done, total)`` is called after every frame."""
         # a Sequence, or anything with its frames' interface (len, gray(i), timestamps)
