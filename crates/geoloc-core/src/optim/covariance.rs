@@ -45,6 +45,14 @@ pub fn check_covariance<const D: usize>(name: &str, m: &SMatrix<f64, D, D>) -> R
         return Err(GeolocError::invalid(name, format!("is not symmetric (max |M − Mᵀ| = {asymmetry:.3e})")));
     }
     let symmetric = 0.5 * (m + m.transpose());
+    // positive definite, the usual case, needs no eigenvalues: a Cholesky factor exists only
+    // when λ_min ≥ −c·D·ε·max|M| (its backward stability), far inside the tolerance below.
+    // Semi-definite and indefinite matrices take the eigenvalues (a PnP checks each of its
+    // points' 3×3 covariances: the eigenvalues of all of them were ≈ 6 % of a model-locator
+    // frame)
+    if symmetric.cholesky().is_some() {
+        return Ok(());
+    }
     let eigenvalues = DMatrix::from_column_slice(D, D, symmetric.as_slice()).symmetric_eigenvalues();
     let lo = eigenvalues.min();
     let hi = eigenvalues.abs().max();
@@ -197,5 +205,47 @@ mod tests {
         assert!(
             matches!(check_covariances("point_covariances", &batch), Err(GeolocError::InvalidInput { name, .. }) if name == "point_covariances[1]")
         );
+    }
+
+    /// The rule by eigenvalues alone (λ_min ≥ −1e-9·max|λ| of the symmetric part), as a
+    /// reference for the Cholesky shortcut.
+    fn psd_by_eigenvalues<const D: usize>(m: &SMatrix<f64, D, D>) -> bool {
+        let symmetric = 0.5 * (m + m.transpose());
+        let eigenvalues = DMatrix::from_column_slice(D, D, symmetric.as_slice()).symmetric_eigenvalues();
+        eigenvalues.min() >= -PSD_TOLERANCE * eigenvalues.abs().max()
+    }
+
+    /// Q diag(λ) Qᵀ for a random rotation-like Q (orthonormalized Gaussian) and the given λ.
+    fn with_eigenvalues<const D: usize>(rng: &mut SplitMix64, lambda: [f64; D]) -> SMatrix<f64, D, D> {
+        let q = DMatrix::from_fn(D, D, |_, _| rng.normal()).qr().q();
+        let m = &q * DMatrix::from_diagonal(&nalgebra::DVector::from_column_slice(&lambda)) * q.transpose();
+        let m = SMatrix::<f64, D, D>::from_column_slice(m.as_slice());
+        0.5 * (m + m.transpose())
+    }
+
+    #[test]
+    fn the_cholesky_shortcut_decides_as_the_eigenvalues_do() {
+        let mut rng = SplitMix64::new(11);
+        let mut decided = [0usize; 2];
+        for trial in 0..4000_usize {
+            let scale = 10f64.powi((trial % 13) as i32 - 8); // 1e-8 … 1e4 (m², rad²)
+            // the smallest eigenvalue from well inside to well outside the tolerance, through
+            // zero and the tolerance itself (±1e-9 relative)
+            let rel = [1.0, 1e-3, 1e-8, 2e-9, 1e-9, 5e-10, 1e-12, 0.0, -1e-12, -5e-10, -1e-9, -2e-9, -1e-8, -1e-3]
+                [trial % 14];
+            let wiggle = 1.0 + 0.1 * rng.uniform();
+            let m3 = with_eigenvalues::<3>(&mut rng, [scale * wiggle, 0.5 * scale, rel * scale]);
+            let m6 = with_eigenvalues::<6>(
+                &mut rng,
+                [scale, 0.3 * scale, 2.0 * scale, scale * wiggle, 0.1 * scale, rel * scale],
+            );
+            for ok in [check_covariance("c", &m3).is_ok(), check_covariance("c", &m6).is_ok()] {
+                decided[usize::from(ok)] += 1;
+            }
+            assert_eq!(check_covariance("c", &m3).is_ok(), psd_by_eigenvalues(&m3), "3×3, λ_min {rel:e}·{scale:e}");
+            assert_eq!(check_covariance("c", &m6).is_ok(), psd_by_eigenvalues(&m6), "6×6, λ_min {rel:e}·{scale:e}");
+        }
+        // both outcomes are exercised in quantity
+        assert!(decided[0] > 1000 && decided[1] > 1000, "{decided:?}");
     }
 }
