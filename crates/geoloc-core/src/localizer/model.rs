@@ -47,7 +47,9 @@
 //!    paper's split, single-image recall within 5 cm / 5° against the reference is 2–3 points
 //!    higher on three of them and unchanged elsewhere, with no gross answer
 //!    (`benchmarks/calibration.py`, `benchmarks/honesty.py`). The step runs on failing frames
-//!    only, one keyframe after another.
+//!    only, as many keyframes at a time as the process has threads, side by side, taken in
+//!    rank order ([`crate::parallel::threads_here`]: the same first accepted pose with any
+//!    thread count).
 //!
 //! 8. **A third opinion on two places**, only when both hypotheses are accepted and lie apart
 //!    (step 6): steps 3–5 on each other retrieved keyframe's matches alone; if some of the
@@ -62,7 +64,7 @@
 //!    the 23 frames refused as two places that a vote decides, 7 pass the caps — 6 within
 //!    5 cm / 5° of the reference, one 20 cm off inside its covariance; without the caps the
 //!    other 16 were answered too, 13 of them within 5 cm, three 10–42 cm off with σ up to
-//!    60 cm).
+//!    60 cm). The other keyframes' solves run side by side when threads are available.
 //!
 //! 9. **The keyframes nearest the answer**: an answer of steps 1–8 is solved again (steps
 //!    2–8) from the `top_k` keyframes nearest its pose ([`nearest_keyframes`]: 10 cm count as
@@ -404,29 +406,44 @@ impl Localizer {
             _ => None,
         };
         let chosen = choose_hypothesis(union, alone);
-        // steps 3–5 on the matches of the retrieved keyframe of rank `rank` alone
-        let mut alone_at = |rank: usize| {
-            let matches = one_to_one(per_keyframe[rank].clone());
-            self.hypothesis(frame, model, matches, usable.as_deref(), &excluded, &grid, timings)
+        // steps 3–5 on the matches of the retrieved keyframe of each rank of `ranks` alone,
+        // side by side when threads are available (each with its own timings, summed here)
+        let alone_at = |ranks: &[usize], timings: &mut Timings| {
+            let solved = map_slice(ranks, 2, |&rank| {
+                let mut own = Timings::default();
+                let matches = one_to_one(per_keyframe[rank].clone());
+                (self.hypothesis(frame, model, matches, usable.as_deref(), &excluded, &grid, &mut own), own)
+            });
+            solved
+                .into_iter()
+                .map(|(h, own)| {
+                    add_solve_times(timings, &own);
+                    h
+                })
+                .collect::<Vec<_>>()
         };
+        let others: Vec<usize> = (1..per_keyframe.len()).collect();
         if neither {
             // neither place was accepted: each of the other retrieved keyframes' matches
-            // alone, best-ranked first, the first accepted
-            for rank in 1..per_keyframe.len() {
-                let h = alone_at(rank)?;
-                if h.0.is_ok() {
-                    return Ok(((top[rank], h.0, h.1), None));
+            // alone, best-ranked first, the first accepted (tried as many at a time as there
+            // are threads: the same first)
+            for ranks in others.chunks(crate::parallel::threads_here()) {
+                for (&rank, h) in ranks.iter().zip(alone_at(ranks, timings)) {
+                    let h = h?;
+                    if h.0.is_ok() {
+                        return Ok(((top[rank], h.0, h.1), None));
+                    }
                 }
             }
         } else if let Some(places) = places.filter(|_| excluded.is_empty()) {
             // two places: the other retrieved keyframes' matches alone vote between them (not
             // for a held-out keyframe: see the module doc)
-            let mut others = Vec::new();
-            for rank in 1..per_keyframe.len() {
-                others.extend(alone_at(rank)?.0.ok());
+            let mut votes = Vec::new();
+            for h in alone_at(&others, timings) {
+                votes.extend(h?.0.ok());
             }
             // the widened covariance is a claim like any other: within the σ caps or refused
-            if let Some((answer, inliers)) = vote_between(places, &others)
+            if let Some((answer, inliers)) = vote_between(places, &votes)
                 && super::acceptance::too_uncertain(&answer.covariance, &self.options.acceptance).is_none()
             {
                 return Ok(((top[0], Ok(answer), inliers), None));
