@@ -1,20 +1,21 @@
-//! A uniform grid over an image's keypoints for radius queries (guided matching).
+//! A uniform grid over image points for radius queries (guided matching puts the model
+//! points' projections in one and asks it around each query keypoint).
 //!
 //! Cells are squares of side `cell` px, indexed (⌊x/cell⌋, ⌊y/cell⌋) after shifting by the
-//! keypoints' minimum; the keypoints of a cell are contiguous in one array (counting sort by
-//! cell, then by index inside a cell). [`KeypointGrid::within`] visits the cells overlapping
-//! the disc's bounding square and keeps the keypoints with ‖k − c‖ ≤ r — exactly the set a
-//! scan of all keypoints keeps, in increasing index order per cell.
+//! points' minimum; the points of a cell are contiguous in one array (counting sort by
+//! cell, then by index inside a cell). [`PointGrid::within`] visits the cells overlapping
+//! the disc's bounding square and keeps the points with ‖p − c‖ ≤ r — exactly the set a
+//! scan of all points keeps, in increasing index order per cell.
 
 use nalgebra::Vector2;
 
 /// Most cells along one side of the grid.
 const MAX_SIDE: usize = 512;
 
-/// Keypoints bucketed by cell (see the module doc).
+/// Points bucketed by cell (see the module doc).
 #[derive(Clone, Debug)]
-pub(super) struct KeypointGrid<'a> {
-    keypoints: &'a [Vector2<f64>],
+pub(super) struct PointGrid<'a> {
+    points: &'a [Vector2<f64>],
     origin: Vector2<f64>,
     cell: f64,
     cols: usize,
@@ -25,19 +26,18 @@ pub(super) struct KeypointGrid<'a> {
     order: Vec<usize>,
 }
 
-impl<'a> KeypointGrid<'a> {
-    /// Grid of `keypoints` with square cells of side `cell` px (> 0, finite).
-    pub(super) fn new(keypoints: &'a [Vector2<f64>], cell: f64) -> Self {
-        let finite = || keypoints.iter().filter(|k| k.x.is_finite() && k.y.is_finite());
+impl<'a> PointGrid<'a> {
+    /// Grid of `points` with square cells of side `cell` px (> 0, finite).
+    pub(super) fn new(points: &'a [Vector2<f64>], cell: f64) -> Self {
+        let finite = || points.iter().filter(|k| k.x.is_finite() && k.y.is_finite());
         let origin = finite().fold(Vector2::repeat(f64::INFINITY), |m, k| m.inf(k));
         let far = finite().fold(Vector2::repeat(f64::NEG_INFINITY), |m, k| m.sup(k));
         let spread = if origin.x.is_finite() { far - origin } else { Vector2::zeros() };
         // at most MAX_SIDE cells a side: a huge spread only coarsens the grid, never breaks it
         let cell = cell.max(spread.x.max(spread.y) / (MAX_SIDE - 1) as f64);
         let (cols, rows) = ((spread.x / cell).floor() as usize + 1, (spread.y / cell).floor() as usize + 1);
-        let mut grid =
-            Self { keypoints, origin, cell, cols, rows, starts: vec![0; cols * rows + 1], order: Vec::new() };
-        let cells: Vec<Option<usize>> = keypoints.iter().map(|k| grid.cell_of(k)).collect();
+        let mut grid = Self { points, origin, cell, cols, rows, starts: vec![0; cols * rows + 1], order: Vec::new() };
+        let cells: Vec<Option<usize>> = points.iter().map(|k| grid.cell_of(k)).collect();
         for c in cells.iter().flatten() {
             grid.starts[c + 1] += 1;
         }
@@ -62,7 +62,7 @@ impl<'a> KeypointGrid<'a> {
         inside.then(|| cy as usize * self.cols + cx as usize)
     }
 
-    /// The keypoints within `r` px of `centre` (‖k − centre‖ ≤ r).
+    /// The points within `r` px of `centre` (‖p − centre‖ ≤ r).
     pub(super) fn within(&self, centre: &Vector2<f64>, r: f64) -> impl Iterator<Item = usize> + '_ {
         // cells ⌊lo/cell⌋ ..= ⌊hi/cell⌋ clamped to 0..n; for x ≥ 0 the truncating `as usize`
         // is ⌊x⌋ (and saturates), which keeps libm's floor out of this hot loop
@@ -80,7 +80,7 @@ impl<'a> KeypointGrid<'a> {
         let ys = span(d.y - r, d.y + r, self.rows);
         let centre = *centre;
         // the squared test is exact where r² and the window are normal, finite numbers;
-        // outside (absurd radii) every keypoint takes the root
+        // outside (absurd radii) every point takes the root
         let near =
             if r > 1e-150 && r < 1e150 { (r * r * (1.0 - 1e-9), r * r * (1.0 + 1e-9)) } else { (-1.0, f64::INFINITY) };
         ys.flat_map(move |y| {
@@ -91,7 +91,7 @@ impl<'a> KeypointGrid<'a> {
         .filter(move |&i| {
             // ‖d‖ ≤ r decided on ‖d‖² away from r² (no square root); the root only within a
             // relative 1e-9 of it, where rounding could make the two tests differ
-            let s = (self.keypoints[i] - centre).norm_squared();
+            let s = (self.points[i] - centre).norm_squared();
             s <= near.0 || (s <= near.1 && s.sqrt() <= r)
         })
     }
@@ -114,7 +114,7 @@ mod tests {
             r in 0.0f64..60.0,
         ) {
             let keypoints: Vec<Vector2<f64>> = pts.iter().map(|&(x, y)| Vector2::new(x, y)).collect();
-            let grid = KeypointGrid::new(&keypoints, cell);
+            let grid = PointGrid::new(&keypoints, cell);
             for &(x, y) in &centres {
                 let c = Vector2::new(x, y);
                 let mut got: Vec<usize> = grid.within(&c, r).collect();
@@ -141,7 +141,7 @@ mod tests {
                     keypoints.push(Vector2::new(k.x, nudge(k.y)));
                 }
             }
-            let grid = KeypointGrid::new(&keypoints, 6.0);
+            let grid = PointGrid::new(&keypoints, 6.0);
             let mut got: Vec<usize> = grid.within(&c, r).collect();
             got.sort_unstable();
             let want: Vec<usize> = (0..keypoints.len()).filter(|&i| (keypoints[i] - c).norm() <= r).collect();
@@ -160,7 +160,7 @@ mod tests {
         ];
         for (keypoints, r) in cases {
             let c = Vector2::zeros();
-            let grid = KeypointGrid::new(&keypoints, 6.0);
+            let grid = PointGrid::new(&keypoints, 6.0);
             let mut got: Vec<usize> = grid.within(&c, r).collect();
             got.sort_unstable();
             let want: Vec<usize> = (0..keypoints.len()).filter(|&i| (keypoints[i] - c).norm() <= r).collect();
@@ -171,9 +171,9 @@ mod tests {
     #[test]
     fn degenerate_inputs() {
         let none: Vec<Vector2<f64>> = Vec::new();
-        assert_eq!(KeypointGrid::new(&none, 6.0).within(&Vector2::zeros(), 10.0).count(), 0);
+        assert_eq!(PointGrid::new(&none, 6.0).within(&Vector2::zeros(), 10.0).count(), 0);
         let odd = vec![Vector2::new(f64::NAN, 1.0), Vector2::new(3.0, 4.0), Vector2::new(1e12, -1e12)];
-        let grid = KeypointGrid::new(&odd, 6.0);
+        let grid = PointGrid::new(&odd, 6.0);
         assert_eq!(grid.within(&Vector2::new(3.0, 4.0), 1.0).collect::<Vec<_>>(), vec![1]);
         assert_eq!(grid.within(&Vector2::new(1e12, -1e12), 1.0).collect::<Vec<_>>(), vec![2]);
     }

@@ -110,7 +110,7 @@ use std::time::Instant;
 
 use nalgebra::{Matrix3, Vector2, Vector3};
 
-use super::grid::KeypointGrid;
+use super::grid::PointGrid;
 use super::{Estimate, Frame, GeometricPose, Localizer, Timings, ms};
 use crate::adjust::correction;
 use crate::error::{GeolocError, Result};
@@ -273,9 +273,6 @@ fn add_solve_times(timings: &mut Timings, own: &Timings) {
     timings.pnp_ms += own.pnp_ms;
 }
 
-/// Candidate points below which guided matching stays on the calling thread.
-const GUIDED_PARALLEL_MIN_POINTS: usize = 2048;
-
 /// One 2D–3D correspondence: query keypoint, model point, descriptor distance.
 #[derive(Clone, Copy, Debug, PartialEq)]
 struct Correspondence {
@@ -377,12 +374,11 @@ impl Localizer {
     ) -> Result<(GeometricPose, Option<Places>)> {
         let usable = usable_points(model, &excluded);
         let t = Instant::now();
-        let grid = KeypointGrid::new(frame.keypoints, self.options.guided_radius_px);
         let per_keyframe = self.retrieved_matches(frame, model, top, usable.as_deref())?;
         timings.matching_ms += ms(t);
         let union = one_to_one(per_keyframe.concat());
         if top.len() == 1 {
-            let chosen = self.hypothesis(frame, model, union, usable.as_deref(), &excluded, &grid, timings)?;
+            let chosen = self.hypothesis(frame, model, union, usable.as_deref(), &excluded, timings)?;
             return Ok(((top[0], chosen.0, chosen.1), None));
         }
         // the best-ranked keyframe alone: its matches can be outvoted in the union. The two
@@ -391,7 +387,7 @@ impl Localizer {
         let sets = [union, one_to_one(per_keyframe[0].clone())];
         let mut solved = map_slice(&sets, 2, |set| {
             let mut own = Timings::default();
-            let hypothesis = self.hypothesis(frame, model, set.clone(), usable.as_deref(), &excluded, &grid, &mut own);
+            let hypothesis = self.hypothesis(frame, model, set.clone(), usable.as_deref(), &excluded, &mut own);
             (hypothesis, own)
         });
         let (alone, alone_timings) = solved.pop().expect("invariant: two hypotheses");
@@ -412,7 +408,7 @@ impl Localizer {
             let solved = map_slice(ranks, 2, |&rank| {
                 let mut own = Timings::default();
                 let matches = one_to_one(per_keyframe[rank].clone());
-                (self.hypothesis(frame, model, matches, usable.as_deref(), &excluded, &grid, &mut own), own)
+                (self.hypothesis(frame, model, matches, usable.as_deref(), &excluded, &mut own), own)
             });
             solved
                 .into_iter()
@@ -463,7 +459,6 @@ impl Localizer {
         first: Vec<Correspondence>,
         usable: Option<&[bool]>,
         excluded: &Range<usize>,
-        grid: &KeypointGrid<'_>,
         timings: &mut Timings,
     ) -> Result<Hypothesis> {
         if first.len() < self.options.min_correspondences {
@@ -507,7 +502,7 @@ impl Localizer {
             if round == 0 || near != nearby.0 {
                 nearby = (near.clone(), points_seen_by(model, &near, usable));
             }
-            let guided = self.guided_matches(frame, grid, model, &current, tau, &nearby.1);
+            let guided = self.guided_matches(frame, model, &current, tau, &nearby.1);
             timings.matching_ms += ms(t);
             let t = Instant::now();
             let next = if guided.len() >= self.options.min_correspondences {
@@ -592,11 +587,19 @@ impl Localizer {
     }
 
     /// Step 4: the guided correspondences of the `candidates` points at `pose` (see the
-    /// module doc); `grid` holds the frame's keypoints.
+    /// module doc): per point, the query keypoint within `guided_radius_px` of its projection
+    /// with the smallest (descriptor distance, keypoint) at most τ, then [`one_to_one`].
+    ///
+    /// Searched from the keypoints' side: the projections that can be within r of a keypoint
+    /// (inside the keypoints' bounding box widened by 2r) go into a grid, and each keypoint
+    /// takes the projections within r of it ([`PointGrid::within`], whose test
+    /// ‖u − k‖² ≤ r² is symmetric in its two points to the bit). The pairs are those of a
+    /// search from each point's projection, and the per-point minimum does not depend on the
+    /// order they come in; a thousand keypoint queries replace tens of thousands of point
+    /// queries (which were most of a guided round).
     fn guided_matches(
         &self,
         frame: &Frame<'_>,
-        grid: &KeypointGrid<'_>,
         model: &SceneModel,
         pose: &SE3,
         tau: f32,
@@ -604,20 +607,29 @@ impl Localizer {
     ) -> Vec<Correspondence> {
         let inverse = pose.inverse();
         let (r, camera) = (self.options.guided_radius_px, &self.map.camera);
-        let best_for = |&p: &usize| {
-            let uv = project_in_front(camera, &inverse, &model.points[p])?;
-            let mut best: Option<Correspondence> = None;
-            for q in grid.within(&uv, r) {
-                let d = model.descriptors.view().distance(p, &frame.descriptors, q);
-                if d <= tau && best.is_none_or(|b| (d, q) < (b.distance, b.query)) {
-                    best = Some(Correspondence { query: q, point: p, distance: d });
+        let Some((lo, hi)) = bounds(frame.keypoints) else { return Vec::new() };
+        let (lo, hi) = (lo.add_scalar(-2.0 * r), hi.add_scalar(2.0 * r));
+        let (points, projections): (Vec<usize>, Vec<Vector2<f64>>) = candidates
+            .iter()
+            .filter_map(|&p| {
+                let uv = project_in_front(camera, &inverse, &model.points[p])?;
+                (uv.x >= lo.x && uv.x <= hi.x && uv.y >= lo.y && uv.y <= hi.y).then_some((p, uv))
+            })
+            .unzip();
+        let grid = PointGrid::new(&projections, r);
+        let mut best: Vec<Option<(f32, usize)>> = vec![None; points.len()];
+        for (q, keypoint) in frame.keypoints.iter().enumerate() {
+            for i in grid.within(keypoint, r) {
+                let d = model.descriptors.view().distance(points[i], &frame.descriptors, q);
+                if d <= tau && best[i].is_none_or(|b| (d, q) < b) {
+                    best[i] = Some((d, q));
                 }
             }
-            best
-        };
-        let found = crate::parallel::map_slice(candidates, GUIDED_PARALLEL_MIN_POINTS, best_for)
-            .into_iter()
-            .flatten()
+        }
+        let found = points
+            .iter()
+            .zip(best)
+            .filter_map(|(&point, b)| b.map(|(distance, query)| Correspondence { query, point, distance }))
             .collect();
         one_to_one(found)
     }
@@ -649,6 +661,14 @@ impl Localizer {
 
 fn count(mask: &[bool]) -> usize {
     mask.iter().filter(|b| **b).count()
+}
+
+/// (min, max) of the finite `points` per axis; None when there are none.
+fn bounds(points: &[Vector2<f64>]) -> Option<(Vector2<f64>, Vector2<f64>)> {
+    let finite = || points.iter().filter(|k| k.x.is_finite() && k.y.is_finite());
+    let lo = finite().fold(Vector2::repeat(f64::INFINITY), |m, k| m.inf(k));
+    let hi = finite().fold(Vector2::repeat(f64::NEG_INFINITY), |m, k| m.sup(k));
+    lo.x.is_finite().then_some((lo, hi))
 }
 
 /// Which points may be used when `excluded` keyframes are held out: those none of them
@@ -994,6 +1014,77 @@ mod scene_tests {
     /// to 0.3 m), so the second pass's points stay usable when the first pass's block around
     /// the held-out keyframe is excluded: it is localized from them; with every keyframe but
     /// one excluded no point is usable and it is not.
+    /// Guided matching searched from the keypoints' side gives the correspondences of a
+    /// brute-force search from each point's side (every keypoint within r of its projection,
+    /// the smallest (distance, keypoint) at most τ), at poses on and off the keyframes, with
+    /// keypoints moved onto the circle of radius r and beyond the image.
+    #[test]
+    fn guided_matches_equal_a_search_from_every_point() {
+        let (_, map, _) = fixture::scene(30, true);
+        let model_options = crate::map::ModelOptions { max_distance_m: 0.3, ..Default::default() };
+        let map = Arc::new(map.with_model(&model_options).expect("model"));
+        let options = LocalizerOptions { locator: Locator::Model, ..LocalizerOptions::default() };
+        let loc = Localizer::new(Arc::clone(&map), options).expect("localizer");
+        let model = map.model.as_ref().expect("model");
+        let r = loc.options.guided_radius_px;
+        let mut rng = SplitMix64::new(8);
+        let mut compared = 0;
+        for k in [3, 15, 27, 40] {
+            let kf = &map.keyframes[k];
+            let inverse = kf.world_from_cam.inverse();
+            // keypoints: the keyframe's, some moved exactly r from a point's projection (the
+            // boundary), some far outside the image
+            let mut keypoints = kf.keypoints.clone();
+            for (j, kp) in keypoints.iter_mut().enumerate().take(40) {
+                if let Some(uv) = project_in_front(&map.camera, &inverse, &model.points[j % model.len()]) {
+                    *kp = uv + Vector2::new(r, 0.0);
+                }
+            }
+            keypoints[41] = Vector2::new(-1e4, 3e4);
+            // keypoints 50..70 copy 70..90 a pixel away, with their descriptors: points with
+            // two keypoints at the same distance (ties broken by the lower keypoint)
+            let crate::matching::Descriptors::Binary { data, width } = kf.descriptors.view() else {
+                panic!("binary fixture")
+            };
+            let mut data = data.to_vec();
+            for j in 50..70 {
+                keypoints[j] = keypoints[j + 20] + Vector2::new(1.0, 0.0);
+                data.copy_within((j + 20) * width..(j + 21) * width, j * width);
+            }
+            let frame = Frame {
+                timestamp: 0.0,
+                keypoints: &keypoints,
+                descriptors: crate::matching::Descriptors::Binary { data: &data, width },
+                global: None,
+                pixel_sigmas: None,
+            };
+            let candidates = points_seen_by(model, &near_keyframes(&loc, &kf.world_from_cam, &(0..0)), None);
+            for (shift, tau) in [(0.0, 64.0), (0.0, 256.0), (0.02, 64.0), (0.05, 40.0)] {
+                let step = Vector3::new(rng.normal(), rng.normal(), rng.normal()) * shift;
+                let pose =
+                    SE3 { rotation: kf.world_from_cam.rotation, translation: kf.world_from_cam.translation + step };
+                let inverse = pose.inverse();
+                let brute: Vec<Correspondence> = candidates
+                    .iter()
+                    .filter_map(|&p| {
+                        let uv = project_in_front(&map.camera, &inverse, &model.points[p])?;
+                        (0..keypoints.len())
+                            .filter(|&q| (keypoints[q] - uv).norm() <= r)
+                            .map(|q| (model.descriptors.view().distance(p, &frame.descriptors, q), q))
+                            .filter(|&(d, _)| d <= tau)
+                            .min_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)))
+                            .map(|(distance, query)| Correspondence { query, point: p, distance })
+                    })
+                    .collect();
+                let expected = one_to_one(brute);
+                assert!(!expected.is_empty());
+                assert_eq!(loc.guided_matches(&frame, model, &pose, tau, &candidates), expected, "keyframe {k}");
+                compared += expected.len();
+            }
+        }
+        assert!(compared > 100, "{compared}");
+    }
+
     #[test]
     fn held_out_keyframes_do_not_leak() {
         let (_, map, _) = fixture::scene(30, true);
@@ -1016,9 +1107,8 @@ mod scene_tests {
         let top = map.retrieve_top(&frame.retrieval_query(), 5, excluded.clone()).expect("retrieves");
         assert!(top.iter().all(|t| !excluded.contains(t)));
         let first = one_to_one(loc.retrieved_matches(&frame, model, &top, Some(&usable)).expect("matches").concat());
-        let grid = KeypointGrid::new(frame.keypoints, loc.options.guided_radius_px);
         let nearby = points_seen_by(model, &near_keyframes(&loc, &kf.world_from_cam, &excluded), Some(&usable));
-        let guided = loc.guided_matches(&frame, &grid, model, &kf.world_from_cam, 64.0, &nearby);
+        let guided = loc.guided_matches(&frame, model, &kf.world_from_cam, 64.0, &nearby);
         assert!(!first.is_empty() && !guided.is_empty(), "{} {}", first.len(), guided.len());
         for c in first.iter().chain(&guided) {
             assert!(model.observers(c.point).iter().all(|o| !excluded.contains(o)), "point {} leaks", c.point);
