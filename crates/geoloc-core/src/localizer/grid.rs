@@ -12,6 +12,14 @@ use nalgebra::Vector2;
 /// Most cells along one side of the grid.
 const MAX_SIDE: usize = 512;
 
+/// (min, max) of the finite `points` per axis; None when there are none.
+pub(super) fn bounds(points: &[Vector2<f64>]) -> Option<(Vector2<f64>, Vector2<f64>)> {
+    let finite = || points.iter().filter(|k| k.x.is_finite() && k.y.is_finite());
+    let lo = finite().fold(Vector2::repeat(f64::INFINITY), |m, k| m.inf(k));
+    let hi = finite().fold(Vector2::repeat(f64::NEG_INFINITY), |m, k| m.sup(k));
+    lo.x.is_finite().then_some((lo, hi))
+}
+
 /// Points bucketed by cell (see the module doc).
 #[derive(Clone, Debug)]
 pub(super) struct PointGrid<'a> {
@@ -29,10 +37,7 @@ pub(super) struct PointGrid<'a> {
 impl<'a> PointGrid<'a> {
     /// Grid of `points` with square cells of side `cell` px (> 0, finite).
     pub(super) fn new(points: &'a [Vector2<f64>], cell: f64) -> Self {
-        let finite = || points.iter().filter(|k| k.x.is_finite() && k.y.is_finite());
-        let origin = finite().fold(Vector2::repeat(f64::INFINITY), |m, k| m.inf(k));
-        let far = finite().fold(Vector2::repeat(f64::NEG_INFINITY), |m, k| m.sup(k));
-        let spread = if origin.x.is_finite() { far - origin } else { Vector2::zeros() };
+        let (origin, spread) = bounds(points).map_or((Vector2::zeros(), Vector2::zeros()), |(lo, hi)| (lo, hi - lo));
         // at most MAX_SIDE cells a side: a huge spread only coarsens the grid, never breaks it
         let cell = cell.max(spread.x.max(spread.y) / (MAX_SIDE - 1) as f64);
         let (cols, rows) = ((spread.x / cell).floor() as usize + 1, (spread.y / cell).floor() as usize + 1);

@@ -110,7 +110,7 @@ use std::time::Instant;
 
 use nalgebra::{Matrix3, Vector2, Vector3};
 
-use super::grid::PointGrid;
+use super::grid::{PointGrid, bounds};
 use super::{Estimate, Frame, GeometricPose, Localizer, Timings, ms};
 use crate::adjust::correction;
 use crate::error::{GeolocError, Result};
@@ -663,14 +663,6 @@ fn count(mask: &[bool]) -> usize {
     mask.iter().filter(|b| **b).count()
 }
 
-/// (min, max) of the finite `points` per axis; None when there are none.
-fn bounds(points: &[Vector2<f64>]) -> Option<(Vector2<f64>, Vector2<f64>)> {
-    let finite = || points.iter().filter(|k| k.x.is_finite() && k.y.is_finite());
-    let lo = finite().fold(Vector2::repeat(f64::INFINITY), |m, k| m.inf(k));
-    let hi = finite().fold(Vector2::repeat(f64::NEG_INFINITY), |m, k| m.sup(k));
-    lo.x.is_finite().then_some((lo, hi))
-}
-
 /// Which points may be used when `excluded` keyframes are held out: those none of them
 /// observes (None: no keyframe excluded, every point).
 fn usable_points(model: &SceneModel, excluded: &Range<usize>) -> Option<Vec<bool>> {
@@ -1009,11 +1001,6 @@ mod scene_tests {
         assert_eq!(bits(&one), bits(&two));
     }
 
-    /// Held out: no correspondence (retrieved or guided) uses a point that an excluded
-    /// keyframe observes. Two passes whose keyframes are not paired (0.5 m apart, pairs up
-    /// to 0.3 m), so the second pass's points stay usable when the first pass's block around
-    /// the held-out keyframe is excluded: it is localized from them; with every keyframe but
-    /// one excluded no point is usable and it is not.
     /// Guided matching searched from the keypoints' side gives the correspondences of a
     /// brute-force search from each point's side (every keypoint within r of its projection,
     /// the smallest (distance, keypoint) at most τ), at poses on and off the keyframes, with
@@ -1032,8 +1019,8 @@ mod scene_tests {
         for k in [3, 15, 27, 40] {
             let kf = &map.keyframes[k];
             let inverse = kf.world_from_cam.inverse();
-            // keypoints: the keyframe's, some moved exactly r from a point's projection (the
-            // boundary), some far outside the image
+            // keypoints: the keyframe's, some moved r from a point's projection (the boundary,
+            // up to rounding), one far outside the image
             let mut keypoints = kf.keypoints.clone();
             for (j, kp) in keypoints.iter_mut().enumerate().take(40) {
                 if let Some(uv) = project_in_front(&map.camera, &inverse, &model.points[j % model.len()]) {
@@ -1085,6 +1072,11 @@ mod scene_tests {
         assert!(compared > 100, "{compared}");
     }
 
+    /// Held out: no correspondence (retrieved or guided) uses a point that an excluded
+    /// keyframe observes. Two passes whose keyframes are not paired (0.5 m apart, pairs up
+    /// to 0.3 m), so the second pass's points stay usable when the first pass's block around
+    /// the held-out keyframe is excluded: it is localized from them; with every keyframe but
+    /// one excluded no point is usable and it is not.
     #[test]
     fn held_out_keyframes_do_not_leak() {
         let (_, map, _) = fixture::scene(30, true);
