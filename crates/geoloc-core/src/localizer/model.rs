@@ -1001,17 +1001,24 @@ mod scene_tests {
         assert_eq!(bits(&one), bits(&two));
     }
 
+    /// The fixture's two passes of 30 keyframes 0.5 m apart with a 3D model whose pairs reach
+    /// 0.3 m (so the passes share no point), and a model localizer on it.
+    fn two_passes_with_model() -> (Arc<crate::map::Map>, Localizer) {
+        let (_, map, _) = fixture::scene(30, true);
+        let model_options = crate::map::ModelOptions { max_distance_m: 0.3, ..Default::default() };
+        let map = Arc::new(map.with_model(&model_options).expect("model"));
+        let options = LocalizerOptions { locator: Locator::Model, ..LocalizerOptions::default() };
+        let loc = Localizer::new(Arc::clone(&map), options).expect("localizer");
+        (map, loc)
+    }
+
     /// Guided matching searched from the keypoints' side gives the correspondences of a
     /// brute-force search from each point's side (every keypoint within r of its projection,
     /// the smallest (distance, keypoint) at most τ), at poses on and off the keyframes, with
     /// keypoints moved onto the circle of radius r and beyond the image.
     #[test]
     fn guided_matches_equal_a_search_from_every_point() {
-        let (_, map, _) = fixture::scene(30, true);
-        let model_options = crate::map::ModelOptions { max_distance_m: 0.3, ..Default::default() };
-        let map = Arc::new(map.with_model(&model_options).expect("model"));
-        let options = LocalizerOptions { locator: Locator::Model, ..LocalizerOptions::default() };
-        let loc = Localizer::new(Arc::clone(&map), options).expect("localizer");
+        let (map, loc) = two_passes_with_model();
         let model = map.model.as_ref().expect("model");
         let r = loc.options.guided_radius_px;
         let mut rng = SplitMix64::new(8);
@@ -1079,11 +1086,7 @@ mod scene_tests {
     /// one excluded no point is usable and it is not.
     #[test]
     fn held_out_keyframes_do_not_leak() {
-        let (_, map, _) = fixture::scene(30, true);
-        let model_options = crate::map::ModelOptions { max_distance_m: 0.3, ..Default::default() };
-        let map = Arc::new(map.with_model(&model_options).expect("model"));
-        let options = LocalizerOptions { locator: Locator::Model, ..LocalizerOptions::default() };
-        let mut loc = Localizer::new(Arc::clone(&map), options).expect("localizer");
+        let (map, mut loc) = two_passes_with_model();
         let model = map.model.as_ref().expect("model");
         let (k, excluded) = (15, 9..22);
         let kf = &map.keyframes[k];
