@@ -278,6 +278,32 @@ def test_a_plot_folder_that_cannot_be_made_is_refused_before_any_work(tmp_path: 
                   "--plots", str(plots))
     _one_line_error(result, "--plots", "sequential")
     assert not (tmp_path / "r.json").exists()
+    assert sorted(p.name for p in plots.iterdir()) == ["sequential"], "the folder made before the refusal stayed"
+
+
+@pytest.mark.parametrize("command", ["evaluate", "demo"])
+def test_a_run_that_fails_after_making_its_folders_leaves_none(command: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                                capsys: pytest.CaptureFixture[str]) -> None:
+    """The plot folders are made before any work (so that one that cannot be made is refused
+    first); a run interrupted or failing after that left them behind, empty."""
+    from geoloc import cli
+    from geoloc.commands import demo, evaluate
+
+    def interrupted(*args: object, **kwargs: object) -> None:
+        raise KeyboardInterrupt
+
+    for module in (demo, evaluate):
+        monkeypatch.setattr(module, "evaluate_split", interrupted)
+    kept = tmp_path / "kept"
+    kept.mkdir()
+    (kept / "notes.txt").write_text("the user's")
+    for out in (tmp_path / "new", kept):
+        argv = ["demo", "--out", str(out)] if command == "demo" else [
+            "evaluate", "--format", "synthetic", "--json", str(tmp_path / "r.json"), "--plots", str(out)]
+        assert cli.main(argv) == 130
+        assert "interrupted" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["kept"]
+    assert sorted(p.name for p in kept.iterdir()) == ["notes.txt"]
 
 
 def test_localize_to_standard_output_writes_what_a_file_would_get(room_map: Path, tmp_path: Path) -> None:

@@ -13,7 +13,7 @@ from pathlib import Path
 
 from ..exceptions import InvalidInputError
 from ._common import MODES, FrameRange
-from .evaluate import evaluate_split, plot_folders, report, write_plots
+from .evaluate import evaluate_split, folders_for_the_run, remove_empty, report, write_plots
 
 __all__ = ["DEFAULT_FRAMES", "run", "split"]
 
@@ -40,6 +40,7 @@ def run(args: argparse.Namespace) -> int:
 
     start = time.perf_counter()
     out = Path(args.out)
+    made: list[Path] = []
     if not out.exists():
         if not out.parent.is_dir():
             raise InvalidInputError(f"--out: folder {str(out.parent)!r} does not exist (create it first)")
@@ -47,19 +48,23 @@ def run(args: argparse.Namespace) -> int:
             out.mkdir()
         except OSError as e:
             raise InvalidInputError(f"--out: cannot create {str(out)!r} ({e.strerror})") from None
+        made.append(out)
     elif not out.is_dir():
         raise InvalidInputError(f"--out: {str(out)!r} is a file, expected a folder")
-    if not args.no_plots:
-        plot_folders(str(out), MODES, "--out")
-    sequence = synthetic_room(n_frames=args.frames)
-    train, test = split(args.frames)
-    result = evaluate_split(sequence, train, test, MODES)
-    data = report(sequence, result, dataset=None, fmt="synthetic", train=train, test=test, timings=True)
-    data["demo"] = {"frames": args.frames}
-    write_json_atomic(out / "results.json", data, "--out")
-    written = f"wrote {out / 'results.json'}"
-    if not args.no_plots:
-        write_plots(str(out), result["summaries"])
-        written += f" and plots in {out}/{{{','.join(result['summaries'])}}}/"
+    try:
+        with folders_for_the_run(None if args.no_plots else out, MODES, "--out"):
+            sequence = synthetic_room(n_frames=args.frames)
+            train, test = split(args.frames)
+            result = evaluate_split(sequence, train, test, MODES)
+            data = report(sequence, result, dataset=None, fmt="synthetic", train=train, test=test, timings=True)
+            data["demo"] = {"frames": args.frames}
+            write_json_atomic(out / "results.json", data, "--out")
+            written = f"wrote {out / 'results.json'}"
+            if not args.no_plots:
+                write_plots(str(out), result["summaries"])
+                written += f" and plots in {out}/{{{','.join(result['summaries'])}}}/"
+    except BaseException:
+        remove_empty(made)  # the folder this run made, unless it holds something
+        raise
     print(f"{written} ({time.perf_counter() - start:.0f} s in all)")
     return 0

@@ -17,6 +17,8 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -375,19 +377,51 @@ def plot_files(directory: str | None, modes: tuple[str, ...]) -> list[Path]:
     return [Path(directory) / mode / name for mode in modes for name in PLOT_FILES.values()]
 
 
-def plot_folders(directory: str, modes: tuple[str, ...], option: str) -> None:
+def plot_folders(directory: str, modes: tuple[str, ...], option: str) -> list[Path]:
     """Makes ``directory`` and ``directory/<mode>/`` for every mode before any work is done
     (``directory``'s parent must exist): a folder that cannot be made — a file in the way,
     no permission — is an InvalidInputError naming ``option`` before anything is computed or
-    written, not after the results are."""
+    written, not after the results are. Returns the folders it made (not those that were
+    there), parents first; a failure removes the ones it had made."""
     root = Path(directory)
-    for folder in (root, *(root / mode for mode in modes)):
-        if folder.exists() and not folder.is_dir():
-            raise InvalidInputError(f"{option}: {str(folder)!r} is a file, where the plots' folder goes")
+    made: list[Path] = []
+    try:
+        for folder in (root, *(root / mode for mode in modes)):
+            if folder.exists() and not folder.is_dir():
+                raise InvalidInputError(f"{option}: {str(folder)!r} is a file, where the plots' folder goes")
+            if folder.is_dir():
+                continue
+            try:
+                folder.mkdir()
+            except OSError as e:
+                raise InvalidInputError(f"{option}: cannot create {str(folder)!r} ({e.strerror})") from None
+            made.append(folder)
+    except BaseException:
+        remove_empty(made)
+        raise
+    return made
+
+
+def remove_empty(folders: list[Path]) -> None:
+    """Removes ``folders`` (parents first in the list), children first, each only if empty."""
+    for folder in reversed(folders):
         try:
-            folder.mkdir(exist_ok=True)
-        except OSError as e:
-            raise InvalidInputError(f"{option}: cannot create {str(folder)!r} ({e.strerror})") from None
+            folder.rmdir()
+        except OSError:
+            pass  # not empty (something else wrote there) or gone: leave it
+
+
+@contextmanager
+def folders_for_the_run(directory: str | Path | None, modes: tuple[str, ...], option: str) -> Iterator[None]:
+    """:func:`plot_folders` before the work in the ``with`` block (nothing without a
+    directory); when that work fails, the folders made here are removed again if still
+    empty — a failed command leaves no empty folders behind."""
+    made = [] if directory is None else plot_folders(str(directory), modes, option)
+    try:
+        yield
+    except BaseException:
+        remove_empty(made)
+        raise
 
 
 def write_plots(directory: str, summaries: dict[str, dict[str, Any]]) -> list[Path]:
@@ -417,21 +451,20 @@ def run(args: argparse.Namespace) -> int:
     refuse_alias(args.json, "--json", inputs)
     for plot in plot_files(args.plots, _modes(args.mode)):
         refuse_alias(plot, "--plots", inputs)
-    if args.plots:
-        plot_folders(args.plots, _modes(args.mode), "--plots")
     default_train, default_test = default_split(len(sequence), args.format)
     train = args.train or default_train
     test = args.test or default_test
-    result = evaluate_split(
-        sequence, train, test, _modes(args.mode), features=args.features, n_features=args.n_features, retrieval=args.retrieval,
-        locator=args.locator, refine_intrinsics=args.refine_intrinsics, adjust_labels=args.adjust_labels,
-        reference=reference,
-    )
-    data = report(sequence, result, dataset=args.dataset, fmt=args.format, train=train, test=test, timings=args.timings)
-    if args.json:
-        write_json_atomic(args.json, data, "--json")
-        print(f"wrote {shown(args.json)}")
-    if args.plots:
-        write_plots(args.plots, result["summaries"])
-        print(f"wrote plots to {shown(Path(args.plots) / ('{' + ','.join(result['summaries']) + '}'))}/")
+    with folders_for_the_run(args.plots, _modes(args.mode), "--plots"):
+        result = evaluate_split(
+            sequence, train, test, _modes(args.mode), features=args.features, n_features=args.n_features,
+            retrieval=args.retrieval, locator=args.locator, refine_intrinsics=args.refine_intrinsics,
+            adjust_labels=args.adjust_labels, reference=reference,
+        )
+        data = report(sequence, result, dataset=args.dataset, fmt=args.format, train=train, test=test, timings=args.timings)
+        if args.json:
+            write_json_atomic(args.json, data, "--json")
+            print(f"wrote {shown(args.json)}")
+        if args.plots:
+            write_plots(args.plots, result["summaries"])
+            print(f"wrote plots to {shown(Path(args.plots) / ('{' + ','.join(result['summaries']) + '}'))}/")
     return 0
