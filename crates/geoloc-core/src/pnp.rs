@@ -111,10 +111,31 @@ pub struct PointUncertainty<'a> {
 /// Keyframe-pose errors shared by the points.
 #[derive(Clone, Copy, Debug)]
 pub struct SharedPoseUncertainty<'a> {
-    /// Row-major N × K: `jacobians[j * K + k]` = D_jk = ∂X_j/∂δ_k.
-    pub jacobians: &'a [Matrix3x6<f64>],
+    /// Per point j, the D_jk = ∂X_j/∂δ_k it has ([`PosePartials`]): a point moves with the
+    /// poses of the keyframes that observe it only, so a map-wide set of K keyframes costs
+    /// what the points' views cost, not N × K blocks.
+    pub jacobians: &'a [PosePartials],
     /// The K keyframe-pose covariances C_k (right perturbation of world_from_cam).
     pub pose_covariances: &'a [Matrix6<f64>],
+}
+
+/// One point's D_jk = ∂X_j/∂δ_k as (k, D_jk), k increasing; a k it does not list has D_jk = 0.
+pub type PosePartials = Vec<(usize, Matrix3x6<f64>)>;
+
+/// The [`PosePartials`] of `points` points from a row-major `points` × `poses` array of
+/// D_jk (every entry kept, zero or not: sums over them are those over the array, bit for
+/// bit).
+///
+/// # Errors
+/// `dense` not `points` × `poses` long (named `point_pose_jacobians`).
+pub fn pose_partials_from_dense(dense: &[Matrix3x6<f64>], points: usize, poses: usize) -> Result<Vec<PosePartials>> {
+    if dense.len() != points * poses {
+        return Err(GeolocError::invalid(
+            "point_pose_jacobians",
+            format!("has {} entries; expected points × poses = {points} × {poses}", dense.len()),
+        ));
+    }
+    Ok((0..points).map(|j| (0..poses).map(|k| (k, dense[j * poses + k])).collect()).collect())
 }
 
 /// The outcome of [`solve_pnp`].
@@ -549,17 +570,23 @@ fn validate(
         if let Some(s) = &u.shared {
             check_covariances("pose_covariances", s.pose_covariances)?;
         }
-        if let Some(s) = &u.shared
-            && s.jacobians.len() != n * s.pose_covariances.len()
-        {
-            return Err(GeolocError::invalid(
-                "point_pose_jacobians",
-                format!(
-                    "has {} entries; expected points × poses = {n} × {}",
-                    s.jacobians.len(),
-                    s.pose_covariances.len()
-                ),
-            ));
+        if let Some(s) = &u.shared {
+            if s.jacobians.len() != n {
+                return Err(GeolocError::invalid(
+                    "point_pose_jacobians",
+                    format!("has {} rows for {n} points", s.jacobians.len()),
+                ));
+            }
+            let poses = s.pose_covariances.len();
+            for (j, row) in s.jacobians.iter().enumerate() {
+                let increasing = row.windows(2).all(|w| w[0].0 < w[1].0);
+                if !increasing || row.last().is_some_and(|(k, _)| *k >= poses) {
+                    return Err(GeolocError::invalid(
+                        format!("point_pose_jacobians[{j}]"),
+                        format!("expected increasing pose indices below {poses}"),
+                    ));
+                }
+            }
         }
     }
     Ok(())

@@ -6,7 +6,9 @@ mod common;
 use common::{Coverage, Sample, look_at, observe};
 use geoloc_core::camera::{Camera, project};
 use geoloc_core::lie::{SE3, Twist};
-use geoloc_core::pnp::{CovarianceModel, PnpOptions, PointUncertainty, SharedPoseUncertainty, solve_pnp};
+use geoloc_core::pnp::{
+    CovarianceModel, PnpOptions, PointUncertainty, SharedPoseUncertainty, pose_partials_from_dense, solve_pnp,
+};
 use geoloc_core::testing::{SplitMix64, isotropic_pose_covariance};
 use geoloc_core::triangulate::{TrackStatus, TriangulationOptions, triangulate};
 use nalgebra::{Matrix3, Matrix3x6, Matrix6, Vector2, Vector3};
@@ -151,6 +153,25 @@ fn random_scene(rng: &mut SplitMix64) -> Scene {
 /// pixel noise σ, triangulation from the labels, PnP of the query with the propagated
 /// covariance. The true and estimated query pose with the covariance, or None when PnP fails.
 fn trial(rng: &mut SplitMix64, scene: &Scene, sigma_px: f64, label: Option<(f64, f64)>) -> Option<Sample> {
+    trial_with(rng, scene, sigma_px, label, Partials::Dense)
+}
+
+/// How [`trial_with`] hands PnP the points' D_jk.
+#[derive(Clone, Copy, PartialEq)]
+enum Partials {
+    /// A D_jk for every point and pose, zero where the pose does not see the point.
+    Dense,
+    /// Only those of the poses that see the point.
+    Sparse,
+}
+
+fn trial_with(
+    rng: &mut SplitMix64,
+    scene: &Scene,
+    sigma_px: f64,
+    label: Option<(f64, f64)>,
+    layout: Partials,
+) -> Option<Sample> {
     let cam = camera();
     let (train, query, points) = (&scene.train, scene.query, &scene.points);
     let (labels, label_cov) = match label {
@@ -175,7 +196,7 @@ fn trial(rng: &mut SplitMix64, scene: &Scene, sigma_px: f64, label: Option<(f64,
     }
     let tri_opts = TriangulationOptions { pixel_sigma: sigma_px, ..Default::default() };
     let tri = triangulate(&cam, &labels, label_cov.as_deref(), &cams, &tracks, &pix, &tri_opts).expect("valid");
-    let (mut pts, mut px, mut covs, mut jacs) = (vec![], vec![], vec![], vec![]);
+    let (mut pts, mut px, mut covs, mut jacs, mut sparse) = (vec![], vec![], vec![], vec![], vec![]);
     // every id up to the largest observed one draws its query observation (as when the
     // result had a row per id), so the random sequence does not depend on the layout
     for t in 0..tri.track_ids.last().map_or(0, |m| m + 1) {
@@ -190,8 +211,15 @@ fn trial(rng: &mut SplitMix64, scene: &Scene, sigma_px: f64, label: Option<(f64,
         for k in 0..4 {
             jacs.push(p.pose_jacobians.iter().find(|(c, _)| *c == k).map_or(Matrix3x6::zeros(), |(_, d)| *d));
         }
+        let mut row = p.pose_jacobians.clone();
+        row.sort_unstable_by_key(|(k, _)| *k);
+        sparse.push(row);
     }
-    let shared = label_cov.as_ref().map(|c| SharedPoseUncertainty { jacobians: &jacs, pose_covariances: c });
+    let partials = match layout {
+        Partials::Dense => pose_partials_from_dense(&jacs, pts.len(), 4).expect("points × 4 poses"),
+        Partials::Sparse => sparse,
+    };
+    let shared = label_cov.as_ref().map(|c| SharedPoseUncertainty { jacobians: &partials, pose_covariances: c });
     let unc = PointUncertainty { covariances: &covs, shared };
     let opts = PnpOptions { pixel_sigma: sigma_px, covariance: CovarianceModel::Propagated, ..Default::default() };
     let res = solve_pnp(&cam, &pts, &px, None, Some(&unc), &opts).expect("valid");
@@ -204,6 +232,29 @@ fn monte_carlo(seed: u64, trials: usize, sigma_px: f64, label: Option<(f64, f64)
         let scene = random_scene(rng);
         trial(rng, &scene, sigma_px, label)
     })
+}
+
+/// A point's D_jk given for the poses that see it only (as the model locator gives a map's
+/// points) is the same to PnP as the full points × poses array with zeros elsewhere: the
+/// same pose and covariance, bit for bit, on scenes where most points are not seen by every
+/// training camera.
+#[test]
+fn sparse_pose_partials_give_what_the_full_array_gives() {
+    let mut compared = 0;
+    for seed in 0..20 {
+        let mut rng = SplitMix64::new(seed);
+        let scene = random_scene(&mut rng);
+        let label = Some((0.02, 1f64.to_radians()));
+        let dense = trial_with(&mut SplitMix64::new(100 + seed), &scene, 1.0, label, Partials::Dense);
+        let sparse = trial_with(&mut SplitMix64::new(100 + seed), &scene, 1.0, label, Partials::Sparse);
+        assert_eq!(dense.is_some(), sparse.is_some(), "seed {seed}");
+        if let (Some(d), Some(s)) = (dense, sparse) {
+            assert_eq!(d.estimate.matrix(), s.estimate.matrix(), "seed {seed}");
+            assert_eq!(d.covariance, s.covariance, "seed {seed}");
+            compared += 1;
+        }
+    }
+    assert!(compared >= 15, "only {compared} scenes solved");
 }
 
 /// Keyframe-rotation label noise must not bias the pose: on each of 12 random scenes, 200
@@ -351,11 +402,25 @@ fn non_psd_covariances_are_refused() {
     let opts = PnpOptions::default();
     assert_eq!(invalid_name(solve_pnp(&cam, &points, &pixels, None, Some(&u), &opts)), "point_covariances[5]");
     let covs = vec![Matrix3::identity() * 1e-4; 12];
-    let jacobians = vec![Matrix3x6::zeros(); 12];
+    let jacobians = pose_partials_from_dense(&[Matrix3x6::zeros(); 12], 12, 1).expect("12 × 1");
     let pose_covs = [-isotropic_pose_covariance(0.01, 0.01)];
     let shared = SharedPoseUncertainty { jacobians: &jacobians, pose_covariances: &pose_covs };
     let u = PointUncertainty { covariances: &covs, shared: Some(shared) };
     assert_eq!(invalid_name(solve_pnp(&cam, &points, &pixels, None, Some(&u), &opts)), "pose_covariances[0]");
+    // a point's D_jk must name poses that exist, each once, in increasing order
+    let pose_covs = [isotropic_pose_covariance(0.01, 0.01)];
+    for bad in [vec![(1, Matrix3x6::zeros())], vec![(0, Matrix3x6::zeros()), (0, Matrix3x6::zeros())]] {
+        let mut rows = pose_partials_from_dense(&[Matrix3x6::zeros(); 12], 12, 1).expect("12 × 1");
+        rows[3] = bad;
+        let shared = SharedPoseUncertainty { jacobians: &rows, pose_covariances: &pose_covs };
+        let u = PointUncertainty { covariances: &covs, shared: Some(shared) };
+        assert_eq!(invalid_name(solve_pnp(&cam, &points, &pixels, None, Some(&u), &opts)), "point_pose_jacobians[3]");
+    }
+    let rows = pose_partials_from_dense(&[Matrix3x6::zeros(); 11], 11, 1).expect("11 × 1");
+    let shared = SharedPoseUncertainty { jacobians: &rows, pose_covariances: &pose_covs };
+    let u = PointUncertainty { covariances: &covs, shared: Some(shared) };
+    assert_eq!(invalid_name(solve_pnp(&cam, &points, &pixels, None, Some(&u), &opts)), "point_pose_jacobians");
+    assert!(pose_partials_from_dense(&[Matrix3x6::zeros(); 11], 12, 1).is_err());
 }
 
 /// `ransac_with_init`: a wrong initial pose (180° off) is replaced by RANSAC's; a good one

@@ -7,7 +7,7 @@ use geoloc_core::camera::Camera;
 use geoloc_core::optim::RobustLoss;
 use geoloc_core::pnp::{
     CovarianceModel, PnpOptions, PnpResult, PointUncertainty, RansacOptions, SharedPoseUncertainty,
-    solve_pnp_with_pixel_sigmas,
+    pose_partials_from_dense, solve_pnp_with_pixel_sigmas,
 };
 use geoloc_core::triangulate::{TrackStatus, Triangulation, TriangulationOptions, triangulate as core_triangulate};
 use nalgebra::{Matrix3, Matrix3x6, Matrix6, Vector2, Vector3};
@@ -333,8 +333,14 @@ impl PnpInputs {
         sigmas: Option<&[f64]>,
         options: &PnpOptions,
     ) -> geoloc_core::Result<PnpResult> {
-        let shared =
-            unc.and_then(|(_, s)| s.as_ref()).map(|(j, c)| SharedPoseUncertainty { jacobians: j, pose_covariances: c });
+        let partials = unc
+            .and_then(|(_, s)| s.as_ref())
+            .map(|(j, c)| pose_partials_from_dense(j, self.points.len(), c.len()))
+            .transpose()?;
+        let shared = unc
+            .and_then(|(_, s)| s.as_ref())
+            .zip(partials.as_deref())
+            .map(|((_, c), j)| SharedPoseUncertainty { jacobians: j, pose_covariances: c });
         let uncertainty = unc.map(|(c, _)| PointUncertainty { covariances: c, shared });
         let (cam, init) = (&self.camera, self.init.as_ref());
         solve_pnp_with_pixel_sigmas(cam, &self.points, &self.pixels, sigmas, init, uncertainty.as_ref(), options)

@@ -25,7 +25,7 @@ use crate::lie::SE3;
 use crate::map::DescriptorSet;
 use crate::map::group_matches::pair_matches;
 use crate::matching::match_descriptors;
-use crate::pnp::{PointUncertainty, SharedPoseUncertainty, solve_pnp_with_pixel_sigmas};
+use crate::pnp::{PointUncertainty, PosePartials, SharedPoseUncertainty, solve_pnp_with_pixel_sigmas};
 use crate::triangulate::{PointCovarianceTerms, TrackStatus, point_covariance_terms, triangulate, view_weight};
 
 /// Triangulated points of one keyframe group, with what query matching and PnP need.
@@ -136,15 +136,18 @@ impl Localizer {
         let terms: Vec<PointCovarianceTerms> =
             matches.iter().map(|m| points.covariance_terms(&self.map.camera, m.b, sigma)).collect::<Result<_>>()?;
         let covs: Vec<Matrix3<f64>> = terms.iter().map(|t| t.pixel).collect();
-        // D_jk row-major (matched points × group keyframes), zero where point j has no view in k
-        let jacobians: Option<Vec<Matrix3x6<f64>>> = points.pose_covariances.as_ref().map(|_| {
-            let mut jac = vec![Matrix3x6::zeros(); terms.len() * group_len];
-            for (row, t) in terms.iter().enumerate() {
-                for (cam, d) in &t.pose_jacobians {
-                    jac[row * group_len + cam] = *d;
-                }
-            }
-            jac
+        // D_jk of every group keyframe k, zero where point j has no view in k
+        let jacobians: Option<Vec<PosePartials>> = points.pose_covariances.as_ref().map(|_| {
+            terms
+                .iter()
+                .map(|t| {
+                    let mut row: PosePartials = (0..group_len).map(|k| (k, Matrix3x6::zeros())).collect();
+                    for (cam, d) in &t.pose_jacobians {
+                        row[*cam].1 = *d;
+                    }
+                    row
+                })
+                .collect()
         });
         let shared = match (&jacobians, &points.pose_covariances) {
             (Some(j), Some(c)) => Some(SharedPoseUncertainty { jacobians: j, pose_covariances: c }),

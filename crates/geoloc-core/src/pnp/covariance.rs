@@ -105,10 +105,8 @@ pub(super) fn point_covariance(
     let u = uncertainty?;
     let mut cov = u.covariances[j];
     if marginal && let Some(shared) = &u.shared {
-        let k_count = shared.pose_covariances.len();
-        for (k, c_k) in shared.pose_covariances.iter().enumerate() {
-            let d = &shared.jacobians[j * k_count + k];
-            cov += d * c_k * d.transpose();
+        for (k, d) in &shared.jacobians[j] {
+            cov += d * shared.pose_covariances[*k] * d.transpose();
         }
     }
     Some(cov)
@@ -195,13 +193,16 @@ pub(super) fn propagated_covariance(
     let h_inv = inverse_information(&h)?;
     let mut c = h_inv;
     if let Some(shared) = uncertainty.and_then(|u| u.shared.as_ref()) {
-        let k_count = shared.pose_covariances.len();
-        for (k, c_k) in shared.pose_covariances.iter().enumerate() {
-            let mut m = Matrix6::zeros();
-            for (j, coupling) in &couplings {
-                m -= coupling * shared.jacobians[j * k_count + k];
+        // M_k = −H⁻¹ Σⱼ JⱼᵀWⱼ J_X,j D_jk over the points j that have a D_jk (in subset
+        // order for every k, as a sum over all points would take them)
+        let mut sums = vec![Matrix6::zeros(); shared.pose_covariances.len()];
+        for (j, coupling) in &couplings {
+            for (k, d) in &shared.jacobians[*j] {
+                sums[*k] -= coupling * d;
             }
-            let m = h_inv * m;
+        }
+        for (sum, c_k) in sums.iter().zip(shared.pose_covariances) {
+            let m = h_inv * sum;
             c += m * c_k * m.transpose();
         }
     }
