@@ -395,6 +395,9 @@ pub struct Localizer {
     /// Whether the map's prepared pair matches were made with these options (they serve
     /// the paper locator's groups then).
     prepared_matches: bool,
+    /// Model locator, during one frame: every accepted hypothesis with its inlier matches
+    /// (step 5b refines the answer from those of its pose).
+    accepted: std::sync::Mutex<Vec<model::AcceptedSolve>>,
 }
 
 /// How far apart two poses are: ‖t_a − t_b‖ (m) and the angle of R_aᵀR_b (degrees).
@@ -466,6 +469,7 @@ impl Localizer {
             motion_only: 0,
             last_timestamp: None,
             cache: HashMap::new(),
+            accepted: std::sync::Mutex::new(Vec::new()),
         })
     }
 

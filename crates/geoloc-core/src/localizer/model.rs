@@ -29,8 +29,10 @@
 //!    elsewhere finds fewer (7-Scenes 0–599 map, test frames 672–698: 157 retrieval inliers,
 //!    73 guided, 1.0 m / 26° off — where correct neighbours go from 94 to 295).
 //!
-//!    **5b. The pose with the keyframe errors shared** ([`Localizer::shared_refinement`]): a
-//!    confirmed pose is solved once more on its inliers, each point weighted by its own
+//!    **5b. The pose with the keyframe errors shared** ([`Localizer::shared_refinement`]):
+//!    the answer of steps 1–10 is solved once more on the inliers of the hypothesis it came
+//!    from ([`Localizer::refined_answer`]; the decisions between hypotheses are made
+//!    before, as without it), each point weighted by its own
 //!    pixel-noise covariance and the map's keyframe-pose errors shared by the points those
 //!    keyframes see, as triangulation made them; the pose is taken when it lies inside the
 //!    first solve's 95 % region — the same inliers re-weighted, not a jump: on the 7-Scenes
@@ -150,6 +152,12 @@ pub const AMBIGUOUS_SEPARATION_M: f64 = 0.1;
 /// ... or this rotation (degrees), and beyond their covariances, make the frame ambiguous
 /// ([`choose_hypothesis`]).
 pub const AMBIGUOUS_SEPARATION_DEG: f64 = 3.0;
+
+/// An accepted hypothesis of one frame with its inlier matches ([`Localizer::refined_answer`]).
+pub(super) struct AcceptedSolve {
+    estimate: Estimate,
+    matches: Vec<Correspondence>,
+}
 
 /// A hypothesis of the model locator: T_G and C_G or why it was refused, and its inlier count.
 type Hypothesis = (std::result::Result<Estimate, String>, usize);
@@ -309,6 +317,23 @@ impl Localizer {
         timings: &mut Timings,
     ) -> Result<GeometricPose> {
         let model = self.model().ok_or_else(|| GeolocError::invalid("locator", "the map has no 3D model"))?;
+        self.accepted.lock().unwrap_or_else(std::sync::PoisonError::into_inner).clear();
+        let answer = self.decided_pose(model, frame, top, excluded, timings)?;
+        let t = Instant::now();
+        let refined = self.refined_answer(frame, model, answer);
+        timings.pnp_ms += ms(t);
+        refined
+    }
+
+    /// Steps 1–10 (see the module doc).
+    fn decided_pose(
+        &self,
+        model: &SceneModel,
+        frame: &Frame<'_>,
+        top: &[usize],
+        excluded: Range<usize>,
+        timings: &mut Timings,
+    ) -> Result<GeometricPose> {
         let (first, undecided) = self.retrieved_pose(model, frame, top, excluded.clone(), timings)?;
         if let Some(places) = undecided {
             // step 10: the keyframes nearest each of two places
@@ -549,23 +574,37 @@ impl Localizer {
             );
             return Ok((Err(why), inliers));
         }
-        // step 5b: the pose of the shared keyframe errors' solve, when it stays inside the
-        // first solve's 95 % region (the same inliers re-weighted, not a jump); C_G stays the
-        // independent-points one (see shared_refinement)
-        let t = Instant::now();
-        if let Some(pose) = self.shared_refinement(frame, model, &best, &best_matches)?
-            && correction(&best.world_from_cam, &pose, &best.covariance).1 <= CHI2_6_95
-        {
-            best.world_from_cam = pose;
-        }
-        timings.pnp_ms += ms(t);
         if let Some(why) = self.model_rejection(model, &best, &best_matches) {
             return Ok((Err(why), inliers));
         }
-        Ok((Ok(Estimate { world_from_cam: best.world_from_cam, covariance: best.covariance }), inliers))
+        let matches = best_matches.iter().zip(&best.inliers).filter(|(_, i)| **i).map(|(c, _)| *c).collect();
+        let estimate = Estimate { world_from_cam: best.world_from_cam, covariance: best.covariance };
+        self.accepted
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .push(AcceptedSolve { estimate, matches });
+        Ok((Ok(estimate), inliers))
     }
 
-    /// Step 5b: the pose of `best` solved again from it on its inlier `matches` with the
+    /// Step 5b on the answer of steps 1–10: the [`AcceptedSolve`] of its pose, re-solved by
+    /// [`Localizer::shared_refinement`], gives the answer's pose when it lies inside that
+    /// solve's 95 % region (C_G) — the same inliers re-weighted, not a jump. The covariance
+    /// is left as it is.
+    fn refined_answer(&self, frame: &Frame<'_>, model: &SceneModel, answer: GeometricPose) -> Result<GeometricPose> {
+        let solves = std::mem::take(&mut *self.accepted.lock().unwrap_or_else(std::sync::PoisonError::into_inner));
+        let (keyframe, Ok(mut estimate), inliers) = answer else { return Ok(answer) };
+        let Some(solve) = solves.iter().find(|s| s.estimate.world_from_cam == estimate.world_from_cam) else {
+            return Ok((keyframe, Ok(estimate), inliers));
+        };
+        if let Some(pose) = self.shared_refinement(frame, model, &solve.estimate.world_from_cam, &solve.matches)?
+            && correction(&solve.estimate.world_from_cam, &pose, &solve.estimate.covariance).1 <= CHI2_6_95
+        {
+            estimate.world_from_cam = pose;
+        }
+        Ok((keyframe, Ok(estimate), inliers))
+    }
+
+    /// Step 5b: `pose` solved again from itself on its `inliers` with the
     /// points' uncertainty split as triangulation made it: each point's pixel-noise
     /// covariance Σ_pix, independent between points, and the errors of the keyframe poses it
     /// was triangulated from (D_jk = ∂X_j/∂δ_k with the map's pose covariances C_k), which
@@ -587,12 +626,10 @@ impl Localizer {
         &self,
         frame: &Frame<'_>,
         model: &SceneModel,
-        best: &PnpResult,
-        matches: &[Correspondence],
+        pose: &SE3,
+        inliers: &[Correspondence],
     ) -> Result<Option<SE3>> {
         let Some(pose_covariances) = self.map.pose_covariances.as_deref() else { return Ok(None) };
-        let inliers: Vec<Correspondence> =
-            matches.iter().zip(&best.inliers).filter(|(_, i)| **i).map(|(c, _)| *c).collect();
         if inliers.len() < self.options.min_correspondences {
             return Ok(None);
         }
@@ -604,7 +641,7 @@ impl Localizer {
         keyframes.dedup();
         let mut pixel = Vec::with_capacity(inliers.len());
         let mut partials: Vec<PosePartials> = Vec::with_capacity(inliers.len());
-        for c in &inliers {
+        for c in inliers {
             let x = &model.points[c.point];
             let views = model
                 .observers(c.point)
@@ -633,7 +670,7 @@ impl Localizer {
             &pts,
             &px,
             sigmas.as_deref(),
-            Some(&best.world_from_cam),
+            Some(pose),
             Some(&uncertainty),
             &self.options.pnp,
         )?;
@@ -1011,6 +1048,44 @@ mod scene_tests {
                 (err, out.inliers)
             })
             .collect()
+    }
+
+    /// Step 5b on exact keyframes that the map believes uncertain (1 cm / 0.5° per axis): Σ_X
+    /// then holds errors the points do not have, shared in truth by none and by all in the
+    /// model; the re-weighted answer (each point by its pixel noise, the keyframe errors
+    /// shared) is closer to the truth than the answer of steps 1–10 on average, and every
+    /// refined pose stays inside the 95 % region of the solve it refines.
+    #[test]
+    fn shared_keyframe_errors_refine_the_answer() {
+        let (world, mut map, _) = fixture::scene(40, false);
+        let c = crate::testing::isotropic_pose_covariance(0.01, 0.5f64.to_radians());
+        map.pose_covariances = Some(vec![c; map.keyframes.len()]);
+        let map = Arc::new(map.with_model(&crate::map::ModelOptions::default()).expect("model"));
+        let options = LocalizerOptions { locator: Locator::Model, ..LocalizerOptions::default() };
+        let loc = Localizer::new(Arc::clone(&map), options).expect("localizer");
+        let model = loc.model().expect("a model");
+        let mut rng = SplitMix64::new(99);
+        let (mut before, mut after, mut moved) = (Vec::new(), Vec::new(), 0);
+        for i in 0..12 {
+            let truth = walk(0.3 + i as f64 * 0.27, 0.15, -1.5);
+            let (keypoints, data) = world.observe(&mut rng, &truth, 5);
+            let descriptors = crate::matching::Descriptors::Binary { data: &data, width: 32 };
+            let frame = Frame { timestamp: 0.0, keypoints: &keypoints, descriptors, global: None, pixel_sigmas: None };
+            let top = map.retrieve_ranked(&frame.retrieval_query(), 5, 0..0, crate::map::Ranking::Words).expect("top");
+            let refined = loc.model_pose(&frame, &top, 0..0, &mut Timings::default()).expect("valid");
+            let decided = loc.decided_pose(model, &frame, &top, 0..0, &mut Timings::default()).expect("valid");
+            loc.accepted.lock().expect("not poisoned").clear();
+            let (Ok(r), Ok(d)) = (refined.1, decided.1) else { continue };
+            let error = |e: &Estimate| (truth.inverse() * e.world_from_cam).log().norm();
+            before.push(error(&d));
+            after.push(error(&r));
+            assert!(correction(&d.world_from_cam, &r.world_from_cam, &d.covariance).1 <= CHI2_6_95, "frame {i}");
+            assert_eq!(r.covariance, d.covariance, "frame {i}: the covariance is the solve's");
+            moved += usize::from(r.world_from_cam != d.world_from_cam);
+        }
+        assert!(before.len() >= 10 && moved >= before.len() / 2, "{} answered, {moved} refined", before.len());
+        let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
+        assert!(mean(&after) < mean(&before), "refined {:.5} against {:.5}", mean(&after), mean(&before));
     }
 
     fn median(mut v: Vec<f64>) -> f64 {
