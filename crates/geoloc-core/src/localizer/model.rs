@@ -43,9 +43,11 @@
 //!    point's keyframe-pose errors as if they were its own and weights the far points down
 //!    for an error all points share. Seven 7-Scenes folds, single image against the SfM
 //!    reference (`benchmarks/calibration.py`): median 100–199 1.98 → 1.49 cm and 0.76 → 0.62°,
-//!    400–499 2.10 → 1.88 cm and 0.69 → 0.63°, 500–599 0.97 → 0.95 cm; 0–99 1.72 → 1.80 cm,
-//!    600–699 1.04 → 1.12 cm, 200–299 and 300–399 within 0.04 cm; recall within 5 cm / 5°
-//!    400–499 87 → 85 %, 300–399 99 → 98 %, 0–99 94 → 95 %, 100–199 92 → 93 %.
+//!    400–499 2.10 → 1.88 cm and 0.69 → 0.63°, 300–399 1.40 → 1.39 cm, 500–599 0.97 → 0.95 cm;
+//!    0–99 1.72 → 1.80 cm, 600–699 1.04 → 1.12 cm, 200–299 2.11 → 2.15 cm; recall within
+//!    5 cm / 5° unchanged but 100–199 92 → 93 %. Refining every hypothesis before the
+//!    decisions between them turned two 400–499 frames into refusals and cost a quarter of a
+//!    frame's time.
 //!
 //! 6. **A second hypothesis**: steps 3–5 on the best-ranked keyframe's matches alone (with
 //!    more than one retrieved keyframe). Look-alike structure seen by the other retrieved
