@@ -595,7 +595,13 @@ impl Localizer {
     fn refined_answer(&self, frame: &Frame<'_>, model: &SceneModel, answer: GeometricPose) -> Result<GeometricPose> {
         let solves = std::mem::take(&mut *self.accepted.lock().unwrap_or_else(std::sync::PoisonError::into_inner));
         let (keyframe, Ok(mut estimate), inliers) = answer else { return Ok(answer) };
-        let Some(solve) = solves.iter().find(|s| s.estimate.world_from_cam == estimate.world_from_cam) else {
+        // the solves of one frame run side by side and arrive in any order: of those at the
+        // answer's pose, the one with the most matches, then the least (query, point) list
+        let key = |s: &AcceptedSolve| {
+            (std::cmp::Reverse(s.matches.len()), s.matches.iter().map(|c| (c.query, c.point)).collect::<Vec<_>>())
+        };
+        let at_answer = solves.iter().filter(|s| s.estimate.world_from_cam == estimate.world_from_cam);
+        let Some(solve) = at_answer.min_by_key(|s| key(s)) else {
             return Ok((keyframe, Ok(estimate), inliers));
         };
         if let Some(pose) = self.shared_refinement(frame, model, &solve.estimate.world_from_cam, &solve.matches)?
