@@ -333,12 +333,9 @@ impl PnpInputs {
         sigmas: Option<&[f64]>,
         options: &PnpOptions,
     ) -> geoloc_core::Result<PnpResult> {
-        let partials = unc
-            .and_then(|(_, s)| s.as_ref())
-            .map(|(j, c)| pose_partials_from_dense(j, self.points.len(), c.len()))
-            .transpose()?;
-        let shared = unc
-            .and_then(|(_, s)| s.as_ref())
+        let dense = unc.and_then(|(_, s)| s.as_ref());
+        let partials = dense.map(|(j, c)| pose_partials_from_dense(j, self.points.len(), c.len())).transpose()?;
+        let shared = dense
             .zip(partials.as_deref())
             .map(|((_, c), j)| SharedPoseUncertainty { jacobians: j, pose_covariances: c });
         let uncertainty = unc.map(|(c, _)| PointUncertainty { covariances: c, shared });

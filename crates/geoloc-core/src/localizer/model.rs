@@ -670,18 +670,7 @@ impl Localizer {
         let shared_covariances: Vec<_> = keyframes.iter().map(|&k| pose_covariances[k]).collect();
         let shared = SharedPoseUncertainty { jacobians: &partials, pose_covariances: &shared_covariances };
         let uncertainty = PointUncertainty { covariances: &pixel, shared: Some(shared) };
-        let pts: Vec<Vector3<f64>> = inliers.iter().map(|c| model.points[c.point]).collect();
-        let px: Vec<Vector2<f64>> = inliers.iter().map(|c| frame.keypoints[c.query]).collect();
-        let sigmas: Option<Vec<f64>> = frame.pixel_sigmas.map(|s| inliers.iter().map(|c| s[c.query]).collect());
-        let res = solve_pnp_with_pixel_sigmas(
-            camera,
-            &pts,
-            &px,
-            sigmas.as_deref(),
-            Some(pose),
-            Some(&uncertainty),
-            &self.options.pnp,
-        )?;
+        let res = self.pnp_on(frame, model, inliers, Some(pose), &uncertainty)?;
         Ok(res.success.then_some(res.world_from_cam))
     }
 
@@ -789,20 +778,26 @@ impl Localizer {
         matches: &[Correspondence],
         init: Option<&SE3>,
     ) -> Result<PnpResult> {
-        let pts: Vec<Vector3<f64>> = matches.iter().map(|c| model.points[c.point]).collect();
-        let px: Vec<Vector2<f64>> = matches.iter().map(|c| frame.keypoints[c.query]).collect();
         let covs: Vec<Matrix3<f64>> = matches.iter().map(|c| model.covariances[c.point]).collect();
         let uncertainty = PointUncertainty { covariances: &covs, shared: None };
+        self.pnp_on(frame, model, matches, init, &uncertainty)
+    }
+
+    /// PnP on `matches` (the model points and the frame's keypoints, with their pixel σ
+    /// scales) with the points' `uncertainty`, from `init` when given.
+    fn pnp_on(
+        &self,
+        frame: &Frame<'_>,
+        model: &SceneModel,
+        matches: &[Correspondence],
+        init: Option<&SE3>,
+        uncertainty: &PointUncertainty<'_>,
+    ) -> Result<PnpResult> {
+        let pts: Vec<Vector3<f64>> = matches.iter().map(|c| model.points[c.point]).collect();
+        let px: Vec<Vector2<f64>> = matches.iter().map(|c| frame.keypoints[c.query]).collect();
         let sigmas: Option<Vec<f64>> = frame.pixel_sigmas.map(|s| matches.iter().map(|c| s[c.query]).collect());
-        solve_pnp_with_pixel_sigmas(
-            &self.map.camera,
-            &pts,
-            &px,
-            sigmas.as_deref(),
-            init,
-            Some(&uncertainty),
-            &self.options.pnp,
-        )
+        let (camera, options) = (&self.map.camera, &self.options.pnp);
+        solve_pnp_with_pixel_sigmas(camera, &pts, &px, sigmas.as_deref(), init, Some(uncertainty), options)
     }
 }
 
