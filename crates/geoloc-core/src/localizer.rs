@@ -77,7 +77,8 @@ pub struct LocalizerOptions {
     /// Which geometric locator (default the model locator: on every 7-Scenes fold it is
     /// closer to the image-consistent reference and loses fewer frames than the paper's).
     pub locator: Locator,
-    /// Model locator: keyframes retrieved (default 5).
+    /// Model locator: keyframes retrieved and solved from together (default 5; the next
+    /// `top_k` of the ranking when those give no accepted pose).
     pub top_k: usize,
     /// Model locator: radius of the guided matching around each projected point (px, default 6).
     pub guided_radius_px: f64,
@@ -566,11 +567,12 @@ impl Localizer {
         Ok((second, Some(note.map_or(retried.clone(), |n| format!("{n}; {retried}")))))
     }
 
-    /// How many keyframes the locator retrieves: one for the paper's, `top_k` for the model's.
+    /// How many keyframes the locator retrieves: one for the paper's; for the model's
+    /// 2·`top_k`, the `top_k` it solves from and the next `top_k` of the ranking (its step 11).
     fn retrieved_keyframes(&self) -> usize {
         match self.options.locator {
             Locator::Paper => 1,
-            Locator::Model => self.options.top_k,
+            Locator::Model => 2 * self.options.top_k,
         }
     }
 
@@ -583,7 +585,7 @@ impl Localizer {
     ) -> Result<(GeometricPose, Option<String>)> {
         match self.options.locator {
             Locator::Paper => self.paper_pose(frame, top[0], timings),
-            Locator::Model => Ok((self.model_pose(frame, top, 0..0, timings)?, None)),
+            Locator::Model => self.ranked_model_pose(frame, top, 0..0, timings),
         }
     }
 

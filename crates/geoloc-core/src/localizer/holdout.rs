@@ -34,7 +34,7 @@ impl Localizer {
         let k = self.retrieved_keyframes();
         let top = map.retrieve_ranked(&frame.retrieval_query(), k, excluded.clone(), Ranking::Words)?;
         if self.options.locator == Locator::Model {
-            let (_, pose, inliers) = self.model_pose(&frame, &top, excluded, &mut Timings::default())?;
+            let ((_, pose, inliers), _) = self.ranked_model_pose(&frame, &top, excluded, &mut Timings::default())?;
             return Ok(pose.ok().map(|p| (p, inliers)));
         }
         let seed = top[0];
