@@ -148,7 +148,8 @@ class Localizer:
 
     ``locator``: "paper" (the paper's: one retrieved keyframe and its co-visible group,
     triangulated on the fly) or "model" (top-``top_k`` retrieval against the map-level 3D
-    model, PnP, guided matching; built here when the map has none; refused, naming
+    model, PnP, guided matching, and the next ``top_k`` of the ranking when those give no
+    accepted pose; built here when the map has none; refused, naming
     ``locator``, when the model has fewer points than a pose needs — keyframes too close
     together to triangulate from — since it could place no frame). In sequence the paper's
     locator also tracks: when the retrieved keyframe's group gives fewer than half the

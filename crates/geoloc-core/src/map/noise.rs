@@ -27,10 +27,10 @@
 //! estimated from n samples and used to test a new one (Hotelling's T²). Gross failures
 //! (RANSAC on the wrong place: more than `max_error_m` or `max_error_rad` off) are the
 //! gate's business, not noise, and are left out. Everything else counts, the heavy tail
-//! included: on the seven 7-Scenes fold maps 53 of 296 held-out keyframes are more than
-//! 5 cm / 5° off (6–31 cm, mostly along the weakly constrained x/φy direction), in the parts
-//! of the trajectory where the folds' test queries fail too (frames ≈ 95–155 and 350–475),
-//! though the queries fail less often (23 of 694 against the SfM reference): a held-out
+//! included: on the seven 7-Scenes fold maps 57 of 334 held-out keyframes are more than
+//! 5 cm / 5° off (5–50 cm, mostly along the weakly constrained x/φy direction), in the parts
+//! of the trajectory where the folds' test queries fail too (frames ≈ 95–145 and 350–475),
+//! though the queries fail less often (22 of 697 against the SfM reference): a held-out
 //! keyframe loses every point its block observed, a harsher test. An earlier version
 //! trimmed samples beyond the χ²₆ 99.9 % quantile of a first estimate — exactly those — and
 //! its C_map under-covered every query block with such runs (cross-validated NEES coverage
