@@ -572,7 +572,7 @@ impl Localizer {
     fn retrieved_keyframes(&self) -> usize {
         match self.options.locator {
             Locator::Paper => 1,
-            Locator::Model => 2 * self.options.top_k,
+            Locator::Model => self.options.top_k.saturating_mul(2),
         }
     }
 
