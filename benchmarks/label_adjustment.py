@@ -56,6 +56,46 @@ def write_reference(path: Path, frames: np.ndarray, poses: np.ndarray) -> None:
     path.write_text("\n".join(lines) + "\n")
 
 
+def span_disagreement(labels: np.ndarray, other: np.ndarray, start: int, last: int) -> np.ndarray:
+    """log((L_s⁻¹ L_e)⁻¹ (P_s⁻¹ P_e))^∨ for s = ``start``, e = ``last``: how far the labels'
+    motion from keyframe s to e is from that of the poses ``other`` (translation first)."""
+    motion = lambda p: se3_inverse(p[start]) @ p[last]  # noqa: E731
+    return np.asarray(se3_log(se3_inverse(motion(labels)) @ motion(other)))
+
+
+def steps_against_reference(labels: np.ndarray, adjusted: np.ndarray, aligned: np.ndarray,
+                            steps: list[dict[str, Any]], largest: int = 5) -> dict[str, Any]:
+    """The map's steps in the labels' motion (``Map.labels["steps"]``) checked against the
+    reference: per step the labels' disagreement across it with the adjusted poses (the
+    map's finding) and with the reference, and that one's rank among the reference's
+    disagreements over every span of the step's length (0.5: a typical span; a step the
+    reference confirms ranks near 1); and the reference's own ``largest`` jumps of the
+    labels (over spans of 5 keyframes, greedily without overlap) and whether a step of the
+    map covers each."""
+    size = lambda d: [float(np.linalg.norm(d[:3])), float(np.degrees(np.linalg.norm(d[3:])))]  # noqa: E731
+    spans: dict[int, np.ndarray] = {}
+    found = []
+    for s in steps:
+        n = s["end"] - 1 - s["start"]
+        if n not in spans:
+            spans[n] = np.array([size(span_disagreement(labels, aligned, a, a + n))[0] for a in range(len(labels) - n)])
+        reference = size(span_disagreement(labels, aligned, s["start"], s["end"] - 1))
+        found.append({"start": s["start"], "end": s["end"],
+                      "map": size(span_disagreement(labels, adjusted, s["start"], s["end"] - 1)),
+                      "reference": reference, "rank": float(np.mean(spans[n] < reference[0]))})
+    window = 5
+    jumps = np.array([size(span_disagreement(labels, aligned, a, a + window))[0] for a in range(len(labels) - window)])
+    taken: list[dict[str, Any]] = []
+    for a in np.argsort(-jumps, kind="stable"):
+        if len(taken) == largest:
+            break
+        if all(abs(int(a) - t["start"]) > window for t in taken):
+            covered = any(s["start"] <= a + window and a <= s["end"] - 1 for s in steps)
+            taken.append({"start": int(a), "end": int(a) + window + 1, "reference_m": float(jumps[a]),
+                          "covered": bool(covered)})
+    return {"steps": found, "reference_jumps": taken}
+
+
 def measure(seq: Any, frames: np.ndarray, reference: np.ndarray, adjust: bool, write_poses: Path | None = None
             ) -> dict[str, Any]:
     start = time.perf_counter()
@@ -74,7 +114,12 @@ def measure(seq: Any, frames: np.ndarray, reference: np.ndarray, adjust: bool, w
             blocks[f"{b}-{b + 99}"] = [float(np.median(dt[sel])), float(np.median(angle[sel]))]
             mean = delta[sel].mean(axis=0)
             offsets[f"{b}-{b + 99}"] = [float(np.linalg.norm(mean[:3])), float(np.degrees(np.linalg.norm(mean[3:])))]
+    labels = m.labels
+    steps = None
+    if labels is not None and m.label_poses is not None:
+        steps = steps_against_reference(m.label_poses, poses, aligned, labels["steps"])
     return {
+        "steps": steps,
         "build_s": build_s,
         "median": [float(np.median(dt)), float(np.median(angle))],
         "p95": [float(np.percentile(dt, 95)), float(np.percentile(angle, 95))],
@@ -112,6 +157,22 @@ def main() -> int:
             print(f"                  σ {1e3 * lab['label_sigma_m']:.1f} mm / {lab['label_sigma_deg']:.2f}°, τ "
                   f"{np.round(lab['correlation_keyframes'], 1).tolist()}, offset {lab['label_from_cam_rotation_deg']:.2f}°, "
                   f"runs {[(x['start'] * k + a, x['end'] * k + a) for x in lab['runs']]}")
+        if r["steps"]:
+            st, lab = r["steps"], r["labels"]
+            frame = lambda i: int(frames[i])  # noqa: E731
+            print(f"  steps           {len(st['steps'])} in the labels' motion (σ per keyframe pair "
+                  f"{1e3 * lab['step_sigma_m']:.1f} mm / {lab['step_sigma_deg']:.2f}°), frames: map / reference "
+                  "disagreement of the labels across each:")
+            print("                  " + "  ".join(
+                f"{frame(x['start'])}-{frame(x['end'] - 1)}: {100 * x['map'][0]:.1f} / {100 * x['reference'][0]:.1f} cm"
+                for x in st["steps"]))
+            ranks = [x["rank"] for x in st["steps"]]
+            print(f"                  the reference's disagreement across a step ranks among the spans of its length "
+                  f"at a median {np.median(ranks):.2f} (0.5: a typical span), above 0.9 for {sum(r > 0.9 for r in ranks)} "
+                  f"of {len(ranks)} steps, above 0.5 for {sum(r > 0.5 for r in ranks)}")
+            print("                  the reference's largest jumps of the labels (over 5 keyframes): " + "  ".join(
+                f"{frame(j['start'])}-{frame(j['end'] - 1)} {100 * j['reference_m']:.1f} cm "
+                f"({'a step' if j['covered'] else 'no step'})" for j in st["reference_jumps"]))
     if args.json:
         Path(args.json).write_text(json.dumps(report, indent=1, default=float))
     return 0

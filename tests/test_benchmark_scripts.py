@@ -155,6 +155,34 @@ def test_the_written_keyframe_poses_read_back_as_a_reference(tmp_path: Path) -> 
         label_adjustment.write_reference(path, frames[:3], poses)
 
 
+def test_a_step_checked_against_the_reference_is_the_jump_the_reference_shows() -> None:
+    """label_adjustment.steps_against_reference on a walk whose labels jump by a known
+    translation at keyframe 12 (and nowhere else): the step's disagreement with the truth
+    (map and reference alike) is that translation's length, it ranks above every other
+    span of its length, and the reference's largest jump lies on it; across a step where
+    nothing jumped the labels agree with both."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import label_adjustment
+
+    from geoloc.lie import se3_exp
+
+    rng = np.random.default_rng(5)
+    truth = [np.eye(4)]
+    for _ in range(39):
+        truth.append(truth[-1] @ se3_exp(np.concatenate([rng.normal(0, 0.05, 3), rng.normal(0, 0.02, 3)])))
+    truth_arr = np.stack(truth)
+    jump = np.eye(4)
+    jump[:3, 3] = [0.03, -0.04, 0.0]  # 5 cm, applied in the world frame from keyframe 12 on
+    labels = truth_arr.copy()
+    labels[12:] = jump @ labels[12:]
+    steps = [{"start": 11, "end": 13}, {"start": 30, "end": 32}]
+    got = label_adjustment.steps_against_reference(labels, truth_arr, truth_arr, steps, largest=1)
+    first, quiet = got["steps"]
+    assert first["map"][0] == pytest.approx(0.05, rel=1e-9) and first["reference"][0] == pytest.approx(0.05, rel=1e-9)
+    assert first["rank"] > 0.9 and quiet["reference"][0] < 1e-9 and quiet["map"][0] < 1e-9
+    assert got["reference_jumps"][0]["covered"] and got["reference_jumps"][0]["reference_m"] == pytest.approx(0.05)
+
+
 def test_the_integrated_autocorrelation_time_of_an_ar1_series_is_its_closed_form() -> None:
     """AR(1) x_t = ρx_{t−1} + √(1 − ρ²)ε_t has ρ_k = ρ^k, so τ = 1 + 2Σρ^k = (1 + ρ)/(1 − ρ): 4 for
     ρ = 0.6, 1 for white noise (estimated on 20 000 samples, within 10 %)."""

@@ -366,7 +366,12 @@ class Map:
         covariance Σ_X as nested lists, right perturbation, translation first), the median correction, ``rms_px`` (the
         tracks' reprojection error with the labels and after), ``observations`` (used,
         rejected), ``runs``: consecutive keyframes (≥ 3) whose corrections are significant
-        (beyond the χ²₆ 99.9 % quantile of their covariance), with the largest correction, and
+        (beyond the χ²₆ 99.9 % quantile of their covariance), with the largest correction,
+        ``steps``: where the labels' motion jumps away from the images' — consecutive keyframe
+        pairs k, k + 1 whose d_k = log((L_k⁻¹L_{k+1})⁻¹(B_k⁻¹B_{k+1}))^∨ is beyond the χ²₆
+        99.9 % quantile of the pairs' robust scatter (``step_sigma_m``, ``step_sigma_deg``),
+        each with ``start``, ``end`` (one past), the disagreement across it
+        (``translation_m``, ``rotation_deg``) and ``significance`` (its largest pair's), and
         per keyframe, as lists, ``corrections`` (K × 6) e_k = log(L_k⁻¹ B_k)^∨ — label L_k to
         adjusted pose B_k, right perturbation, translation (m) first, rotation (rad) — and
         ``significance`` (K) e_kᵀ Σ_k⁻¹ e_k, Σ_k the adjusted pose's covariance."""

@@ -343,7 +343,7 @@ mod scale;
 
 use problem::{Problem, State, drop_outliers, rms_px};
 use scale::estimate_label_sigma;
-pub use scale::{CORRELATION_SPACING, correlation_lengths, skeleton};
+pub use scale::{CORRELATION_SPACING, correlation_lengths, robust_sigma, skeleton};
 
 #[cfg(test)]
 mod tests;

@@ -293,12 +293,16 @@ def describe_labels(found: dict[str, Any] | None) -> str:
         return "labels: kept as the keyframes' truth (--keep-labels)"
     state = found["state"]
     runs = ", ".join(f"{r['start']}-{r['end'] - 1}" for r in found["runs"]) or "none"
+    largest = sorted(found["steps"], key=lambda s: -s["translation_m"])[:3]
+    steps = ", ".join(f"{s['start']}-{s['end'] - 1} ({100 * s['translation_m']:.1f} cm / {s['rotation_deg']:.1f}°)"
+                      for s in largest) or "none"
     before, after = found["rms_px"]
     return (
         f"labels {state}: σ {1e3 * found['label_sigma_m']:.1f} mm / {found['label_sigma_deg']:.2f}°, median correction "
         f"{1e3 * found['median_correction_m']:.1f} mm / {found['median_correction_deg']:.2f}°, label-to-camera offset "
         f"{100 * float(np.linalg.norm(found['label_from_cam_translation_m'])):.1f} cm / {found['label_from_cam_rotation_deg']:.2f}°; "
-        f"track residuals {before:.2f} -> {after:.2f} px rms; runs of significant corrections (keyframes): {runs}"
+        f"track residuals {before:.2f} -> {after:.2f} px rms; runs of significant corrections (keyframes): {runs}; "
+        f"{len(found['steps'])} step(s) in the labels' motion, largest (keyframes): {steps}"
     )
 
 

@@ -13,17 +13,20 @@ use crate::stats::{EvenMedian, median};
 const MIN_LABEL_SIGMA: LabelSigma = LabelSigma { translation_m: 1e-3, rotation_rad: 8.726_646_259_971_648e-4 };
 
 /// σ² = median(‖e‖²) / median(χ²₃) of the translation and rotation parts of the label
-/// corrections e_k = log(L_k⁻¹ B_k), floored at [`MIN_LABEL_SIGMA`].
+/// corrections e_k = log(L_k⁻¹ B_k), floored at [`MIN_LABEL_SIGMA`] ([`robust_sigma`]).
 pub(super) fn estimate_label_sigma(labels: &[SE3], adjusted: &[SE3]) -> LabelSigma {
-    let (mut t, mut r): (Vec<f64>, Vec<f64>) = labels
-        .iter()
-        .zip(adjusted)
-        .map(|(l, b)| {
-            let e = (l.inverse() * *b).log();
-            (se3::rho(&e).norm_squared(), se3::phi(&e).norm_squared())
-        })
-        .unzip();
-    let median = |v: &mut [f64]| median(v, EvenMedian::Upper).expect("invariant: one correction per label");
+    let corrections: Vec<Vector6<f64>> = labels.iter().zip(adjusted).map(|(l, b)| (l.inverse() * *b).log()).collect();
+    robust_sigma(&corrections)
+}
+
+/// The robust per-axis scale of twists e (right perturbation, translation first):
+/// σ_t² = median(‖ρ‖²) / median(χ²₃), σ_r² = median(‖φ‖²) / median(χ²₃) — exact for
+/// isotropic Gaussian parts, unmoved by up to half of the twists being outliers — floored at
+/// [`MIN_LABEL_SIGMA`] (also the value for no twists).
+pub fn robust_sigma(errors: &[Vector6<f64>]) -> LabelSigma {
+    let (mut t, mut r): (Vec<f64>, Vec<f64>) =
+        errors.iter().map(|e| (se3::rho(e).norm_squared(), se3::phi(e).norm_squared())).unzip();
+    let median = |v: &mut [f64]| median(v, EvenMedian::Upper).unwrap_or(0.0);
     LabelSigma {
         translation_m: (median(&mut t) / CHI2_3_MEDIAN).sqrt().max(MIN_LABEL_SIGMA.translation_m),
         rotation_rad: (median(&mut r) / CHI2_3_MEDIAN).sqrt().max(MIN_LABEL_SIGMA.rotation_rad),

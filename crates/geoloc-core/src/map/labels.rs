@@ -1,6 +1,7 @@
 //! The map's pose labels corrected by bundle adjustment ([`crate::adjust`]): what the labels
-//! were, the label-to-camera offset, each label's correction and its significance, and the
-//! runs of keyframes whose labels disagree with the images.
+//! were, the label-to-camera offset, each label's correction and its significance, the
+//! runs of keyframes whose labels disagree with the images, and the steps where the labels'
+//! motion jumps away from the images'.
 //!
 //! After [`super::Map::with_adjusted_labels`] the keyframes' `world_from_cam` are the adjusted
 //! *camera* poses T_k = B_k X (what triangulation and PnP need), `pose_covariances` their
@@ -9,7 +10,7 @@
 
 use nalgebra::{Matrix6, Vector6};
 
-use crate::adjust::{Adjustment, LabelSigma, correction};
+use crate::adjust::{Adjustment, LabelSigma, correction, robust_sigma};
 use crate::lie::{SE3, se3};
 use crate::stats::chi2::CHI2_6_999;
 use crate::stats::{EvenMedian, median};
@@ -19,6 +20,10 @@ pub const SIGNIFICANT_CORRECTION_CHI2: f64 = CHI2_6_999;
 
 /// Fewest consecutive keyframes with significant corrections that make a run.
 pub const MIN_RUN_LENGTH: usize = 3;
+
+/// Fewest consecutive keyframe pairs whose motion disagreements set the scale steps are
+/// measured against ([`LabelAdjustment::steps`]); with fewer the labels have no steps.
+pub const MIN_STEP_PAIRS: usize = 10;
 
 /// The labels and what the adjustment found about them.
 #[derive(Clone, Debug, PartialEq)]
@@ -68,6 +73,25 @@ pub struct LabelRun {
     pub max_translation_m: f64,
     /// Largest rotation correction in the run (rad).
     pub max_rotation_rad: f64,
+}
+
+/// A step in the labels: consecutive keyframes between which the labels' relative motion
+/// and the images' (the adjusted poses') differ beyond the labels' frame-to-frame scatter —
+/// where the source of the labels jumped (a loop closure, a relocalization, a lost frame),
+/// which a slow drift does not do ([`LabelAdjustment::steps`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LabelStep {
+    /// First keyframe.
+    pub start: usize,
+    /// One past the last keyframe (at least start + 2).
+    pub end: usize,
+    /// ‖ρ‖ (m) of d = log((L_s⁻¹ L_e)⁻¹ (B_s⁻¹ B_e))^∨, s = start, e = end − 1: how far the
+    /// labels' motion across the step is from the images'.
+    pub translation_m: f64,
+    /// ‖φ‖ (rad) of the same d.
+    pub rotation_rad: f64,
+    /// The largest q of its keyframe pairs ([`LabelAdjustment::steps`]).
+    pub significance: f64,
 }
 
 impl LabelAdjustment {
@@ -161,14 +185,14 @@ impl LabelAdjustment {
         l
     }
 
-    /// One line for people: σ, τ, the offset, the median correction, the runs.
+    /// One line for people: σ, τ, the offset, the median correction, the runs, the steps.
     pub fn summary(&self) -> String {
         let (mt, mr) = self.median_correction();
         let x = self.offset.log();
         let state = self.state();
         format!(
             "{state}: label σ {:.1} mm / {:.2}°, offset label_from_cam {:.1} cm / {:.2}°, median correction {:.1} mm / \
-             {:.2}°, {} run(s) of significant corrections, reprojection {:.2} -> {:.2} px rms",
+             {:.2}°, {} run(s) of significant corrections, {}, reprojection {:.2} -> {:.2} px rms",
             1e3 * self.label_sigma.translation_m,
             self.label_sigma.rotation_rad.to_degrees(),
             1e2 * self.offset.translation.norm(),
@@ -176,6 +200,7 @@ impl LabelAdjustment {
             1e3 * mt,
             mr.to_degrees(),
             self.runs().len(),
+            describe_steps(&self.steps()),
             self.rms_px.0,
             self.rms_px.1,
         )
@@ -203,11 +228,12 @@ impl LabelAdjustment {
 
     /// The report as JSON: σ, offset (label_from_cam X as a 4×4 matrix, T_cam = T_label·X; its
     /// translation m, rotation deg, their σ, and its full 6×6 covariance Σ_X: right
-    /// perturbation of X, translation first), medians, runs.
+    /// perturbation of X, translation first), medians, runs, the steps and their scale.
     pub fn report_json(&self) -> serde_json::Value {
         let (mt, mr) = self.median_correction();
         let offset = self.offset.log();
         let sd = |i: usize| self.offset_covariance[(i, i)].max(0.0).sqrt();
+        let step_sigma = self.step_sigma();
         serde_json::json!({
             "applied": self.applied,
             "state": self.state(),
@@ -228,6 +254,14 @@ impl LabelAdjustment {
                 "start": r.start, "end": r.end,
                 "max_translation_m": r.max_translation_m,
                 "max_rotation_deg": r.max_rotation_rad.to_degrees(),
+            })).collect::<Vec<_>>(),
+            "step_sigma_m": step_sigma.translation_m,
+            "step_sigma_deg": step_sigma.rotation_rad.to_degrees(),
+            "steps": self.steps().iter().map(|s| serde_json::json!({
+                "start": s.start, "end": s.end,
+                "translation_m": s.translation_m,
+                "rotation_deg": s.rotation_rad.to_degrees(),
+                "significance": s.significance,
             })).collect::<Vec<_>>(),
         })
     }
@@ -261,6 +295,72 @@ impl LabelAdjustment {
         runs
     }
 
+    /// The adjusted label poses B_k = L_k exp(e_k) (world_from_label).
+    fn adjusted_labels(&self) -> Vec<SE3> {
+        self.labels.iter().zip(&self.corrections).map(|(l, e)| *l * SE3::exp(e)).collect()
+    }
+
+    /// Per pair of consecutive keyframes k, k + 1: how the labels' relative motion differs
+    /// from the adjusted one, d_k = log((L_k⁻¹ L_{k+1})⁻¹ (B_k⁻¹ B_{k+1}))^∨ (right
+    /// perturbation in keyframe k + 1's label frame, translation first; to first order
+    /// e_{k+1} − Ad_{M⁻¹} e_k with M = L_k⁻¹ L_{k+1}: the change of the correction).
+    pub fn motion_disagreements(&self) -> Vec<Vector6<f64>> {
+        let b = self.adjusted_labels();
+        let l = &self.labels;
+        (1..l.len()).map(|k| (relative(&l[k - 1], &l[k]).inverse() * relative(&b[k - 1], &b[k])).log()).collect()
+    }
+
+    /// The labels' frame-to-frame scatter: [`robust_sigma`] of the motion disagreements d_k
+    /// ([`LabelAdjustment::motion_disagreements`]) — the σ of a label's relative motion
+    /// against the images' where nothing jumped (half of the pairs may be steps).
+    pub fn step_sigma(&self) -> LabelSigma {
+        robust_sigma(&self.motion_disagreements())
+    }
+
+    /// The steps in the labels: maximal runs of consecutive keyframe pairs whose motion
+    /// disagreement is beyond the scatter, q_k = ‖ρ_k‖² / σ_t² + ‖φ_k‖² / σ_r² above the χ²₆
+    /// 99.9 % quantile ([`SIGNIFICANT_CORRECTION_CHI2`]) with σ = [`LabelAdjustment::step_sigma`]
+    /// (keyframes in capture order). The adjustment spreads a jump of the labels over the
+    /// few keyframes that share its images, so a step spans them; its size is the
+    /// disagreement across it. None with fewer than [`MIN_STEP_PAIRS`] pairs.
+    pub fn steps(&self) -> Vec<LabelStep> {
+        let d = self.motion_disagreements();
+        if d.len() < MIN_STEP_PAIRS {
+            return Vec::new();
+        }
+        let sigma = self.step_sigma();
+        let q: Vec<f64> = d
+            .iter()
+            .map(|e| {
+                se3::rho(e).norm_squared() / sigma.translation_m.powi(2)
+                    + se3::phi(e).norm_squared() / sigma.rotation_rad.powi(2)
+            })
+            .collect();
+        let b = self.adjusted_labels();
+        let mut steps = Vec::new();
+        let mut k = 0;
+        while k < q.len() {
+            if q[k] <= SIGNIFICANT_CORRECTION_CHI2 {
+                k += 1;
+                continue;
+            }
+            let first = k;
+            while k < q.len() && q[k] > SIGNIFICANT_CORRECTION_CHI2 {
+                k += 1;
+            }
+            // pairs first..k join keyframes first..=k
+            let span = (relative(&self.labels[first], &self.labels[k]).inverse() * relative(&b[first], &b[k])).log();
+            steps.push(LabelStep {
+                start: first,
+                end: k + 1,
+                translation_m: se3::rho(&span).norm(),
+                rotation_rad: se3::phi(&span).norm(),
+                significance: q[first..k].iter().copied().fold(0.0, f64::max),
+            });
+        }
+        steps
+    }
+
     /// Median translation (m) and rotation (rad) corrections over the keyframes.
     pub fn median_correction(&self) -> (f64, f64) {
         let median = |mut v: Vec<f64>| median(&mut v, EvenMedian::Upper).unwrap_or(0.0);
@@ -269,6 +369,27 @@ impl LabelAdjustment {
             median(self.corrections.iter().map(|e| se3::phi(e).norm()).collect()),
         )
     }
+}
+
+/// "N step(s) in the labels' motion (largest X cm / Y° at keyframes a-b)", or "no step in
+/// the labels' motion".
+fn describe_steps(steps: &[LabelStep]) -> String {
+    match steps.iter().max_by(|a, b| a.translation_m.total_cmp(&b.translation_m)) {
+        None => "no step in the labels' motion".to_string(),
+        Some(s) => format!(
+            "{} step(s) in the labels' motion (largest {:.1} cm / {:.2}° at keyframes {}-{})",
+            steps.len(),
+            1e2 * s.translation_m,
+            s.rotation_rad.to_degrees(),
+            s.start,
+            s.end - 1
+        ),
+    }
+}
+
+/// A⁻¹ B: the motion from pose A to pose B.
+fn relative(a: &SE3, b: &SE3) -> SE3 {
+    a.inverse() * *b
 }
 
 /// Per twist axis, the median over `covariances` (of label poses B_k, right perturbation) of
@@ -381,6 +502,119 @@ mod tests {
         assert!((run.max_translation_m - 0.11).abs() < 1e-12);
     }
 
+    /// Labels L_k of a walk whose source jumped by exp(j) at keyframe `jump` (expressed at the
+    /// keyframe before it) over Gaussian label noise; the record's corrections take them to
+    /// the truth B_k.
+    fn jumped_labels(n: usize, jumps: &[(usize, Vector6<f64>)], seed: u64) -> LabelAdjustment {
+        let mut rng = crate::testing::SplitMix64::new(seed);
+        let mut truth = vec![SE3::identity()];
+        for _ in 1..n {
+            let last = *truth.last().expect("one pose");
+            truth.push(last * SE3::exp(&rng.twist(0.05, 0.1)));
+        }
+        let mut world_jump = SE3::identity();
+        let labels: Vec<SE3> = (0..n)
+            .map(|k| {
+                for (at, j) in jumps {
+                    if k == *at {
+                        world_jump = truth[k - 1] * SE3::exp(j) * truth[k - 1].inverse() * world_jump;
+                    }
+                }
+                world_jump * truth[k] * SE3::exp(&rng.pose_noise(0.001, 0.05f64.to_radians()))
+            })
+            .collect();
+        let corrections = labels.iter().zip(&truth).map(|(l, b)| (l.inverse() * *b).log()).collect();
+        LabelAdjustment { labels, corrections, ..record(vec![0.0; n]) }
+    }
+
+    /// d_k against its first-order closed form e_{k+1} − Ad_{M⁻¹} e_k (M = L_k⁻¹ L_{k+1}) for
+    /// small corrections, and zero when the adjusted poses are the labels.
+    #[test]
+    fn a_motion_disagreement_is_the_change_of_the_correction() {
+        let mut r = jumped_labels(12, &[], 4);
+        let mut rng = crate::testing::SplitMix64::new(6);
+        r.corrections = (0..12).map(|_| rng.pose_noise(1e-5, 1e-5)).collect();
+        for (k, d) in r.motion_disagreements().iter().enumerate() {
+            let m = r.labels[k].inverse() * r.labels[k + 1];
+            let first_order = r.corrections[k + 1] - m.inverse().adjoint() * r.corrections[k];
+            assert!((d - first_order).norm() <= 1e-3 * first_order.norm(), "pair {k}: {d} vs {first_order}");
+        }
+        r.corrections = vec![Vector6::zeros(); 12];
+        assert!(r.motion_disagreements().iter().all(|d| d.norm() < 1e-12));
+    }
+
+    /// Steps against a brute-force scan: q_k from 4×4 matrices and a sorted median, the
+    /// maximal windows of pairs above the χ²₆ 99.9 % quantile; the two jumps of the labels
+    /// (6.2 cm / 1°, 3.6 cm / 0°) are found where they are and as large as they are, and
+    /// elsewhere steps appear at the test's false-alarm rate.
+    #[test]
+    fn steps_are_the_jumps_of_the_labels_motion() {
+        let jumps = [
+            (20, Vector6::new(0.05, -0.03, 0.02, 0.0, 0.0, 1f64.to_radians())),
+            (45, Vector6::new(0.0, 0.02, 0.03, 0.0, 0.0, 0.0)),
+        ];
+        let r = jumped_labels(60, &jumps, 8);
+        let steps = r.steps();
+        // brute force
+        let b: Vec<nalgebra::Matrix4<f64>> =
+            r.labels.iter().zip(&r.corrections).map(|(l, e)| l.matrix() * SE3::exp(e).matrix()).collect();
+        let l: Vec<nalgebra::Matrix4<f64>> = r.labels.iter().map(SE3::matrix).collect();
+        let inv = |m: &nalgebra::Matrix4<f64>| m.try_inverse().expect("invertible");
+        let d: Vec<Vector6<f64>> = (1..60)
+            .map(|k| {
+                let m = inv(&(inv(&l[k - 1]) * l[k])) * inv(&b[k - 1]) * b[k];
+                SE3::from_matrix_projected(&m).expect("rigid").log()
+            })
+            .collect();
+        let sigma = |part: fn(&Vector6<f64>) -> f64, floor: f64| {
+            let mut v: Vec<f64> = d.iter().map(part).collect();
+            v.sort_by(f64::total_cmp);
+            (v[v.len() / 2] / crate::stats::chi2::CHI2_3_MEDIAN).sqrt().max(floor)
+        };
+        let st = sigma(|e| e.fixed_rows::<3>(0).norm_squared(), 1e-3);
+        let sr = sigma(|e| e.fixed_rows::<3>(3).norm_squared(), 0.05f64.to_radians());
+        let q: Vec<f64> = d
+            .iter()
+            .map(|e| e.fixed_rows::<3>(0).norm_squared() / (st * st) + e.fixed_rows::<3>(3).norm_squared() / (sr * sr))
+            .collect();
+        let mut want = Vec::new();
+        for a in 0..q.len() {
+            for z in a + 1..=q.len() {
+                let maximal = (a == 0 || q[a - 1] <= SIGNIFICANT_CORRECTION_CHI2)
+                    && (z == q.len() || q[z] <= SIGNIFICANT_CORRECTION_CHI2);
+                if maximal && q[a..z].iter().all(|v| *v > SIGNIFICANT_CORRECTION_CHI2) {
+                    want.push((a, z + 1));
+                }
+            }
+        }
+        let got: Vec<(usize, usize)> = steps.iter().map(|s| (s.start, s.end)).collect();
+        assert_eq!(got, want);
+        // every jump found, as large as it is (within 4σ of a pair's noise: labels 1 mm /
+        // 0.05° per axis, a pair √2 of that), on 50 draws of the noise; elsewhere a pair is
+        // a step by chance at the test's 0.1 % (59 pairs × 50 draws: about 3 expected)
+        let mut by_chance = 0;
+        for seed in 0..50 {
+            let steps = jumped_labels(60, &jumps, seed).steps();
+            for (at, j) in jumps {
+                let step = steps
+                    .iter()
+                    .find(|s| s.start < at && at < s.end)
+                    .unwrap_or_else(|| panic!("seed {seed}, jump at {at}: {steps:?}"));
+                let size = se3::rho(&j).norm();
+                assert!((step.translation_m - size).abs() < 0.006, "seed {seed}, jump at {at}: {step:?} for {size} m");
+                assert!(
+                    (step.rotation_rad - se3::phi(&j).norm()).abs() < 0.3f64.to_radians(),
+                    "seed {seed}, jump at {at}: {step:?}"
+                );
+            }
+            by_chance += steps.len() - jumps.len();
+        }
+        assert!(by_chance <= 10, "{by_chance} steps where the labels did not jump");
+        // too few pairs to measure the scatter: no step
+        assert!(jumped_labels(MIN_STEP_PAIRS, &[(5, jumps[0].1)], 8).steps().is_empty());
+        assert_eq!(jumped_labels(MIN_STEP_PAIRS + 1, &[(5, jumps[0].1)], 8).steps().len(), 1);
+    }
+
     /// The camera's pose carries the offset's covariance on top: C + Σ_X when applied, C when not.
     #[test]
     fn the_camera_pose_adds_the_offsets_covariance() {
@@ -479,6 +713,18 @@ mod map_tests {
         let record = adjusted.labels.as_ref().expect("adjusted");
         let runs = record.runs();
         assert!(runs.iter().any(|r| r.start <= 16 && r.end >= 21), "{runs:?}");
+        // the labels jump where the run starts and ends (12–13 cm / 2.6° across either): each
+        // found there, as large as the labels' motion differs from the truth across its span
+        let steps = record.steps();
+        for edge in [15, 22] {
+            let s =
+                steps.iter().find(|s| s.start < edge && edge < s.end).unwrap_or_else(|| panic!("{edge}: {steps:?}"));
+            let span = |p: &[SE3]| p[s.start].inverse() * p[s.end - 1];
+            let d = (span(&record.labels).inverse() * span(&truth)).log();
+            assert!((s.translation_m - se3::rho(&d).norm()).abs() < 0.015, "{s:?} against {d}");
+            assert!((s.rotation_rad - se3::phi(&d).norm()).abs() < 0.3f64.to_radians(), "{s:?} against {d}");
+        }
+        assert!(steps.iter().all(|s| s.translation_m < 0.01 || [15, 22].iter().any(|e| s.start < *e && *e < s.end)));
         assert!(adjusted.pose_covariances.is_some());
         let file = adjusted.to_map_file("{}").expect("file");
         let back = Map::from_map_file(&file).expect("loads").0;
