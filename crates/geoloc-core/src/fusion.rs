@@ -126,7 +126,7 @@ pub fn fuse_gated_with(
     // start at the information-weighted average in the tangent space of T_M
     let e = (pose_m.inverse() * *pose_g).log();
     let start = (info_m + info_g).try_inverse().map_or(*pose_m, |c| *pose_m * SE3::exp(&(c * info_g * e)));
-    let problem = FusionProblem { pose_m, info_m: &info_m, pose_g, info_g: &info_g };
+    let problem = FusionProblem { anchors: vec![(*pose_m, info_m), (*pose_g, info_g)] };
     let (pose, report, at_optimum) = solve(&problem, start, &LmOptions::gauss_newton(MAX_ITERATIONS, STEP_TOLERANCE));
     // C_F = H⁻¹ at the optimum (H of the start when the loop could not move)
     let h = at_optimum.linearization.map_or(info_m + info_g, |l| l.h);
@@ -165,22 +165,43 @@ fn gate_rejects(
     })
 }
 
-/// f(T) = e_Mᵀ C_M⁻¹ e_M + e_Gᵀ C_G⁻¹ e_G with e_X = log(T_X⁻¹ T)^∨ and ∂e_X/∂δ = J_r⁻¹(e_X).
-struct FusionProblem<'a> {
-    pose_m: &'a SE3,
-    info_m: &'a Matrix6<f64>,
-    pose_g: &'a SE3,
-    info_g: &'a Matrix6<f64>,
+/// The pose T minimizing Σ_i e_iᵀ C_i⁻¹ e_i, e_i = log(T_i⁻¹ T)^∨ (right perturbation,
+/// translation first), over `members` (T_i, C_i) — the information-weighted mean of poses
+/// measured of one thing, by the Gauss–Newton of [`fuse`] from the first member's pose
+/// (exactly its fusion for two members). Members in a fixed order give the same bits.
+///
+/// # Errors
+/// No member, or a covariance that is not symmetric positive definite (named "members").
+pub fn weighted_mean(members: &[(SE3, Matrix6<f64>)]) -> Result<SE3> {
+    let Some((first, _)) = members.first() else {
+        return Err(GeolocError::invalid("members", "no pose to average"));
+    };
+    let anchors = members
+        .iter()
+        .map(|(pose, covariance)| {
+            check_covariance("members", covariance)?;
+            Ok((*pose, spd_inverse(covariance, "members")?))
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let (pose, _, _) =
+        solve(&FusionProblem { anchors }, *first, &LmOptions::gauss_newton(MAX_ITERATIONS, STEP_TOLERANCE));
+    Ok(pose)
 }
 
-impl LeastSquares<6> for FusionProblem<'_> {
+/// f(T) = Σ_i e_iᵀ C_i⁻¹ e_i with e_i = log(T_i⁻¹ T)^∨ and ∂e_i/∂δ = J_r⁻¹(e_i), over the
+/// anchors (T_i, C_i⁻¹): T_M and T_G in the fusion.
+struct FusionProblem {
+    anchors: Vec<(SE3, Matrix6<f64>)>,
+}
+
+impl LeastSquares<6> for FusionProblem {
     type State = SE3;
 
     fn normal_equations(&self, pose: &SE3) -> (Matrix6<f64>, Vector6<f64>, f64) {
         let mut h = Matrix6::zeros();
         let mut g = Vector6::zeros();
         let mut cost = 0.0;
-        for (anchor, info) in [(self.pose_m, self.info_m), (self.pose_g, self.info_g)] {
+        for (anchor, info) in &self.anchors {
             let e = (anchor.inverse() * *pose).log();
             let j = se3::right_jacobian_inverse(&e);
             h += j.transpose() * info * j;
@@ -210,6 +231,52 @@ mod tests {
     fn random_spd(rng: &mut SplitMix64, scale: f64) -> Matrix6<f64> {
         let a = Matrix6::from_fn(|_, _| rng.normal());
         (a * a.transpose() + Matrix6::identity()) * scale
+    }
+
+    /// The weighted mean of two poses is their fusion; of poses that differ by translations
+    /// only (one rotation R, covariances block-diagonal with translation blocks W_i⁻¹) it is
+    /// the closed form t = (Σ R W_i Rᵀ)⁻¹ Σ R W_i Rᵀ t_i (rotations held stiff, so J_r⁻¹ does
+    /// not couple them in), whatever the members' order (to
+    /// rounding); no member or a covariance that is not positive definite is an error naming
+    /// "members".
+    #[test]
+    fn the_weighted_mean_is_the_fusion_and_the_closed_form_for_translations() {
+        let mut rng = SplitMix64::new(4);
+        for _ in 0..5 {
+            let pm = rng.pose(3.0);
+            let pg = pm * SE3::exp(&rng.twist(0.05, 0.05));
+            let (cm, cg) = (random_spd(&mut rng, 1e-3), random_spd(&mut rng, 1e-3));
+            let fused = fuse(&pm, &cm, &pg, &cg, 1e9, Gate::Isometric).expect("valid").world_from_cam;
+            let mean = weighted_mean(&[(pm, cm), (pg, cg)]).expect("valid");
+            assert!((fused.inverse() * mean).log().norm() < 1e-10);
+        }
+        let rotation = rng.pose(1.0).rotation;
+        let r = rotation.matrix();
+        let mut members = Vec::new();
+        let (mut a, mut b) = (nalgebra::Matrix3::zeros(), nalgebra::Vector3::zeros());
+        for _ in 0..4 {
+            let t = nalgebra::Vector3::new(rng.normal(), rng.normal(), rng.normal()) * 0.05;
+            let block = {
+                let m = nalgebra::Matrix3::from_fn(|_, _| rng.normal());
+                m * m.transpose() * 1e-4 + nalgebra::Matrix3::identity() * 1e-5
+            };
+            let mut c = Matrix6::identity() * 1e-14; // rotation held: its coupling to the translation (J_r⁻¹) vanishes
+            c.fixed_view_mut::<3, 3>(0, 0).copy_from(&block);
+            let w = r * block.try_inverse().expect("spd") * r.transpose();
+            a += w;
+            b += w * t;
+            members.push((SE3::new(rotation, t), c));
+        }
+        let want = a.try_inverse().expect("spd") * b;
+        let got = weighted_mean(&members).expect("valid");
+        assert!((got.translation - want).norm() < 1e-10, "{} vs {want}", got.translation);
+        assert!(got.rotation.distance(&rotation) < 1e-10);
+        members.reverse();
+        let again = weighted_mean(&members).expect("valid");
+        assert!((again.inverse() * got).log().norm() < 1e-12);
+        assert!(weighted_mean(&[]).expect_err("empty").to_string().contains("members"));
+        let flat = (SE3::identity(), Matrix6::zeros());
+        assert!(weighted_mean(&[members[0], flat]).expect_err("singular").to_string().contains("members"));
     }
 
     /// Against an independent minimizer: coordinate-free gradient descent with numerical
