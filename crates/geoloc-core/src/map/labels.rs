@@ -269,30 +269,19 @@ impl LabelAdjustment {
     /// The runs of at least [`MIN_RUN_LENGTH`] consecutive keyframes whose corrections are
     /// significant (beyond [`SIGNIFICANT_CORRECTION_CHI2`]).
     pub fn runs(&self) -> Vec<LabelRun> {
-        let mut runs = Vec::new();
-        let mut k = 0;
-        let n = self.significance.len();
-        while k < n {
-            if self.significance[k] <= SIGNIFICANT_CORRECTION_CHI2 {
-                k += 1;
-                continue;
-            }
-            let start = k;
-            while k < n && self.significance[k] > SIGNIFICANT_CORRECTION_CHI2 {
-                k += 1;
-            }
-            if k - start >= MIN_RUN_LENGTH {
-                let part = &self.corrections[start..k];
+        above_threshold(&self.significance)
+            .filter(|r| r.len() >= MIN_RUN_LENGTH)
+            .map(|r| {
+                let part = &self.corrections[r.clone()];
                 let max = |f: fn(&Vector6<f64>) -> f64| part.iter().map(f).fold(0.0, f64::max);
-                runs.push(LabelRun {
-                    start,
-                    end: k,
+                LabelRun {
+                    start: r.start,
+                    end: r.end,
                     max_translation_m: max(|e| se3::rho(e).norm()),
                     max_rotation_rad: max(|e| se3::phi(e).norm()),
-                });
-            }
-        }
-        runs
+                }
+            })
+            .collect()
     }
 
     /// The adjusted label poses B_k = L_k exp(e_k) (world_from_label).
@@ -337,28 +326,21 @@ impl LabelAdjustment {
             })
             .collect();
         let b = self.adjusted_labels();
-        let mut steps = Vec::new();
-        let mut k = 0;
-        while k < q.len() {
-            if q[k] <= SIGNIFICANT_CORRECTION_CHI2 {
-                k += 1;
-                continue;
-            }
-            let first = k;
-            while k < q.len() && q[k] > SIGNIFICANT_CORRECTION_CHI2 {
-                k += 1;
-            }
-            // pairs first..k join keyframes first..=k
-            let span = (relative(&self.labels[first], &self.labels[k]).inverse() * relative(&b[first], &b[k])).log();
-            steps.push(LabelStep {
-                start: first,
-                end: k + 1,
-                translation_m: se3::rho(&span).norm(),
-                rotation_rad: se3::phi(&span).norm(),
-                significance: q[first..k].iter().copied().fold(0.0, f64::max),
-            });
-        }
-        steps
+        above_threshold(&q)
+            .map(|pairs| {
+                // pairs first..last join keyframes first..=last
+                let (first, last) = (pairs.start, pairs.end);
+                let span =
+                    (relative(&self.labels[first], &self.labels[last]).inverse() * relative(&b[first], &b[last])).log();
+                LabelStep {
+                    start: first,
+                    end: last + 1,
+                    translation_m: se3::rho(&span).norm(),
+                    rotation_rad: se3::phi(&span).norm(),
+                    significance: q[pairs].iter().copied().fold(0.0, f64::max),
+                }
+            })
+            .collect()
     }
 
     /// Median translation (m) and rotation (rad) corrections over the keyframes.
@@ -385,6 +367,21 @@ fn describe_steps(steps: &[LabelStep]) -> String {
             s.end - 1
         ),
     }
+}
+
+/// The maximal ranges of consecutive values above [`SIGNIFICANT_CORRECTION_CHI2`], in order.
+fn above_threshold(values: &[f64]) -> impl Iterator<Item = std::ops::Range<usize>> + '_ {
+    let mut k = 0;
+    std::iter::from_fn(move || {
+        while k < values.len() && values[k] <= SIGNIFICANT_CORRECTION_CHI2 {
+            k += 1;
+        }
+        let start = k;
+        while k < values.len() && values[k] > SIGNIFICANT_CORRECTION_CHI2 {
+            k += 1;
+        }
+        (k > start).then_some(start..k)
+    })
 }
 
 /// A⁻¹ B: the motion from pose A to pose B.
