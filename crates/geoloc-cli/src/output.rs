@@ -89,8 +89,10 @@ mod tests {
         let pose = SE3::exp(&Vector6::new(0.1, -2.0 / 3.0, 1e-17, 3.0, 0.2, -0.1));
         let mut cov = Matrix6::from_fn(|i, j| 1e-7 / (1.0 + (i + j) as f64));
         cov[(0, 5)] = 1.0 / 3.0;
-        let text =
-            line(1305031102.175304, &result(Some(Estimate { world_from_cam: pose, covariance: cov }), Source::Fused));
+        let text = line(
+            1305031102.175304,
+            &result(Some(Estimate { world_from_cam: pose, covariance: cov, pixel_covariance: cov }), Source::Fused),
+        );
         let cols: Vec<&str> = text.split(' ').collect();
         assert_eq!(cols.len(), 8 + 1 + COV_ENTRIES);
         assert_eq!(cols[8], "fused");

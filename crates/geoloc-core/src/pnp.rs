@@ -40,7 +40,7 @@ use crate::optim::{
 };
 pub use chance::{MAX_CHANCE_PROBABILITY, MIN_ACCEPTED_INLIERS, chance_probability};
 pub use covariance::CovarianceModel;
-use covariance::{paper_covariance, propagated_covariance, residual_moments};
+use covariance::{paper_covariance, pixel_noise_covariance, propagated_covariance, residual_moments};
 
 /// RANSAC settings.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -149,6 +149,10 @@ pub struct PnpResult {
     pub world_from_cam: SE3,
     /// 6×6 covariance in the right-perturbation tangent space, translation first.
     pub covariance: Matrix6<f64>,
+    /// The part of `covariance` the query's own pixel noise gives (same scaling): independent
+    /// from one frame to the next, where the points' and keyframes' errors are shared by
+    /// consecutive frames. The paper's covariance model: `covariance` itself.
+    pub pixel_covariance: Matrix6<f64>,
     /// Per correspondence: used in the final solve.
     pub inliers: Vec<bool>,
     /// RMS reprojection error of the inliers (pixels).
@@ -175,6 +179,7 @@ impl PnpResult {
             reason: reason.into(),
             world_from_cam: SE3::identity(),
             covariance: Matrix6::zeros(),
+            pixel_covariance: Matrix6::zeros(),
             inliers: vec![false; n],
             rms_px: f64::NAN,
             variance_factor: f64::NAN,
@@ -475,6 +480,14 @@ impl Correspondences<'_> {
             failed.lm = report;
             return failed;
         };
+        let pixel_covariance = match o.covariance {
+            // exact points: the pixel noise is all there is
+            CovarianceModel::Propagated if self.uncertainty.is_some() => {
+                pixel_noise_covariance(self.camera, self.points, &pose, subset, self.uncertainty, self.noise)
+                    .map_or(covariance, |c| c * variance_factor.max(1.0))
+            }
+            CovarianceModel::Propagated | CovarianceModel::Paper => covariance,
+        };
         let (sigma_p, sigma_r) = isometric_sigmas(&covariance);
         let converged = report.is_some_and(|r| r.converged());
         PnpResult {
@@ -482,6 +495,7 @@ impl Correspondences<'_> {
             reason: if converged { "ok".into() } else { "ok (LM stopped at its iteration cap)".into() },
             world_from_cam: pose,
             covariance,
+            pixel_covariance,
             inliers,
             rms_px: (sum_sq / subset.len() as f64).sqrt(),
             variance_factor,

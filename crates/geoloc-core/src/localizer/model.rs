@@ -304,7 +304,12 @@ fn vote_between(places: Places, others: &[Estimate]) -> Option<(Estimate, usize)
 /// ruling out the other (steps 8 and 9).
 pub(super) fn widened_to_hold(estimate: &Estimate, other: &Estimate) -> Estimate {
     let (delta, _) = correction(&estimate.world_from_cam, &other.world_from_cam, &estimate.covariance);
-    Estimate { covariance: estimate.covariance + delta * delta.transpose(), ..*estimate }
+    let widening = delta * delta.transpose();
+    Estimate {
+        covariance: estimate.covariance + widening,
+        pixel_covariance: estimate.pixel_covariance + widening,
+        ..*estimate
+    }
 }
 
 /// Of the answer from the retrieved keyframes and the one from the keyframes nearest it (step
@@ -676,7 +681,11 @@ impl Localizer {
             return Ok((Err(why), inliers));
         }
         let matches = best_matches.iter().zip(&best.inliers).filter(|(_, i)| **i).map(|(c, _)| *c).collect();
-        let estimate = Estimate { world_from_cam: best.world_from_cam, covariance: best.covariance };
+        let estimate = Estimate {
+            world_from_cam: best.world_from_cam,
+            covariance: best.covariance,
+            pixel_covariance: best.pixel_covariance,
+        };
         self.accepted
             .lock()
             .unwrap_or_else(std::sync::PoisonError::into_inner)
@@ -741,10 +750,9 @@ impl Localizer {
     /// Only the pose is taken. The covariance that goes with it would add the shared part,
     /// Σ_k M_k C_k M_kᵀ, to the one of independent points; that part is map error, which
     /// the map noise C_map carries — measured as the held-out keyframes' error beyond C_G,
-    /// the independent-points covariance, so C_G stays that one (and fusion keeps weighing
-    /// measurement noise alone: with the shared part in C_G, consecutive frames' common map
-    /// error counted as measurement noise and the sequential mode fell behind the single
-    /// image on two of the seven 7-Scenes folds, 1.41 → 1.70 and 0.94 → 1.21 cm).
+    /// the independent-points covariance, so C_G stays that one (with the shared part in C_G
+    /// the sequential mode fell behind the single image on two of the seven 7-Scenes folds,
+    /// 1.41 → 1.70 and 0.94 → 1.21 cm; the fusion now weighs the pixel part of C_G alone).
     fn shared_refinement(
         &self,
         frame: &Frame<'_>,
@@ -994,7 +1002,7 @@ mod tests {
         let rotation = crate::lie::SO3::exp(&Vector3::new(0.0, rotation_deg.to_radians(), 0.0));
         let pose = SE3::new(rotation, Vector3::from(translation));
         let covariance = nalgebra::Matrix6::identity() * sigma * sigma;
-        (Ok(Estimate { world_from_cam: pose, covariance }), inliers)
+        (Ok(Estimate { world_from_cam: pose, covariance, pixel_covariance: covariance }), inliers)
     }
 
     fn refused(why: &str) -> Hypothesis {

@@ -180,7 +180,14 @@ impl Localizer {
         {
             return Ok((Err(why), inliers));
         }
-        Ok((Ok(Estimate { world_from_cam: res.world_from_cam, covariance: res.covariance }), inliers))
+        Ok((
+            Ok(Estimate {
+                world_from_cam: res.world_from_cam,
+                covariance: res.covariance,
+                pixel_covariance: res.pixel_covariance,
+            }),
+            inliers,
+        ))
     }
 
     /// (c) forward intersection: triangulated points of the group around `seed`, from

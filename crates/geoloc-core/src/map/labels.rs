@@ -160,6 +160,7 @@ impl LabelAdjustment {
         crate::localizer::Estimate {
             world_from_cam: self.to_label(&e.world_from_cam),
             covariance: self.covariance_to_label(&e.covariance),
+            pixel_covariance: self.covariance_to_label(&e.pixel_covariance),
         }
     }
 
@@ -617,7 +618,11 @@ mod tests {
     fn the_camera_pose_adds_the_offsets_covariance() {
         let c = Matrix6::from_fn(|r, k| 1e-4 / (1.0 + (r + k) as f64)) + Matrix6::identity() * 1e-3;
         let localization = |c| crate::localizer::Localization {
-            estimate: Some(crate::localizer::Estimate { world_from_cam: SE3::identity(), covariance: c }),
+            estimate: Some(crate::localizer::Estimate {
+                world_from_cam: SE3::identity(),
+                covariance: c,
+                pixel_covariance: c,
+            }),
             source: crate::localizer::Source::Geometric,
             reason: String::new(),
             keyframe: 0,

@@ -209,6 +209,37 @@ pub(super) fn propagated_covariance(
     Some(0.5 * (c + c.transpose()))
 }
 
+/// The covariance the query's own pixel noise alone gives the pose of the weighted solve at
+/// `pose` over the inliers `subset` (before the variance factor): the sandwich
+///
+///   C_pix = H⁻¹ (Σⱼ JⱼᵀWⱼ σⱼ² Wⱼ Jⱼ) H⁻¹,   H = Σⱼ JⱼᵀWⱼJⱼ,  Wⱼ = (Sⱼ^ind)⁻¹,
+///
+/// the weights those of the solve ([`residual_moments`]). It is the part of the pose's
+/// error that is independent from one frame to the next: the map points' and the keyframe
+/// poses' errors are shared by consecutive frames that see the same points, the pixel
+/// noise of two images is not. Without point uncertainty C_pix = H⁻¹.
+pub(super) fn pixel_noise_covariance(
+    camera: &Camera,
+    points: &[Vector3<f64>],
+    pose: &SE3,
+    subset: &[usize],
+    uncertainty: Option<&PointUncertainty<'_>>,
+    noise: PixelNoise<'_>,
+) -> Option<Matrix6<f64>> {
+    let (mut h, mut meat) = (Matrix6::zeros(), Matrix6::zeros());
+    for &j in subset {
+        let p = project(camera, pose, &points[j]);
+        let sigma = noise.at(j);
+        let (s_ind, _) = residual_moments(camera, points, pose, j, uncertainty, sigma, false);
+        let jt_w = j_uv_pose(camera, &p).transpose() * s_ind.try_inverse()?;
+        h += jt_w * j_uv_pose(camera, &p);
+        meat += jt_w * jt_w.transpose() * (sigma * sigma);
+    }
+    let h_inv = inverse_information(&h)?;
+    let c = h_inv * meat * h_inv;
+    Some(0.5 * (c + c.transpose()))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -257,5 +288,47 @@ mod tests {
             let coverage = inside as f64 / trials as f64;
             assert!((0.92..=0.985).contains(&coverage), "σ_true {sigma_true}, σ_X {point_sigma}: coverage {coverage}");
         }
+    }
+
+    /// Monte-Carlo: with the map points' errors held at one realization (as consecutive frames
+    /// share them) and only the pixel noise drawn anew, the poses scatter about the noise-free
+    /// pixels' pose as `pixel_covariance` says (mean NEES ≈ 6), while the full covariance,
+    /// which also holds the points' errors, is larger; without point uncertainty the two are
+    /// one matrix.
+    #[test]
+    fn pixel_covariance_is_the_scatter_from_the_pixel_noise_alone() {
+        let camera = Camera::new(525.0, 525.0, 320.0, 240.0).expect("valid");
+        let options = PnpOptions { max_residual_px: 20.0, ..PnpOptions::default() };
+        let mut rng = SplitMix64::new(5);
+        let truth = rng.pose(2.0);
+        let exact: Vec<Vector3<f64>> = (0..80)
+            .map(|_| {
+                truth * Vector3::new(rng.uniform_in(-2.0, 2.0), rng.uniform_in(-1.5, 1.5), rng.uniform_in(3.0, 8.0))
+            })
+            .collect();
+        let point_sigma = 0.02;
+        let noisy: Vec<Vector3<f64>> =
+            exact.iter().map(|x| x + Vector3::new(rng.normal(), rng.normal(), rng.normal()) * point_sigma).collect();
+        let covs = vec![Matrix3::identity() * point_sigma * point_sigma; exact.len()];
+        let u = PointUncertainty { covariances: &covs, shared: None };
+        let clean: Vec<Vector2<f64>> = exact.iter().map(|x| project(&camera, &truth, x).uv).collect();
+        let centre = solve_pnp(&camera, &noisy, &clean, Some(&truth), Some(&u), &options).expect("valid input");
+        let trials = 400;
+        let (mut nees_pixel, mut nees_full) = (0.0, 0.0);
+        for _ in 0..trials {
+            let pixels: Vec<Vector2<f64>> =
+                clean.iter().map(|p| p + Vector2::new(rng.normal(), rng.normal())).collect();
+            let res = solve_pnp(&camera, &noisy, &pixels, Some(&truth), Some(&u), &options).expect("valid input");
+            assert!(res.success, "{}", res.reason);
+            let e = (centre.world_from_cam.inverse() * res.world_from_cam).log();
+            nees_pixel += (e.transpose() * res.pixel_covariance.try_inverse().expect("invertible") * e)[0];
+            nees_full += (e.transpose() * res.covariance.try_inverse().expect("invertible") * e)[0];
+        }
+        let (nees_pixel, nees_full) = (nees_pixel / trials as f64, nees_full / trials as f64);
+        // the mean of 400 χ²₆: σ ≈ 0.17; the variance factor (≥ 1) can only lower it
+        assert!((5.2..=6.6).contains(&nees_pixel), "mean NEES under the pixel covariance {nees_pixel}");
+        assert!(nees_full < 0.5 * nees_pixel, "the full covariance holds the points' errors too: {nees_full}");
+        let exact_result = solve_pnp(&camera, &exact, &clean, Some(&truth), None, &options).expect("valid input");
+        assert_eq!(exact_result.pixel_covariance, exact_result.covariance);
     }
 }
