@@ -40,7 +40,7 @@ use crate::optim::{
 };
 pub use chance::{MAX_CHANCE_PROBABILITY, MIN_ACCEPTED_INLIERS, chance_probability};
 pub use covariance::CovarianceModel;
-use covariance::{paper_covariance, pixel_noise_covariance, propagated_covariance, residual_moments};
+use covariance::{paper_covariance, propagated_covariance, residual_moments};
 
 /// RANSAC settings.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -454,6 +454,8 @@ impl Correspondences<'_> {
                 .map(|&j| (project(self.camera, &pose, &self.points[j]).uv - self.pixels[j]).norm_squared())
                 .sum(),
         };
+        // the pixel part, where propagating C computed it in the same pass
+        let mut pixel_part = None;
         let covariance = match (o.covariance, last.information) {
             (CovarianceModel::Paper, _) => {
                 paper_covariance(self.camera, self.points, self.pixels, &pose, subset, o.loss)
@@ -461,7 +463,10 @@ impl Correspondences<'_> {
             (CovarianceModel::Propagated, Information::Joint(cov)) => cov.filter(|c| inverse_information(c).is_some()),
             (CovarianceModel::Propagated, Information::LeastSquares(h, _)) => inverse_information(&h),
             (CovarianceModel::Propagated, Information::Propagate) => {
-                propagated_covariance(self.camera, self.points, &pose, subset, self.uncertainty, self.noise)
+                propagated_covariance(self.camera, self.points, &pose, subset, self.uncertainty, self.noise).map(|c| {
+                    pixel_part = Some(c.pixel);
+                    c.full
+                })
             }
         };
         let rejection = match covariance {
@@ -482,10 +487,12 @@ impl Correspondences<'_> {
         };
         let pixel_covariance = match o.covariance {
             // exact points: the pixel noise is all there is
-            CovarianceModel::Propagated if self.uncertainty.is_some() => {
-                pixel_noise_covariance(self.camera, self.points, &pose, subset, self.uncertainty, self.noise)
-                    .map_or(covariance, |c| c * variance_factor.max(1.0))
-            }
+            CovarianceModel::Propagated if self.uncertainty.is_some() => pixel_part
+                .or_else(|| {
+                    propagated_covariance(self.camera, self.points, &pose, subset, self.uncertainty, self.noise)
+                        .map(|c| c.pixel)
+                })
+                .map_or(covariance, |c| c * variance_factor.max(1.0)),
             CovarianceModel::Propagated | CovarianceModel::Paper => covariance,
         };
         let (sigma_p, sigma_r) = isometric_sigmas(&covariance);

@@ -163,8 +163,18 @@ pub(super) fn paper_covariance(
     inverse_information(&info).map(|c| c * sigma2)
 }
 
-/// The `Propagated` covariance of the module doc at `pose` over the inliers `subset` (before
-/// the variance factor).
+/// The `Propagated` covariance of the module doc at `pose` over the inliers `subset` and its
+/// pixel-noise part (both before the variance factor), from one pass over the points.
+///
+/// The pixel part is the covariance the query's own pixel noise alone gives the pose of the
+/// weighted solve, the sandwich
+///
+///   C_pix = H⁻¹ (Σⱼ JⱼᵀWⱼ σⱼ² Wⱼ Jⱼ) H⁻¹,   H = Σⱼ JⱼᵀWⱼJⱼ,  Wⱼ = (Sⱼ^ind)⁻¹,
+///
+/// the weights those of the solve ([`residual_moments`]). It is the part of the pose's
+/// error that is independent from one frame to the next: the map points' and the keyframe
+/// poses' errors are shared by consecutive frames that see the same points, the pixel
+/// noise of two images is not. Without point uncertainty C_pix = H⁻¹.
 pub(super) fn propagated_covariance(
     camera: &Camera,
     points: &[Vector3<f64>],
@@ -172,18 +182,20 @@ pub(super) fn propagated_covariance(
     subset: &[usize],
     uncertainty: Option<&PointUncertainty<'_>>,
     noise: PixelNoise<'_>,
-) -> Option<Matrix6<f64>> {
-    let mut h = Matrix6::zeros();
+) -> Option<PropagatedCovariance> {
+    let (mut h, mut meat) = (Matrix6::zeros(), Matrix6::zeros());
     // JⱼᵀWⱼ J_X,j per point, needed for the shared part
     let mut couplings: Vec<(usize, nalgebra::Matrix6x3<f64>)> = Vec::new();
     for &j in subset {
         let p = project(camera, pose, &points[j]);
         // Wⱼ = (Sⱼ^ind)⁻¹, the weights of the solve (the shared errors are not in them)
-        let (s_ind, _) = residual_moments(camera, points, pose, j, uncertainty, noise.at(j), false);
+        let sigma = noise.at(j);
+        let (s_ind, _) = residual_moments(camera, points, pose, j, uncertainty, sigma, false);
         let w = s_ind.try_inverse()?;
         let jac = j_uv_pose(camera, &p);
         let jt_w = jac.transpose() * w;
         h += jt_w * jac;
+        meat += jt_w * jt_w.transpose() * (sigma * sigma);
         if uncertainty.is_some_and(|u| u.shared.is_some()) {
             let j_x: Matrix2x3<f64> = j_uv_point(camera, pose, &p);
             couplings.push((j, jt_w * j_x));
@@ -206,38 +218,16 @@ pub(super) fn propagated_covariance(
             c += m * c_k * m.transpose();
         }
     }
-    Some(0.5 * (c + c.transpose()))
+    let pixel = h_inv * meat * h_inv;
+    Some(PropagatedCovariance { full: 0.5 * (c + c.transpose()), pixel: 0.5 * (pixel + pixel.transpose()) })
 }
 
-/// The covariance the query's own pixel noise alone gives the pose of the weighted solve at
-/// `pose` over the inliers `subset` (before the variance factor): the sandwich
-///
-///   C_pix = H⁻¹ (Σⱼ JⱼᵀWⱼ σⱼ² Wⱼ Jⱼ) H⁻¹,   H = Σⱼ JⱼᵀWⱼJⱼ,  Wⱼ = (Sⱼ^ind)⁻¹,
-///
-/// the weights those of the solve ([`residual_moments`]). It is the part of the pose's
-/// error that is independent from one frame to the next: the map points' and the keyframe
-/// poses' errors are shared by consecutive frames that see the same points, the pixel
-/// noise of two images is not. Without point uncertainty C_pix = H⁻¹.
-pub(super) fn pixel_noise_covariance(
-    camera: &Camera,
-    points: &[Vector3<f64>],
-    pose: &SE3,
-    subset: &[usize],
-    uncertainty: Option<&PointUncertainty<'_>>,
-    noise: PixelNoise<'_>,
-) -> Option<Matrix6<f64>> {
-    let (mut h, mut meat) = (Matrix6::zeros(), Matrix6::zeros());
-    for &j in subset {
-        let p = project(camera, pose, &points[j]);
-        let sigma = noise.at(j);
-        let (s_ind, _) = residual_moments(camera, points, pose, j, uncertainty, sigma, false);
-        let jt_w = j_uv_pose(camera, &p).transpose() * s_ind.try_inverse()?;
-        h += jt_w * j_uv_pose(camera, &p);
-        meat += jt_w * jt_w.transpose() * (sigma * sigma);
-    }
-    let h_inv = inverse_information(&h)?;
-    let c = h_inv * meat * h_inv;
-    Some(0.5 * (c + c.transpose()))
+/// [`propagated_covariance`]'s result.
+pub(super) struct PropagatedCovariance {
+    /// C of the module doc: the pixel noise, the points' independent errors and the shared part.
+    pub(super) full: Matrix6<f64>,
+    /// C_pix: the pixel noise alone.
+    pub(super) pixel: Matrix6<f64>,
 }
 
 #[cfg(test)]
