@@ -750,9 +750,8 @@ impl Localizer {
     /// Only the pose is taken. The covariance that goes with it would add the shared part,
     /// Σ_k M_k C_k M_kᵀ, to the one of independent points; that part is map error, which
     /// the map noise C_map carries — measured as the held-out keyframes' error beyond C_G,
-    /// the independent-points covariance, so C_G stays that one (with the shared part in C_G
-    /// the sequential mode fell behind the single image on two of the seven 7-Scenes folds,
-    /// 1.41 → 1.70 and 0.94 → 1.21 cm; the fusion now weighs the pixel part of C_G alone).
+    /// the independent-points covariance, so C_G stays that one (the sequential mode's
+    /// fusion weighs only its pixel part, [`super::Estimate::pixel_covariance`]).
     fn shared_refinement(
         &self,
         frame: &Frame<'_>,
