@@ -16,6 +16,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from posed_images import SEVEN_SCENES
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -95,3 +96,50 @@ def test_two_processes_give_the_same_bytes(reference: str) -> None:
 )
 def test_thread_settings_give_the_same_bytes(reference: str, env: dict[str, str]) -> None:
     assert _digest(env) == reference
+
+
+KITCHEN_SCRIPT = r"""
+import hashlib, sys
+import numpy as np
+import geoloc
+
+seq = geoloc.datasets.load_7scenes(sys.argv[1])
+loc = geoloc.Localizer(geoloc.Map.load(sys.argv[2]))
+h = hashlib.sha256()
+for r in loc.localize_sequence(seq[100:140], "single"):
+    h.update(r.source.encode() + np.int64(r.keyframe if r.keyframe is not None else -1).tobytes())
+    if r.pose is not None:
+        h.update(np.ascontiguousarray(r.pose).tobytes() + np.ascontiguousarray(r.covariance).tobytes())
+print(h.hexdigest())
+"""
+
+
+@pytest.fixture(scope="module")
+def kitchen_map(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    if not SEVEN_SCENES.is_dir():
+        pytest.skip(f"the shared 7-Scenes frames are absent ({SEVEN_SCENES})")
+    import geoloc
+
+    path = tmp_path_factory.mktemp("kitchen") / "map.geoloc"
+    geoloc.Map.build(geoloc.datasets.load_7scenes(SEVEN_SCENES)[0:100], "bow").save(path)
+    return path
+
+
+def _kitchen_digest(map_path: Path, env_extra: dict[str, str]) -> str:
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("GEOLOC_", "RAYON_"))}
+    env.update(env_extra)
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT / "python"), env.get("PYTHONPATH", "")]))
+    args = [sys.executable, "-c", KITCHEN_SCRIPT, str(SEVEN_SCENES), str(map_path)]
+    out = subprocess.run(args, env=env, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    return out.stdout.strip()
+
+
+def test_real_frames_give_the_same_answers_with_any_thread_count(kitchen_map: Path) -> None:
+    """Frames 100–139 against a map of frames 0–99: several are refused by the first two
+    hypotheses and answered from a lower-ranked keyframe (model locator step 7), where a
+    batch as wide as the threads would let the thread count into the answer (frame 111)."""
+    one = _kitchen_digest(kitchen_map, {"GEOLOC_NUM_THREADS": "1"})
+    assert len(one) == len(hashlib.sha256().hexdigest())
+    for env in ({"GEOLOC_NUM_THREADS": "2"}, {"GEOLOC_NUM_THREADS": "3"}, {"GEOLOC_PARALLELISM": "false"}):
+        assert _kitchen_digest(kitchen_map, env) == one, env

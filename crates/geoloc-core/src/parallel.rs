@@ -169,17 +169,6 @@ fn install<R: Send>(pool: Option<Arc<rayon::ThreadPool>>, f: impl FnOnce() -> R 
     }
 }
 
-/// How many threads a parallel loop started here runs on (1: the calling thread alone). For
-/// work tried in turn until one attempt succeeds: tried this many at a time with
-/// [`map_slice`] and read in order, it gives the same first success and leaves no thread idle.
-pub fn threads_here() -> usize {
-    match pool_for(2, 2) {
-        None => 1,
-        Some(None) => rayon::current_num_threads(),
-        Some(Some(pool)) => pool.current_num_threads(),
-    }
-}
-
 /// `[f(0), f(1), …, f(n − 1)]`, in parallel when `n ≥ min_items` (results in index order, so
 /// identical whatever the schedule).
 pub fn map_indices<T, F>(n: usize, min_items: usize, f: F) -> Vec<T>
@@ -290,18 +279,6 @@ mod tests {
         });
         let here = std::thread::current().name().unwrap_or("").to_owned();
         assert!(names.iter().all(|n| *n == here));
-    }
-
-    /// `threads_here` counts the threads a loop started here runs on: the setting's pool's,
-    /// the pool a worker is on (a nested loop), 1 when sequential.
-    #[test]
-    fn threads_here_counts_the_pool_a_loop_would_use() {
-        let three = Parallelism::Threads(NonZero::new(3).expect("3 > 0"));
-        assert_eq!(with_parallelism(&three, threads_here), 3);
-        assert_eq!(with_parallelism(&Parallelism::Off, threads_here), 1);
-        // from inside a loop on the pool of three: that pool, whatever the caller's setting
-        let nested = with_parallelism(&three, || map_indices(4, 1, |_| threads_here()));
-        assert_eq!(nested, vec![3; 4]);
     }
 
     /// Unparsable, zero and negative counts are ignored and said so; too many are capped and

@@ -67,9 +67,10 @@
 //!    paper's split, single-image recall within 5 cm / 5° against the reference is 2–3 points
 //!    higher on three of them and unchanged elsewhere, with no gross answer
 //!    (`benchmarks/calibration.py`, `benchmarks/honesty.py`). The step runs on failing frames
-//!    only, as many keyframes at a time as the process has threads, side by side, taken in
-//!    rank order ([`crate::parallel::threads_here`]: the same first accepted pose with any
-//!    thread count).
+//!    only, [`OTHER_KEYFRAMES_AT_A_TIME`] keyframes at a time, side by side, in rank order.
+//!    The batch is a constant, not the thread count: every accepted solve of a batch joins
+//!    step 12's mean at the answer's place, so a batch as wide as the threads would make
+//!    the answer depend on how many there are.
 //!
 //! 8. **A third opinion on two places**, only when both hypotheses are accepted and lie apart
 //!    (step 6): steps 3–5 on each other retrieved keyframe's matches alone; if some of the
@@ -193,6 +194,10 @@ pub const AMBIGUOUS_SEPARATION_M: f64 = 0.1;
 /// ... or this rotation (degrees), and beyond their covariances, make the frame ambiguous
 /// ([`choose_hypothesis`]).
 pub const AMBIGUOUS_SEPARATION_DEG: f64 = 3.0;
+
+/// Step 7 tries the other retrieved keyframes this many at a time (see the module doc: a
+/// constant, so that the answer is the same with any thread count).
+pub const OTHER_KEYFRAMES_AT_A_TIME: usize = 2;
 
 /// An accepted hypothesis of one frame with its inlier matches ([`Localizer::refined_answer`]).
 pub(super) struct AcceptedSolve {
@@ -566,9 +571,9 @@ impl Localizer {
         let others: Vec<usize> = (1..per_keyframe.len()).collect();
         if neither {
             // neither place was accepted: each of the other retrieved keyframes' matches
-            // alone, best-ranked first, the first accepted (tried as many at a time as there
-            // are threads: the same first)
-            for ranks in others.chunks(crate::parallel::threads_here()) {
+            // alone, best-ranked first, the first accepted (a batch at a time; the batch's
+            // other accepted solves join step 12, so its size is fixed, not the thread count)
+            for ranks in others.chunks(OTHER_KEYFRAMES_AT_A_TIME) {
                 for (&rank, h) in ranks.iter().zip(alone_at(ranks, timings)) {
                     let h = h?;
                     if h.0.is_ok() {
