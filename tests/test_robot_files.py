@@ -488,3 +488,32 @@ def test_reset_waits_for_another_threads_frame_without_the_gil(small_map: geoloc
     # inside each such wait (less a margin for taking the GIL back), the main thread ran
     ran = [np.any((ticks_array > a) & (ticks_array < b - 1e-3)) for a, b in long_waits]
     assert np.mean(ran) > 0.5, f"the main thread ran during {sum(ran)} of {len(long_waits)} waiting resets"
+
+
+def test_export_frames_refuses_to_overwrite_the_map_file_it_was_loaded_from(tmp_path: Path, small_map: geoloc.Map) -> None:
+    """The map's own file is an input of the export as much as the images are (also through a
+    symlink); saving the map back to it stays allowed."""
+    small_map.save(tmp_path / "room.geoloc")
+    (tmp_path / "link.geoloc").symlink_to(tmp_path / "room.geoloc")
+    before = (tmp_path / "room.geoloc").read_bytes()
+    loaded = geoloc.Map.load(tmp_path / "room.geoloc")
+    room = datasets.synthetic_room(n_frames=12, seed=0)
+    pairs = [(0.0, room[10].image)]
+    for target in ("room.geoloc", "link.geoloc"):
+        with pytest.raises(geoloc.InvalidInputError, match=r"^path: .* same file as the input map"):
+            geoloc.export_frames(loaded, pairs, tmp_path / target)
+    assert (tmp_path / "room.geoloc").read_bytes() == before
+    loaded.save(tmp_path / "room.geoloc")
+    assert (tmp_path / "room.geoloc").read_bytes() == before
+
+
+def test_export_frames_refuses_a_sequence_whose_timestamps_go_back(tmp_path: Path, small_map: geoloc.Map) -> None:
+    """geoloc-rs reads frames in time order: a reversed Sequence is refused before anything is written."""
+    room = datasets.synthetic_room(n_frames=12, seed=0)
+    for i in range(4):
+        write_image(tmp_path / f"{i}.png", room[8 + i].image)
+    seq = datasets.load_folder(tmp_path, trajectory=None, intrinsics=small_map.camera)
+    with pytest.raises(geoloc.InvalidInputError, match=r"^frames: timestamps\[1\] = .* does not increase"):
+        geoloc.export_frames(small_map, seq[::-1], tmp_path / "frames.bin")
+    assert not (tmp_path / "frames.bin").exists()
+    assert geoloc.export_frames(small_map, seq, tmp_path / "frames.bin") == 4

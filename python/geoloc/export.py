@@ -41,7 +41,15 @@ def _frames(frames: Any, map: Map, target: Any) -> Iterable[tuple[float, Any]]:
 
     if isinstance(frames, Sequence):
         check_map_camera(frames.camera, map, "frames")
-        return ((float(frames.timestamps[i]), frames.gray(i)) for i in range(len(frames)))
+        stamps = np.asarray(frames.timestamps, dtype=np.float64)
+        backwards = np.flatnonzero(np.diff(stamps) <= 0)
+        if len(backwards):
+            i = int(backwards[0]) + 1
+            raise InvalidInputError(
+                f"frames: timestamps[{i}] = {float(stamps[i])!r} does not increase (the frame before is at {float(stamps[i - 1])!r}); "
+                "geoloc-rs localizes frames in time order"
+            )
+        return ((float(stamps[i]), frames.gray(i)) for i in range(len(frames)))
     if isinstance(frames, (str, bytes, os.PathLike)) or not isinstance(frames, Iterable):
         raise InvalidInputError(
             f"frames: expected a geoloc.datasets.Sequence or an iterable of (timestamp, image), got {type(frames).__name__}"
@@ -85,7 +93,8 @@ def export_frames(
     (H, W, 3) BGR uint8). ``global_descriptor`` is the map's network, needed (and checked, by
     its sha256) exactly when :class:`geoloc.Localizer` needs it. ``format`` is ``"binary"``
     (the robot's) or ``"jsonl"`` (one JSON object per line). ``progress(done)`` is called
-    after each frame. The file appears at ``path`` only once complete.
+    after each frame. The file appears at ``path`` only once complete; a ``path`` that is the
+    map's own file (:meth:`geoloc.Map.load`) or one of the images is refused.
     """
     if not isinstance(map, Map):
         raise InvalidInputError(f"map: expected a geoloc.Map, got {type(map).__name__}")
@@ -98,7 +107,7 @@ def export_frames(
     from ._validation import network_rows
 
     target = check_output_path(path, "path")
-    refuse_alias(target, "path", [("frames", f) for f in getattr(frames, "files", ())])
+    refuse_alias(target, "path", [("map", map._loaded_from), *(("frames", f) for f in getattr(frames, "files", ()))])
     # the network is checked against the map, and images decoded, as the Localizer does
     check_map_network(global_descriptor, map)
     check_progress(progress)

@@ -151,6 +151,9 @@ class Map:
         self._frontend = frontend
         # (argument, file) for every file the map was built from: :meth:`save` never replaces one
         self._inputs = inputs
+        # the file :meth:`load` read it from (None otherwise): a writer of something else
+        # (``export_frames``) must not replace it; saving the map back to it may
+        self._loaded_from: Path | None = None
 
     @staticmethod
     def default_options() -> dict[str, Any]:
@@ -541,7 +544,9 @@ class Map:
                 "source": {"keyframes": len(core)},
             }
         extractor, camera = frontend_parts(frontend, core.intrinsics, str(path))
-        return cls(core, camera, extractor, frontend)
+        loaded = cls(core, camera, extractor, frontend)
+        loaded._loaded_from = Path(source)
+        return loaded
 
 
 def __getattr__(name: str) -> Any:
