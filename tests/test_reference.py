@@ -19,7 +19,7 @@ from cli_runner import one_line_error as _one_line_error
 from cli_runner import run_geoloc as _run
 from geoloc import datasets, evaluation, lie
 from geoloc.exceptions import DatasetError, InvalidInputError
-from geoloc.reference import ReferenceAlignment, align_reference, load_reference, match_reference
+from geoloc.reference import ReferenceAlignment, align_reference, load_reference, match_reference, numbering_shift
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 REDKITCHEN = DATA / "7scenes-redkitchen"
@@ -391,6 +391,62 @@ def test_sfm_reference_agrees_with_the_labels_to_the_documented_level() -> None:
     assert float(np.median(dp_test)) <= LABEL_MEDIAN_M[1] and float(np.median(dr_test)) < LABEL_MEDIAN_DEG
 
 
+def _turning_trajectory(n: int) -> np.ndarray:
+    """n poses whose rotation from frame to frame varies (0.2–2°, no period)."""
+    rng = np.random.default_rng(5)
+    steps = np.concatenate([rng.normal(0, 0.005, (n, 3)), rng.uniform(0.2, 2.0, (n, 1)) * math.pi / 180 * rng.normal(0, 1, (n, 3))], axis=1)
+    poses = [np.eye(4)]
+    for step in steps[1:]:
+        poses.append(poses[-1] @ lie.se3_exp(step))
+    return np.stack(poses)
+
+
+@pytest.mark.parametrize("keyed_by", ["index", "time"])
+@pytest.mark.parametrize("shift", [0, 7, -12])
+def test_numbering_shift_finds_the_shift_whatever_the_similarity_and_offset(keyed_by: str, shift: int) -> None:
+    """A reference that is S·R·X of the frames' own poses (another world frame, scale and
+    camera), keyed k frames on: the rotation angles agree exactly at shift k and nowhere else."""
+    n = 80
+    own = _turning_trajectory(n)
+    s, rs, ts, x = _true_s_and_x()
+    inv_s = np.eye(4)
+    inv_s[:3, :3], inv_s[:3, 3] = rs.T / s, -rs.T @ ts / s
+    scaled = own.copy()
+    scaled[:, :3, :3] *= s
+    ref = inv_s @ scaled @ lie.se3_inverse(x)
+    indices, times = np.arange(100, 100 + n), 10.0 + np.arange(n) / 30.0
+    keys = indices + shift if keyed_by == "index" else times + shift / 30.0
+    found = numbering_shift(keys, ref, own, indices, times)
+    assert found is not None and found.best == shift
+    assert found.rms_deg[shift] < 1e-6
+    assert min(v for k, v in found.rms_deg.items() if k != shift) > 0.1
+
+
+def test_numbering_shift_of_too_few_frames_is_none_and_bad_arguments_are_named() -> None:
+    own = _turning_trajectory(8)
+    indices = np.arange(8)
+    assert numbering_shift(indices, own, own, indices, indices / 30.0) is None
+    with pytest.raises(InvalidInputError, match="^poses, frame_indices, timestamps"):
+        numbering_shift(indices, own, own, indices[:5], indices / 30.0)
+    with pytest.raises(InvalidInputError, match="^max_shift"):
+        numbering_shift(indices, own, own, indices, indices / 30.0, max_shift=-1)
+
+
+def test_a_shifted_sfm_reference_is_refused_and_the_right_one_is_not() -> None:
+    """7-Scenes frames 0–99 against the SfM reference: as numbered it passes; numbered 20
+    frames on (as a shifted file would be), it is refused before any map is built."""
+    from geoloc.commands.evaluate import _check_numbering
+
+    if not (REDKITCHEN.is_dir() and SFM_POSES.is_file()):
+        pytest.skip(f"shared sample data not found at {REDKITCHEN} / {SFM_POSES} (see ../shared/data/README.md)")
+    train = datasets.load_7scenes(REDKITCHEN)[0:100]
+    keys, poses = load_reference(SFM_POSES)
+    reference = {"file": "sfm-poses.txt", "format": "7scenes-reference", "keys": keys, "poses": poses}
+    _check_numbering(reference, train)
+    with pytest.raises(InvalidInputError, match=r"^--reference: .* best shifted by \+20 frames"):
+        _check_numbering({**reference, "keys": keys + 20}, train)
+
+
 # ---------------------------------------------------------------------------- geoloc evaluate --reference
 
 
@@ -455,13 +511,17 @@ def test_evaluate_reference_errors_are_one_line(tmp_path: Path) -> None:
     # three training frames: a similarity fits them exactly, and determines nothing 30 frames on
     few = _room_reference(tmp_path, "7scenes-reference", np.r_[0:3, 30:60])  # type: ignore[arg-type]
     _one_line_error(_run(*room, "--reference", str(few)), "--reference", "do not determine its alignment")
-    # the frame numbers shifted by a third of the room: a similarity fits, far from every pose
-    # (it was accepted, with an "own uncertainty" of millimetres)
+    # the frame numbers shifted by a third of the room: the rotation from frame to frame
+    # matches the training frames' 20 frames on
     lines = _room_reference(tmp_path, "7scenes-reference").read_text().splitlines()
     shifted = _write(tmp_path / "shifted.txt", "\n".join(
         f"{(int(line.split()[0]) + ROOM_FRAMES // 3) % ROOM_FRAMES} {line.split(maxsplit=1)[1]}" for line in lines
     ) + "\n")
-    _one_line_error(_run(*room, "--reference", str(shifted)), "--reference", "does not fit the training frames")
+    _one_line_error(_run(*room, "--reference", str(shifted)), "--reference", "best shifted by +20 frames")
+    # another trajectory altogether: no numbering fits, and a similarity fits far from every
+    # pose (it was accepted, with an "own uncertainty" of millimetres)
+    other = _write(tmp_path / "other.txt", _reference_lines(list(range(ROOM_FRAMES)), _random_poses(np.random.default_rng(3), ROOM_FRAMES)))
+    _one_line_error(_run(*room, "--reference", str(other)), "--reference", "does not fit the training frames")
 
 
 def test_map_keyframe_poses_prefers_the_maps_own() -> None:

@@ -59,10 +59,12 @@ from .exceptions import DatasetError, InvalidInputError, NotARotationError
 
 __all__ = [
     "REFERENCE_FORMATS",
+    "NumberingShift",
     "ReferenceAlignment",
     "align_reference",
     "load_reference",
     "match_reference",
+    "numbering_shift",
 ]
 
 Array = NDArray[np.float64]
@@ -291,7 +293,9 @@ class ReferenceAlignment:
         }
 
     def as_dict(self) -> dict[str, Any]:
-        """JSON-ready: S, X, the Huber scales, the fit's iterations and :meth:`statistics`."""
+        """JSON-ready: S, X, the Huber scales, the fit's iterations and :meth:`statistics`.
+        ``offset_translation`` is ‖t_X‖ in the reference's units (X acts before the scale);
+        ``scale`` times it is the offset in the map's units."""
         return {
             "convention": "aligned = S · R · X; rotation R_S R R_X, position s R_S (t + R t_X) + t_S",
             "scale": self.scale,
@@ -373,6 +377,78 @@ def _aligned_jacobians(s: float, rs: Array, rx: Array, tx: Array, ref: Array) ->
     jr[:, :, 1:4] = np.einsum("ij,njk,kl->nli", rs, r_rot, rx)  # A_jᵀ (R_S's left increment)
     jr[:, :, 7:10] = np.eye(3)
     return jp, jr
+
+
+@dataclass(frozen=True)
+class NumberingShift:
+    """How well a reference's frame numbering (or timing) matches poses it should describe
+    (:func:`numbering_shift`): ``rms_deg`` {shift: RMS difference of the frame-to-frame
+    rotation angles}, and ``best``, the shift with the least."""
+
+    rms_deg: dict[int, float]
+    best: int
+
+
+def _rotation_steps(poses: Array) -> Array:
+    """|log(R_iᵀ R_{i+1})| (radians) of consecutive poses (N − 1,)."""
+    relative = np.einsum("nji,njk->nik", poses[:-1, :3, :3], poses[1:, :3, :3])
+    return np.asarray(lie.rotation_angle(relative), dtype=np.float64).reshape(-1)
+
+
+def numbering_shift(
+    keys: ArrayLike,
+    reference_poses: ArrayLike,
+    poses: ArrayLike,
+    frame_indices: ArrayLike,
+    timestamps: ArrayLike,
+    max_shift: int | None = None,
+) -> NumberingShift | None:
+    """Whether the reference (``keys``, ``reference_poses`` as :func:`load_reference` returns
+    them) describes the frames ``poses`` (N, 4, 4; with their ``frame_indices`` and
+    ``timestamps``) under their own numbers or under shifted ones. The angle of the rotation
+    between consecutive frames, θ_i = |log(R_iᵀ R_{i+1})|, does not depend on the world frame,
+    the scale or a fixed camera offset (θ of S·R·X is θ of R), so the two trajectories'
+    θ sequences agree at the right numbering whatever the alignment; shifted by k frames the
+    reference is compared at frames i + k (a time-keyed one at t_i + k·Δt, Δt the median frame
+    interval), for |k| ≤ ``max_shift`` (default: the number of frames, at least 30 and at
+    most 200 — wider searches on short trajectories find chance matches), over the
+    consecutive pairs both have — at least half as
+    many as at the own numbering, and 10. None when fewer than 10 pairs are compared at the
+    own numbering."""
+    ref = _poses(reference_poses, "reference_poses")
+    own = _poses(poses, "poses")
+    indices = np.asarray(frame_indices).reshape(-1)
+    times = as_float64(timestamps, "timestamps").reshape(-1)
+    if not (len(indices) == len(times) == len(own)):
+        raise InvalidInputError(
+            f"poses, frame_indices, timestamps: expected one per frame, got {len(own)}, {len(indices)}, {len(times)}"
+        )
+    if len(own) < 2:
+        return None
+    step = float(np.median(np.diff(times)))
+    if not step > 0:
+        return None
+    keyed_by_time = np.asarray(keys).dtype.kind == "f"
+    steps = _rotation_steps(own)
+    if max_shift is None:
+        max_shift = min(200, max(30, len(own)))
+    if isinstance(max_shift, bool) or not isinstance(max_shift, int) or max_shift < 0:
+        raise InvalidInputError(f"max_shift: expected an integer ≥ 0, got {max_shift!r}")
+    consecutive = np.diff(indices) == 1
+    rms: dict[int, float] = {}
+    needed = 10
+    for k in sorted(range(-max_shift, max_shift + 1), key=abs):  # 0 first: it sets how many pairs count
+        rows = match_reference(keys, indices + k, times + k * step) if keyed_by_time else match_reference(keys, indices + k)
+        paired = (rows[:-1] >= 0) & (rows[1:] >= 0) & consecutive
+        if paired.sum() < needed:
+            if k == 0:
+                return None
+            continue
+        if k == 0:
+            needed = max(10, int(paired.sum()) // 2)
+        theirs = _rotation_steps(ref[np.where(rows >= 0, rows, 0)])
+        rms[k] = float(np.degrees(np.sqrt(np.mean((theirs - steps)[paired] ** 2))))
+    return NumberingShift(rms, min(rms, key=lambda k: (rms[k], abs(k))))
 
 
 def align_reference(
