@@ -175,3 +175,12 @@ def test_a_part_that_only_revisits_the_place_is_corrected_too(kitchen: tuple[Seq
     labels = np.median(_errors_against_reference(reference, frames, seq.poses[frames])[1][cut_off])
     adjusted = np.median(_errors_against_reference(reference, frames, m.keyframe_poses)[1][cut_off])
     assert adjusted <= 0.75 and adjusted < 0.7 * labels, (adjusted, labels)
+
+
+def test_build_map_summary_of_unchecked_labels_states_only_that() -> None:
+    """Labels no track linked were adjusted against their priors alone: no σ, correction or
+    offset is printed as if measured."""
+    from geoloc.commands._common import describe_labels
+
+    line = describe_labels({"state": "kept (not checked: no tracks between the keyframes)"})
+    assert line == "labels kept (not checked: no tracks between the keyframes)"

@@ -517,3 +517,11 @@ def test_export_frames_refuses_a_sequence_whose_timestamps_go_back(tmp_path: Pat
         geoloc.export_frames(small_map, seq[::-1], tmp_path / "frames.bin")
     assert not (tmp_path / "frames.bin").exists()
     assert geoloc.export_frames(small_map, seq, tmp_path / "frames.bin") == 4
+
+
+def test_export_frames_names_the_frame_whose_image_is_wrong(tmp_path: Path, small_map: geoloc.Map) -> None:
+    room = datasets.synthetic_room(n_frames=12, seed=0)
+    pairs = [(0.0, room[10].image), (1.0, np.zeros((5, 5), dtype=np.uint8))]
+    with pytest.raises(geoloc.InvalidInputError, match=r"^frames\[1\] image: "):
+        geoloc.export_frames(small_map, pairs, tmp_path / "frames.bin")
+    assert not (tmp_path / "frames.bin").exists()

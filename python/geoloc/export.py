@@ -115,7 +115,10 @@ def export_frames(
     writer = FrameWriter(os.fspath(target), format=format)
     try:
         for done, (timestamp, image) in enumerate(pairs, start=1):
-            gray = query_gray(image, extractor, map.camera)
+            try:
+                gray = query_gray(image, extractor, map.camera)
+            except InvalidInputError as e:  # which frame's image
+                raise InvalidInputError(f"frames[{done - 1}] {e}") from None
             f = extractor(gray, map.camera)
             g: NDArray[np.float32] | None = None
             if global_descriptor is not None:

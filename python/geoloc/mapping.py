@@ -297,7 +297,10 @@ class Map:
         (``retrieval="global"`` retrieves by them alone, ``"fused"`` — the default when they
         are given — combines them with bag of words as :meth:`build` does with a network;
         without them the default is bag of words),
-        ``pose_covariances`` (K, 6, 6) of the labels and ``timestamps`` (K,) in seconds.
+        ``pose_covariances`` (K, 6, 6) of the labels and ``timestamps`` (K,) in seconds. The
+        pose covariances are the keyframes' while the labels are kept (``adjust_labels=False``,
+        or labels the images agree with); a labels' adjustment that is applied replaces them
+        by the adjusted poses' marginal covariances (:attr:`labels` says which happened).
 
         The build options and their defaults are those of :meth:`build`. Everything is
         checked here (counts, finiteness, float32 range, covariances symmetric positive

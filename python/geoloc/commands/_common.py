@@ -292,6 +292,9 @@ def describe_labels(found: dict[str, Any] | None) -> str:
     if found is None:
         return "labels: kept as the keyframes' truth (--keep-labels)"
     state = found["state"]
+    if state.startswith("kept (not checked"):
+        # no track linked the keyframes: the adjustment had only its priors, its figures are theirs
+        return f"labels {state}"
     runs = ", ".join(f"{r['start']}-{r['end'] - 1}" for r in found["runs"]) or "none"
     largest = sorted(found["steps"], key=lambda s: -s["translation_m"])[:3]
     steps = ", ".join(f"{s['start']}-{s['end'] - 1} ({100 * s['translation_m']:.1f} cm / {s['rotation_deg']:.1f}°)"

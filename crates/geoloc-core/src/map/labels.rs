@@ -191,6 +191,10 @@ impl LabelAdjustment {
         let (mt, mr) = self.median_correction();
         let x = self.offset.log();
         let state = self.state();
+        if self.observations.0 == 0 {
+            // only the priors were adjusted: σ, offset and corrections are theirs, not measured
+            return state.to_string();
+        }
         format!(
             "{state}: label σ {:.1} mm / {:.2}°, offset label_from_cam {:.1} cm / {:.2}°, median correction {:.1} mm / \
              {:.2}°, {} run(s) of significant corrections, {}, reprojection {:.2} -> {:.2} px rms",
@@ -476,7 +480,9 @@ mod tests {
         assert_eq!(adjusted.state(), "adjusted");
         assert_eq!(agreed.state(), "kept (the images agree with them)");
         assert_eq!(unchecked.state(), "kept (not checked: no tracks between the keyframes)");
-        assert!(unchecked.summary().starts_with("kept (not checked"));
+        // its σ and corrections are the priors', nothing measured: the summary says the state alone
+        assert_eq!(unchecked.summary(), unchecked.state());
+        assert!(agreed.summary().starts_with("kept (the images agree with them): label σ"));
         assert_eq!(unchecked.report_json()["state"], unchecked.state());
     }
 
