@@ -67,8 +67,9 @@ def test_bad_frames_and_maps(feature_map: tuple[Map, np.ndarray, np.ndarray]) ->
         loc.localize_features(0.0, np.zeros((3, 2)), np.zeros((3, 32), dtype=np.float32))
     with pytest.raises(geoloc.InvalidInputError, match="retrieval"):
         Map.from_features(CAM, np.eye(4)[None], [np.zeros((1, 2))], [np.zeros((1, 32), dtype=np.uint8)], retrieval="ann", estimate_noise=False, refine_intrinsics=False, adjust_labels=False)  # type: ignore[arg-type]
-    with pytest.raises(geoloc.InvalidInputError, match="needs a global descriptor"):
-        Map.from_features(CAM, np.eye(4)[None], [np.zeros((1, 2))], [np.zeros((1, 32), dtype=np.uint8)], retrieval="global", estimate_noise=False, refine_intrinsics=False, adjust_labels=False)
+    for kind in ("global", "fused"):
+        with pytest.raises(geoloc.InvalidInputError, match=f"^global_descriptors: retrieval='{kind}' retrieves by them, and none were given"):
+            Map.from_features(CAM, np.eye(4)[None], [np.zeros((1, 2))], [np.zeros((1, 32), dtype=np.uint8)], retrieval=kind, estimate_noise=False, refine_intrinsics=False, adjust_labels=False)  # type: ignore[arg-type]
     with pytest.raises(geoloc.InvalidInputError, match="history"):
         Localizer(m, history=1)
 

@@ -314,6 +314,11 @@ class Map:
                 "global_descriptors: given with retrieval='bow', which does not use them "
                 "(retrieval='fused' combines them with bag of words, 'global' retrieves by them alone)"
             )
+        if global_descriptors is None and retrieval in ("global", "fused"):
+            raise InvalidInputError(
+                f"global_descriptors: retrieval={retrieval!r} retrieves by them, and none were given "
+                "(retrieval='bow' needs none)"
+            )
         if global_descriptors is not None and retrieval is None:
             retrieval = "fused"  # as Map.build with a network: they were silently dropped
         options = _build_options(branching, depth, seed, estimate_noise, model, refine_intrinsics, intrinsics_model, adjust_labels)
