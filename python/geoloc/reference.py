@@ -406,7 +406,8 @@ def numbering_shift(
     """Whether the reference (``keys``, ``reference_poses`` as :func:`load_reference` returns
     them) describes the frames ``poses`` (N, 4, 4; with their ``frame_indices`` and
     ``timestamps``) under their own numbers or under shifted ones. The angle of the rotation
-    between consecutive frames, θ_i = |log(R_iᵀ R_{i+1})|, does not depend on the world frame,
+    from one frame to the next of ``poses`` (whatever the gap in frame numbers between them),
+    θ_i = |log(R_iᵀ R_{i+1})|, does not depend on the world frame,
     the scale or a fixed camera offset (θ of S·R·X is θ of R), so the two trajectories'
     θ sequences agree at the right numbering whatever the alignment; shifted by k frames the
     reference is compared at frames i + k (a time-keyed one at t_i + k·Δt, Δt the median frame
@@ -434,12 +435,11 @@ def numbering_shift(
         max_shift = min(200, max(30, len(own)))
     if isinstance(max_shift, bool) or not isinstance(max_shift, int) or max_shift < 0:
         raise InvalidInputError(f"max_shift: expected an integer ≥ 0, got {max_shift!r}")
-    consecutive = np.diff(indices) == 1
     rms: dict[int, float] = {}
     needed = 10
     for k in sorted(range(-max_shift, max_shift + 1), key=abs):  # 0 first: it sets how many pairs count
         rows = match_reference(keys, indices + k, times + k * step) if keyed_by_time else match_reference(keys, indices + k)
-        paired = (rows[:-1] >= 0) & (rows[1:] >= 0) & consecutive
+        paired = (rows[:-1] >= 0) & (rows[1:] >= 0)
         if paired.sum() < needed:
             if k == 0:
                 return None
