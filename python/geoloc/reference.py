@@ -405,17 +405,19 @@ def numbering_shift(
 ) -> NumberingShift | None:
     """Whether the reference (``keys``, ``reference_poses`` as :func:`load_reference` returns
     them) describes the frames ``poses`` (N, 4, 4; with their ``frame_indices`` and
-    ``timestamps``) under their own numbers or under shifted ones. The angle of the rotation
-    from one frame to the next of ``poses`` (whatever the gap in frame numbers between them),
-    θ_i = |log(R_iᵀ R_{i+1})|, does not depend on the world frame,
-    the scale or a fixed camera offset (θ of S·R·X is θ of R), so the two trajectories'
-    θ sequences agree at the right numbering whatever the alignment; shifted by k frames the
+    ``timestamps``) under their own numbers or under shifted ones.
+
+    The angle of the rotation from one frame of ``poses`` to the next (whatever the gap in
+    frame numbers between them), θ_i = |log(R_iᵀ R_{i+1})|, does not depend on the world
+    frame, the scale or a fixed camera offset (θ of S·R·X is θ of R), so the two trajectories'
+    θ sequences agree at the right numbering whatever the alignment. Shifted by k frames, the
     reference is compared at frames i + k (a time-keyed one at t_i + k·Δt, Δt the median frame
-    interval), for |k| ≤ ``max_shift`` (default: the number of frames, at least 30 and at
-    most 200 — wider searches on short trajectories find chance matches), over the
-    consecutive pairs both have — at least half as
-    many as at the own numbering, and 10. None when fewer than 10 pairs are compared at the
-    own numbering."""
+    interval), for |k| ≤ ``max_shift`` (default: N, at least 30 and at most 200 — wider searches
+    on short trajectories find chance matches), over the pairs both have: at least 10 and half
+    as many as under the own numbering, else that shift is skipped. None when fewer than 10
+    pairs are compared under the own numbering."""
+    if max_shift is not None and (isinstance(max_shift, bool) or not isinstance(max_shift, int) or max_shift < 0):
+        raise InvalidInputError(f"max_shift: expected an integer ≥ 0, got {max_shift!r}")
     ref = _poses(reference_poses, "reference_poses")
     own = _poses(poses, "poses")
     indices = np.asarray(frame_indices).reshape(-1)
@@ -433,8 +435,6 @@ def numbering_shift(
     steps = _rotation_steps(own)
     if max_shift is None:
         max_shift = min(200, max(30, len(own)))
-    if isinstance(max_shift, bool) or not isinstance(max_shift, int) or max_shift < 0:
-        raise InvalidInputError(f"max_shift: expected an integer ≥ 0, got {max_shift!r}")
     rms: dict[int, float] = {}
     needed = 10
     for k in sorted(range(-max_shift, max_shift + 1), key=abs):  # 0 first: it sets how many pairs count
