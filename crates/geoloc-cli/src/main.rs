@@ -62,7 +62,11 @@ fn main() -> ExitCode {
     if let Command::Localize(args) = &cli.command
         && let Some(message) = localize::usage_error(args)
     {
-        Cli::command().error(clap::error::ErrorKind::ValueValidation, message).exit();
+        // the subcommand's own usage line, as clap prints for its other bad values
+        let mut cli_command = Cli::command();
+        cli_command.build();
+        let localize = cli_command.find_subcommand_mut("localize").expect("invariant: localize is a subcommand");
+        localize.error(clap::error::ErrorKind::ValueValidation, message).exit();
     }
     if let Some(warning) = geoloc_core::parallel::environment_warning() {
         eprintln!("geoloc-rs: warning: {warning}");

@@ -686,6 +686,8 @@ fn option_values_the_core_refuses_are_usage_errors_naming_the_flag() {
         let err = String::from_utf8_lossy(&out.stderr);
         assert_eq!(out.status.code(), Some(2), "{flag} {value}: {err}");
         assert!(err.contains(&format!("'{flag}")), "{flag} {value}: {err}");
+        // a usage line, if any, is the subcommand's (not the top level's list of commands)
+        assert!(!err.contains("Usage: geoloc-rs <COMMAND>"), "{flag} {value}: {err}");
         assert!(out.stdout.is_empty(), "{flag} {value}: nothing written");
     }
 }
