@@ -1,11 +1,13 @@
 """Honesty as a rate: does a `geometric`/`fused` answer lie about where the camera is?
 
 Maps of 30, 100 and 600 keyframes of the shared 7-Scenes redkitchen frames (0:60:2, 0:300:3,
-0:600); queries each map covers and queries it does not:
+0:600), and two maps of 100 consecutive frames elsewhere in the sequence (300:400 and 500:600,
+named 100@300 and 100@500: the kitchen seen from other places, so that the out-of-map
+queries are not all of one region); queries each map covers and queries it does not:
 
 * ``in-range`` — frames inside the map's span that are not keyframes (0:60:2, 0:300:3: the
-  frames between keyframes, every 4th / 7th), and for the 600-keyframe map the paper's test
-  frames 600–699 (every 2nd);
+  frames between keyframes, every 4th / 7th), for the 600-keyframe map the paper's test
+  frames 600–699 (every 2nd), none for the 100@ maps (every frame of their span is a keyframe);
 * ``outside`` — frames of 0–699 more than 30 frames from the map's span, every 10th (the
   kitchen loops: some of these see what the map saw, from elsewhere);
 * ``other-scene`` — 40 frames of the synthetic room (another place entirely);
@@ -22,7 +24,7 @@ region of the returned covariance (NEES > 22.46) and the fraction more than 0.5 
 — the acceptance targets are ≤ 1 % and ≤ 0.5 % — and, per map, the recall of the in-range
 queries (reported and within 0.5 m / 10°), with the worst offenders.
 
-    PYTHONPATH=python python benchmarks/honesty.py [--maps 30,100,600] [--locators paper,model]
+    PYTHONPATH=python python benchmarks/honesty.py [--maps 30,100,100@300,100@500,600] [--locators paper,model]
         [--modes single,sequential] [--keep-labels] [--json out.json]
 
 Not a test: the 600-keyframe map alone takes about a minute to build on 2 cores.
@@ -47,7 +49,7 @@ KITCHEN = DATA / "7scenes-redkitchen"
 REFERENCE = DATA / "7scenes-redkitchen-reference" / "sfm-poses.txt"
 
 #: map name → (first, stop, step) of its keyframes.
-MAPS = {"30": (0, 60, 2), "100": (0, 300, 3), "600": (0, 600, 1)}
+MAPS = {"30": (0, 60, 2), "100": (0, 300, 3), "100@300": (300, 400, 1), "100@500": (500, 600, 1), "600": (0, 600, 1)}
 #: Query frames this many frames from the map's span or more are ``outside`` it.
 OUTSIDE_MARGIN = 30
 GROSS_M, GROSS_DEG = 0.5, 10.0
@@ -57,10 +59,12 @@ def query_sets(name: str, n_frames: int) -> dict[str, list[int]]:
     a, b, s = MAPS[name]
     if s > 1:
         in_range = [i for i in range(a, b) if i % s][:: max(1, (b - a) // (s * 15))]
-    else:
+    elif name == "600":
         in_range = list(range(b, min(b + 100, n_frames), 2))
+    else:
+        in_range = []
     outside = [i for i in range(0, n_frames, 10) if i < a - OUTSIDE_MARGIN or i >= b + OUTSIDE_MARGIN]
-    if s == 1:  # the 600 map: 600–699 are its in-range set
+    if name == "600":  # 600–699 are its in-range set
         outside = [i for i in outside if i >= b + 100 or i < a - OUTSIDE_MARGIN]
     return {"in-range": in_range, "outside": outside}
 
@@ -119,7 +123,7 @@ def summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--maps", default="30,100,600")
+    ap.add_argument("--maps", default="30,100,100@300,100@500,600")
     ap.add_argument("--locators", default="paper,model")
     ap.add_argument("--modes", default="single,sequential")
     ap.add_argument("--json", default=None)
