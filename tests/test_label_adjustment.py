@@ -182,5 +182,5 @@ def test_build_map_summary_of_unchecked_labels_states_only_that() -> None:
     offset is printed as if measured."""
     from geoloc.commands._common import describe_labels
 
-    line = describe_labels({"state": "kept (not checked: no tracks between the keyframes)"})
+    line = describe_labels({"state": "kept (not checked: no tracks between the keyframes)", "observations": [0, 0]})
     assert line == "labels kept (not checked: no tracks between the keyframes)"

@@ -292,7 +292,7 @@ def describe_labels(found: dict[str, Any] | None) -> str:
     if found is None:
         return "labels: kept as the keyframes' truth (--keep-labels)"
     state = found["state"]
-    if state.startswith("kept (not checked"):
+    if found["observations"][0] == 0:
         # no track linked the keyframes: the adjustment had only its priors, its figures are theirs
         return f"labels {state}"
     runs = ", ".join(f"{r['start']}-{r['end'] - 1}" for r in found["runs"]) or "none"
