@@ -27,7 +27,10 @@ def room() -> tuple[Any, Any, geoloc.Map]:
 def test_map_records_its_noise_and_keeps_it(room: tuple[Any, Any, geoloc.Map], tmp_path: Path) -> None:
     train, _, m = room
     noise = m.map_noise
-    assert noise["holdout_samples"] >= 5
+    # every held-out keyframe it placed is one recorded sample; 100 keyframes place too few to
+    # estimate the noise from them, so it is the documented default, never zero
+    assert 0 < noise["holdout_samples"] == len(noise["holdout"]["keyframe"]) < geoloc._core.MIN_NOISE_SAMPLES
+    assert noise["pose_covariance_source"].startswith("default:"), noise["pose_covariance_source"]
     c = noise["pose_covariance"]
     assert c.shape == (6, 6) and np.all(np.isfinite(c)) and np.all(np.linalg.eigvalsh(c) >= 0)
     assert noise["acceleration_psd"].shape == (6,) and np.all(noise["acceleration_psd"] > 0)
