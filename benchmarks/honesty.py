@@ -50,6 +50,9 @@ REFERENCE = DATA / "7scenes-redkitchen-reference" / "sfm-poses.txt"
 
 #: map name → (first, stop, step) of its keyframes.
 MAPS = {"30": (0, 60, 2), "100": (0, 300, 3), "100@300": (300, 400, 1), "100@500": (500, 600, 1), "600": (0, 600, 1)}
+#: map name → (first, stop, step) of the frames after its span that are its ``in-range``
+#: queries rather than ``outside`` ones: the paper's test frames for the 600-keyframe map.
+TEST_SPANS = {"600": (600, 700, 2)}
 #: Query frames this many frames from the map's span or more are ``outside`` it.
 OUTSIDE_MARGIN = 30
 GROSS_M, GROSS_DEG = 0.5, 10.0
@@ -57,15 +60,13 @@ GROSS_M, GROSS_DEG = 0.5, 10.0
 
 def query_sets(name: str, n_frames: int) -> dict[str, list[int]]:
     a, b, s = MAPS[name]
-    if s > 1:
-        in_range = [i for i in range(a, b) if i % s][:: max(1, (b - a) // (s * 15))]
-    elif name == "600":
-        in_range = list(range(b, min(b + 100, n_frames), 2))
-    else:
-        in_range = []
+    # between the keyframes of a subsampled map (a map of every frame has none)
+    in_range = [i for i in range(a, b) if i % s][:: max(1, (b - a) // (s * 15))] if s > 1 else []
     outside = [i for i in range(0, n_frames, 10) if i < a - OUTSIDE_MARGIN or i >= b + OUTSIDE_MARGIN]
-    if name == "600":  # 600–699 are its in-range set
-        outside = [i for i in outside if i >= b + 100 or i < a - OUTSIDE_MARGIN]
+    if name in TEST_SPANS:
+        lo, hi, step = TEST_SPANS[name]
+        in_range += list(range(lo, min(hi, n_frames), step))
+        outside = [i for i in outside if not lo <= i < hi]
     return {"in-range": in_range, "outside": outside}
 
 
