@@ -6,7 +6,7 @@ translation first; perturbations and covariances are on the right (``T @ exp(δ^
 
 from __future__ import annotations
 
-from . import datasets, descriptor, evaluation, features, geometry, lie, localizer, mapping, matching, plots, retrieval
+from . import adjustment, datasets, descriptor, evaluation, features, geometry, lie, localizer, mapping, matching, plots, retrieval
 from ._core import __version__
 from .camera import Camera
 from .descriptor import OnnxDescriptor
@@ -33,6 +33,7 @@ __all__ = [
     "NotARotationError",
     "OnnxDescriptor",
     "__version__",
+    "adjustment",
     "datasets",
     "descriptor",
     "evaluation",

@@ -49,6 +49,49 @@ def se3_interpolate(
 def se3_transform_points(
     pose: NDArray[np.float64], points: NDArray[np.float64], *, single: bool = False
 ) -> NDArray[np.float64]: ...
+@final
+class Adjustment:
+    @property
+    def label_poses(self) -> NDArray[np.float64]: ...
+    @property
+    def camera_poses(self) -> NDArray[np.float64]: ...
+    @property
+    def offset(self) -> NDArray[np.float64]: ...
+    @property
+    def points(self) -> NDArray[np.float64]: ...
+    @property
+    def label_pose_covariances(self) -> NDArray[np.float64]: ...
+    @property
+    def offset_covariance(self) -> NDArray[np.float64]: ...
+    @property
+    def point_covariances(self) -> NDArray[np.float64]: ...
+    @property
+    def inliers(self) -> NDArray[np.bool_]: ...
+    @property
+    def label_sigma(self) -> tuple[float, float]: ...
+    @property
+    def cost(self) -> tuple[float, float]: ...
+    @property
+    def rms_px(self) -> tuple[float, float]: ...
+    @property
+    def iterations(self) -> int: ...
+
+def bundle_adjust(
+    intrinsics: tuple[float, float, float, float],
+    labels: NDArray[np.float64],
+    points: NDArray[np.float64],
+    obs_keyframes: NDArray[np.int64],
+    obs_points: NDArray[np.int64],
+    obs_pixels: NDArray[np.float64],
+    *,
+    start: NDArray[np.float64] | None = None,
+    offset: NDArray[np.float64] | None = None,
+    label_sigma: tuple[float, float] | None = None,
+    estimate_offset: bool = True,
+    max_iterations: int = 40,
+    outlier_px: float = 4.0,
+    pixel_sigma: float = 1.0,
+) -> Adjustment: ...
 def track_statuses() -> list[tuple[int, str, str]]: ...
 @final
 class Triangulated:
@@ -285,6 +328,16 @@ class FeatureMap:
     def keyframe_poses(self) -> NDArray[np.float64]: ...
     @property
     def camera_poses(self) -> NDArray[np.float64]: ...
+    def label_adjustment_problem(
+        self,
+    ) -> tuple[
+        NDArray[np.int64],
+        NDArray[np.float64],
+        NDArray[np.float64],
+        NDArray[np.int64],
+        NDArray[np.int64],
+        NDArray[np.float64],
+    ]: ...
     @property
     def model_points(self) -> int | None: ...
     @property

@@ -26,6 +26,7 @@ from numpy.typing import ArrayLike, NDArray
 from . import _core
 from ._frontend import FRONTEND_VERSION, camera_record, descriptor_record, frontend_parts
 from ._io import shown
+from .adjustment import AdjustmentProblem
 from ._validation import as_batch, as_float64, check_progress, choice, given_options, keypoint_rows, network_rows, real_scalar
 from .camera import Camera
 from .exceptions import FileAccessError, InvalidInputError
@@ -415,6 +416,17 @@ class Map:
         localizer, the motion model and the map's noise work in this frame."""
         poses: NDArray[np.float64] = self._core.camera_poses
         return poses
+
+    def label_adjustment_problem(self) -> AdjustmentProblem:
+        """The problem :meth:`build` solves to correct the labels (``adjust_labels``), for
+        :func:`geoloc.adjustment.bundle_adjust` or a peer's adjuster: the skeleton keyframes
+        (``keyframes``, the map's indices), their labels, the points triangulated from them
+        and the tracks' observations, in this map's camera and keypoints (corrected when the
+        map estimated its camera). Only for a map built with ``adjust_labels=False``: an
+        adjusted map's problem is that of other start poses (InvalidInputError naming
+        ``labels``)."""
+        keyframes, labels, points, obs_kf, obs_pt, obs_px = self._core.label_adjustment_problem()
+        return AdjustmentProblem(self._camera.intrinsics, labels, points, obs_kf, obs_pt, obs_px, keyframes)
 
     @property
     def model_points(self) -> int | None:

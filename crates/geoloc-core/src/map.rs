@@ -104,6 +104,22 @@ pub struct Map {
     pub group_matches: Option<GroupMatches>,
 }
 
+/// A labels' adjustment problem ([`Map::label_adjustment_problem`]): what
+/// [`crate::adjust::bundle_adjust_from`] takes, on the skeleton keyframes `keyframes`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct AdjustmentProblem {
+    /// The map's keyframe index of each of the problem's keyframes (the skeleton, in order).
+    pub keyframes: Vec<usize>,
+    /// Their labels (world_from_label), the priors.
+    pub labels: Vec<SE3>,
+    /// Their start poses (label convention; the labels for a map not adjusted before).
+    pub start: Vec<SE3>,
+    /// The points (world), triangulated from the start poses.
+    pub points: Vec<nalgebra::Vector3<f64>>,
+    /// Keyframe `keyframe` (an index into `labels`) sees point `point` at `pixel`.
+    pub observations: Vec<Observation>,
+}
+
 /// Which build steps [`Map::with_build_steps`] runs, in this order: the labels' adjustment,
 /// the camera estimate (with the adjusted camera poses), the 3D model (each None to skip it).
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -543,25 +559,17 @@ impl Map {
             ),
             None => (self.poses(), self.poses(), SE3::identity(), None),
         };
-        let chosen = crate::adjust::skeleton(&start);
-        let keyframes: Vec<Keyframe> = chosen.iter().map(|&k| self.keyframes[k].clone()).collect();
-        let tracks = adjustment_tracks();
-        let pairs = PairMatches::compute(&keyframes, &tracks)?;
-        let model = SceneModel::assemble(&self.camera, &keyframes, None, &tracks, &pairs)?;
-        let observations: Vec<Observation> = model
-            .observations(&keyframes)
-            .map(|(keyframe, point, pixel)| Observation { keyframe, point, pixel })
-            .collect();
-        let pick = |v: &[SE3]| chosen.iter().map(|&k| v[k]).collect::<Vec<_>>();
+        let problem = self.skeleton_problem(&labels, &start)?;
+        let chosen = &problem.keyframes;
         let adjustment = crate::adjust::bundle_adjust_from(
             &self.camera,
-            &pick(&labels),
-            (&pick(&start), &offset),
-            &model.points,
-            &observations,
+            &problem.labels,
+            (&problem.start, &offset),
+            &problem.points,
+            &problem.observations,
             options,
         )?;
-        let (adjusted, nearest) = interpolated_corrections(&labels, &chosen, &adjustment.label_poses);
+        let (adjusted, nearest) = interpolated_corrections(&labels, chosen, &adjustment.label_poses);
         let label_covariances: Vec<Matrix6<f64>> =
             nearest.iter().map(|&s| adjustment.label_pose_covariances[s]).collect();
         let mut record = LabelAdjustment::with_poses(labels, &adjusted, &label_covariances, &adjustment);
@@ -582,6 +590,46 @@ impl Map {
         self.labels = Some(record);
         self.model = None;
         Ok(())
+    }
+
+    /// The problem the labels' adjustment of this map solves ([`Map::with_adjusted_labels`]):
+    /// the skeleton keyframes, their labels as the priors and the start, the points
+    /// triangulated from the labels and the observations of the tracks (pairs proposed by the
+    /// labels, see [`adjustment_tracks`]) — what [`crate::adjust::bundle_adjust`] takes, for
+    /// adjusting it elsewhere (a peer's adjuster on the same problem) or with other options.
+    ///
+    /// # Errors
+    /// The map's labels were adjusted already (`labels`: the problem is that of the labels as
+    /// given); as [`PairMatches::compute`] and [`SceneModel::assemble`].
+    pub fn label_adjustment_problem(&self) -> Result<AdjustmentProblem> {
+        if self.labels.is_some() {
+            return Err(GeolocError::invalid("labels", "the map's labels are adjusted already"));
+        }
+        let poses = self.poses();
+        self.skeleton_problem(&poses, &poses)
+    }
+
+    /// The adjustment problem of the skeleton of `start` ([`crate::adjust::skeleton`]): the
+    /// labels `labels` and the start poses `start` (one per keyframe) picked at the skeleton's
+    /// keyframes, with the tracks the skeleton's pairs give.
+    fn skeleton_problem(&self, labels: &[SE3], start: &[SE3]) -> Result<AdjustmentProblem> {
+        let chosen = crate::adjust::skeleton(start);
+        let keyframes: Vec<Keyframe> = chosen.iter().map(|&k| self.keyframes[k].clone()).collect();
+        let tracks = adjustment_tracks();
+        let pairs = PairMatches::compute(&keyframes, &tracks)?;
+        let model = SceneModel::assemble(&self.camera, &keyframes, None, &tracks, &pairs)?;
+        let observations: Vec<Observation> = model
+            .observations(&keyframes)
+            .map(|(keyframe, point, pixel)| Observation { keyframe, point, pixel })
+            .collect();
+        let pick = |v: &[SE3]| chosen.iter().map(|&k| v[k]).collect::<Vec<_>>();
+        Ok(AdjustmentProblem {
+            labels: pick(labels),
+            start: pick(start),
+            points: model.points,
+            observations,
+            keyframes: chosen,
+        })
     }
 
     /// The keyframe poses in the labels' convention: T_k X⁻¹ when the map applied its

@@ -3,6 +3,7 @@
 //! This crate holds no math: each function validates and borrows its numpy inputs, calls
 //! geoloc-core without the GIL, and converts the outputs.
 
+mod adjust;
 mod bow;
 mod convert;
 mod errors;
@@ -26,6 +27,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("PARALLEL_MIN_ITEMS", geoloc_core::parallel::PARALLEL_MIN_ITEMS)?;
     m.add("MIN_NOISE_SAMPLES", geoloc_core::localizer::MIN_NOISE_SAMPLES)?;
     lie::register(m)?;
+    adjust::register(m)?;
     geometry::register(m)?;
     temporal::register(m)?;
     retrieval::register(m)?;

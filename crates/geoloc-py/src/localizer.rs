@@ -213,6 +213,43 @@ impl FeatureMap {
         matrices_to_array3(py, &self.inner.poses().iter().map(|p| p.matrix()).collect::<Vec<_>>())
     }
 
+    /// The labels' adjustment problem of this map (`Map::label_adjustment_problem`):
+    /// (keyframes (S,) int64, labels (S, 4, 4), points (N, 3), observation keyframes (M,)
+    /// int64 into the S, observation points (M,) int64, observation pixels (M, 2)).
+    #[allow(clippy::type_complexity)]
+    fn label_adjustment_problem<'py>(
+        &self,
+        py: Python<'py>,
+    ) -> PyResult<(
+        Bound<'py, numpy::PyArray1<i64>>,
+        Bound<'py, numpy::PyArray3<f64>>,
+        Bound<'py, numpy::PyArray2<f64>>,
+        Bound<'py, numpy::PyArray1<i64>>,
+        Bound<'py, numpy::PyArray1<i64>>,
+        Bound<'py, numpy::PyArray2<f64>>,
+    )> {
+        let inner = Arc::clone(&self.inner);
+        let p = py.detach(move || inner.label_adjustment_problem()).map_err(to_py_err)?;
+        let as_i64 = |v: Vec<usize>| v.into_iter().map(|i| i as i64).collect::<Vec<i64>>();
+        let points: Vec<f64> = p.points.iter().flat_map(|x| [x.x, x.y, x.z]).collect();
+        let pixels: Vec<f64> = p.observations.iter().flat_map(|o| [o.pixel.x, o.pixel.y]).collect();
+        let (n, m) = (p.points.len(), p.observations.len());
+        Ok((
+            numpy::IntoPyArray::into_pyarray(as_i64(p.keyframes), py),
+            matrices_to_array3(py, &p.labels.iter().map(|x| x.matrix()).collect::<Vec<_>>()),
+            numpy::IntoPyArray::into_pyarray(
+                numpy::ndarray::Array2::from_shape_vec((n, 3), points).expect("three values per point"),
+                py,
+            ),
+            numpy::IntoPyArray::into_pyarray(as_i64(p.observations.iter().map(|o| o.keyframe).collect()), py),
+            numpy::IntoPyArray::into_pyarray(as_i64(p.observations.iter().map(|o| o.point).collect()), py),
+            numpy::IntoPyArray::into_pyarray(
+                numpy::ndarray::Array2::from_shape_vec((m, 2), pixels).expect("two values per pixel"),
+                py,
+            ),
+        ))
+    }
+
     /// Points of the map-level 3D model, or None when the map has no model.
     #[getter]
     fn model_points(&self) -> Option<usize> {
