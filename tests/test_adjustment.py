@@ -121,6 +121,34 @@ def test_the_minimum_is_colmaps() -> None:
     assert np.abs(rel_est - rel_true).max() < 0.01
 
 
+def test_keypoint_sigmas_weigh_the_pixel_terms() -> None:
+    """With ``obs_sigmas`` s_o the pixel terms are Huber₂(‖π(K, L_k⁻¹P_j) − u_o‖² / s_o²): the
+    start cost (priors at zero, X = I) against the sum computed here with numpy; a coarse
+    keypoint (s_o > 1) counts for less, so the cost falls."""
+    problem, _ = _problem(seed=3)
+    rng = np.random.default_rng(5)
+    sigmas = 1.2 ** rng.integers(0, 8, len(problem.obs_pixels)).astype(float)
+    weighted = AdjustmentProblem(problem.intrinsics, problem.labels, problem.points, problem.obs_keyframes,
+                                 problem.obs_points, problem.obs_pixels, obs_sigmas=sigmas)
+    fx, fy, cx, cy = problem.intrinsics
+    poses = problem.labels[problem.obs_keyframes]
+    local = np.einsum("nji,nj->ni", poses[:, :3, :3], problem.points[problem.obs_points] - poses[:, :3, 3])
+    uv = np.c_[fx * local[:, 0] / local[:, 2] + cx, fy * local[:, 1] / local[:, 2] + cy]
+    s = np.sum((uv - problem.obs_pixels) ** 2, axis=1) / sigmas**2
+    expected = float(np.sum(np.where(s <= 4.0, s, 4.0 * np.sqrt(s) - 4.0)))
+    cost = bundle_adjust(weighted, label_sigma=SIGMA, max_iterations=1, outlier_px=1e9).cost[0]
+    assert cost == pytest.approx(expected, rel=1e-10)
+    assert cost < bundle_adjust(problem, label_sigma=SIGMA, max_iterations=1, outlier_px=1e9).cost[0]
+    bad = AdjustmentProblem(problem.intrinsics, problem.labels, problem.points, problem.obs_keyframes,
+                            problem.obs_points, problem.obs_pixels, obs_sigmas=sigmas[:-1])
+    with pytest.raises(InvalidInputError, match="obs_sigmas"):
+        bundle_adjust(bad)
+    zero = AdjustmentProblem(problem.intrinsics, problem.labels, problem.points, problem.obs_keyframes,
+                             problem.obs_points, problem.obs_pixels, obs_sigmas=np.where(np.arange(len(sigmas)) == 3, 0.0, sigmas))
+    with pytest.raises(InvalidInputError, match=re.escape("observations[3]")):
+        bundle_adjust(zero)
+
+
 def _replaced(problem: AdjustmentProblem, **changes: Any) -> AdjustmentProblem:
     fields = {k: getattr(problem, k) for k in ("intrinsics", "labels", "points", "obs_keyframes", "obs_points", "obs_pixels")}
     fields.update(changes)

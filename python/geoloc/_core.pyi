@@ -84,6 +84,7 @@ def bundle_adjust(
     obs_points: NDArray[np.int64],
     obs_pixels: NDArray[np.float64],
     *,
+    obs_sigmas: NDArray[np.float64] | None = None,
     start: NDArray[np.float64] | None = None,
     offset: NDArray[np.float64] | None = None,
     label_sigma: tuple[float, float] | None = None,

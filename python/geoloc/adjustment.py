@@ -5,10 +5,10 @@ The model (geoloc-core's ``adjust``; docs/labels.md): unknowns are per keyframe 
 label-convention pose B_k (world_from_label), the points P_j and one label-to-camera offset
 X = label_from_cam (the camera of keyframe k is T_k = B_k X); the minimized cost is
 
-    Σ_o ρ_px(‖π(K, T_k⁻¹ P_j) − u_o‖² / σ_px²) + Σ_k ρ_label(e_kᵀ Λ e_k) + e_Xᵀ Λ_X e_X,
+    Σ_o ρ_px(‖π(K, T_k⁻¹ P_j) − u_o‖² / (σ_px s_o)²) + Σ_k ρ_label(e_kᵀ Λ e_k) + e_Xᵀ Λ_X e_X,
     e_k = log(L_k⁻¹ B_k)^∨,   e_X = log(X)^∨,
 
-ρ_px Huber (width 2), ρ_label Cauchy (width 3) with ρ(s) the squared-norm convention
+s_o the observation's keypoint σ (``obs_sigmas``), ρ_px Huber (width 2), ρ_label Cauchy (width 3) with ρ(s) the squared-norm convention
 (Huber: s inside, 2k√s − k² outside; Cauchy: k² ln(1 + s/k²)), Λ = diag(σ_t⁻² I₃, σ_r⁻² I₃)
 (right perturbation, translation first) and Λ_X the offset's weak prior (0.2 m, 0.2 rad).
 Pixels are undistorted, in the pinhole camera ``intrinsics`` (fx, fy, cx, cy).
@@ -44,9 +44,10 @@ Adjustment = _core.Adjustment
 class AdjustmentProblem:
     """A labels' adjustment problem: ``labels`` (K, 4, 4) world_from_label, the priors and the
     start; ``points`` (N, 3) world, a start; observation ``i`` is point ``obs_points[i]`` seen
-    by keyframe ``obs_keyframes[i]`` at pixel ``obs_pixels[i]`` (undistorted, px);
-    ``intrinsics`` (fx, fy, cx, cy). From a map, ``keyframes`` (K,) are the map's keyframe
-    indices of the problem's keyframes (the skeleton the map adjusts)."""
+    by keyframe ``obs_keyframes[i]`` at pixel ``obs_pixels[i]`` (undistorted, px), a keypoint
+    of σ ``obs_sigmas[i]`` times the nominal pixel σ (its detector scale, ORB 1.2^level; None:
+    1 for every observation); ``intrinsics`` (fx, fy, cx, cy). From a map, ``keyframes`` (K,)
+    are the map's keyframe indices of the problem's keyframes (the skeleton the map adjusts)."""
 
     intrinsics: tuple[float, float, float, float]
     labels: Array
@@ -54,6 +55,7 @@ class AdjustmentProblem:
     obs_keyframes: NDArray[np.int64]
     obs_points: NDArray[np.int64]
     obs_pixels: Array
+    obs_sigmas: Array | None = None
     keyframes: NDArray[np.int64] | None = None
 
 
@@ -90,6 +92,11 @@ def bundle_adjust(
     m = len(pixels)
     keyframes = _index_array(problem.obs_keyframes, "obs_keyframes", m)
     point_ids = _index_array(problem.obs_points, "obs_points", m)
+    sigmas = None
+    if problem.obs_sigmas is not None:
+        sigmas = _real_array(problem.obs_sigmas, "obs_sigmas")
+        if sigmas.shape != (m,):
+            raise InvalidInputError(f"obs_sigmas: expected shape ({m},) like obs_pixels, got {sigmas.shape}")
     intrinsics = tuple(real_scalar(v, "intrinsics") for v in problem.intrinsics)
     if len(intrinsics) != 4:
         raise InvalidInputError(f"intrinsics: expected (fx, fy, cx, cy), got {len(intrinsics)} values")
@@ -109,6 +116,7 @@ def bundle_adjust(
         keyframes,
         point_ids,
         pixels,
+        obs_sigmas=sigmas,
         start=start_flat,
         offset=offset_arr,
         label_sigma=sigma,

@@ -426,7 +426,7 @@ class Map:
         adjusted map's problem is that of other start poses (InvalidInputError naming
         ``labels``)."""
         keyframes, labels, points, obs_kf, obs_pt, obs_px = self._core.label_adjustment_problem()
-        return AdjustmentProblem(self._camera.intrinsics, labels, points, obs_kf, obs_pt, obs_px, keyframes)
+        return AdjustmentProblem(self._camera.intrinsics, labels, points, obs_kf, obs_pt, obs_px, keyframes=keyframes)
 
     @property
     def model_points(self) -> int | None:

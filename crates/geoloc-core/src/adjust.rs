@@ -7,10 +7,12 @@
 //! the camera's pose). The camera of keyframe k sits at T_k = B_k X (world_from_cam). With
 //! observations u_o of point j(o) in keyframe k(o), labels L_k and the minimized cost
 //!
-//!   Σ_o ρ_px(‖π(K, T_k⁻¹ P_j) − u_o‖² / σ_px²) + Σ_k ρ_label(e_kᵀ Λ e_k) + e_Xᵀ Λ_X e_X,
+//!   Σ_o ρ_px(‖π(K, T_k⁻¹ P_j) − u_o‖² / (σ_px s_o)²) + Σ_k ρ_label(e_kᵀ Λ e_k) + e_Xᵀ Λ_X e_X,
 //!   e_k = log(L_k⁻¹ B_k)^∨,   e_X = log(X)^∨,
 //!
-//! with Λ = diag(σ_t⁻², σ_t⁻², σ_t⁻², σ_r⁻², σ_r⁻², σ_r⁻²) the label prior's information
+//! with s_o the observation's keypoint σ ([`Observation::sigma`], 1 for a map's own
+//! problem: see `Map::label_adjustment_problem`),
+//! Λ = diag(σ_t⁻², σ_t⁻², σ_t⁻², σ_r⁻², σ_r⁻², σ_r⁻²) the label prior's information
 //! (right perturbation, translation first) and Λ_X a weak prior that keeps the offset's
 //! translation defined where the data do not determine it. The priors carry the gauge and
 //! the scale. Perturbations are right ones: B_k ← B_k Exp(δ_k), X ← X Exp(δ_X), P_j ← P_j + δ_j.
@@ -137,7 +139,10 @@ impl AdjustmentOptions {
     }
 }
 
-/// One observation: keyframe `keyframe` sees point `point` at `pixel` (undistorted px).
+/// One observation: keyframe `keyframe` sees point `point` at `pixel` (undistorted px), a
+/// keypoint of relative σ `sigma` (its detector scale, ORB 1.2^level; 1 for a keypoint of the
+/// finest level): its residual is whitened by `pixel_sigma_px`·`sigma`; it is an outlier
+/// beyond `outlier_px` whatever its σ.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Observation {
     /// The observing keyframe.
@@ -146,6 +151,8 @@ pub struct Observation {
     pub point: usize,
     /// The pixel.
     pub pixel: Vector2<f64>,
+    /// The keypoint's σ relative to `pixel_sigma_px` (finite, > 0).
+    pub sigma: f64,
 }
 
 /// The adjusted map (see the module doc).
@@ -321,16 +328,21 @@ fn check_inputs(labels: &[SE3], points: &[Vector3<f64>], observations: &[Observa
         return Err(GeolocError::NonFinite { name: "points".into(), index: j });
     }
     for (i, o) in observations.iter().enumerate() {
-        if o.keyframe >= labels.len() || o.point >= points.len() || !o.pixel.iter().all(|v| v.is_finite()) {
+        if o.keyframe >= labels.len()
+            || o.point >= points.len()
+            || !o.pixel.iter().all(|v| v.is_finite())
+            || !(o.sigma.is_finite() && o.sigma > 0.0)
+        {
             return Err(GeolocError::invalid(
                 format!("observations[{i}]"),
                 format!(
-                    "keyframe {} of {}, point {} of {}, pixel {:?}",
+                    "keyframe {} of {}, point {} of {}, pixel {:?}, σ {}",
                     o.keyframe,
                     labels.len(),
                     o.point,
                     points.len(),
-                    o.pixel
+                    o.pixel,
+                    o.sigma
                 ),
             ));
         }

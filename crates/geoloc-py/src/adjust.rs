@@ -98,7 +98,7 @@ impl Adjusted {
 
 /// `geoloc_core::adjust::bundle_adjust_from` (see `geoloc.adjustment.bundle_adjust`).
 #[pyfunction]
-#[pyo3(signature = (intrinsics, labels, points, obs_keyframes, obs_points, obs_pixels, *, start=None, offset=None, label_sigma=None, estimate_offset=true, max_iterations=40, outlier_px=4.0, pixel_sigma=1.0))]
+#[pyo3(signature = (intrinsics, labels, points, obs_keyframes, obs_points, obs_pixels, *, obs_sigmas=None, start=None, offset=None, label_sigma=None, estimate_offset=true, max_iterations=40, outlier_px=4.0, pixel_sigma=1.0))]
 #[allow(clippy::too_many_arguments)]
 pub fn bundle_adjust(
     py: Python<'_>,
@@ -108,6 +108,7 @@ pub fn bundle_adjust(
     obs_keyframes: PyReadonlyArray1<'_, i64>,
     obs_points: PyReadonlyArray1<'_, i64>,
     obs_pixels: PyReadonlyArray2<'_, f64>,
+    obs_sigmas: Option<PyReadonlyArray1<'_, f64>>,
     start: Option<PyReadonlyArray2<'_, f64>>,
     offset: Option<PyReadonlyArray2<'_, f64>>,
     label_sigma: Option<(f64, f64)>,
@@ -136,11 +137,24 @@ pub fn bundle_adjust(
             ),
         ));
     }
+    let sigmas = match &obs_sigmas {
+        Some(s) => s.as_slice().map_err(|_| invalid("obs_sigmas", "array must be contiguous"))?.to_vec(),
+        None => vec![1.0; keyframes.len()],
+    };
+    if sigmas.len() != keyframes.len() {
+        return Err(invalid("obs_sigmas", format!("{} obs_sigmas for {} observations", sigmas.len(), keyframes.len())));
+    }
     let observations: Vec<Observation> = keyframes
         .iter()
         .zip(&point_ids)
         .zip(pixels.chunks_exact(2))
-        .map(|((&keyframe, &point), p)| Observation { keyframe, point, pixel: Vector2::new(p[0], p[1]) })
+        .zip(&sigmas)
+        .map(|(((&keyframe, &point), p), &sigma)| Observation {
+            keyframe,
+            point,
+            pixel: Vector2::new(p[0], p[1]),
+            sigma,
+        })
         .collect();
     let options = AdjustmentOptions {
         pixel_sigma_px: pixel_sigma,

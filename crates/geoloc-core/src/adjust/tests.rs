@@ -32,7 +32,7 @@ fn scene(
             let p = crate::camera::project(&camera, pose, x);
             if p.p_cam.z > 0.5 && (0.0..640.0).contains(&p.uv.x) && (0.0..480.0).contains(&p.uv.y) {
                 let noise = Vector2::new(rng.normal(), rng.normal()) * noise_px;
-                observations.push(Observation { keyframe: k, point: j, pixel: p.uv + noise });
+                observations.push(Observation { keyframe: k, point: j, pixel: p.uv + noise, sigma: 1.0 });
             }
         }
     }
@@ -48,11 +48,21 @@ fn median(mut v: Vec<f64>) -> f64 {
     crate::stats::median(&mut v, crate::stats::EvenMedian::Upper).expect("not empty")
 }
 
-/// The residual's Jacobians against central differences of the whitened residual.
+/// The observations with ORB-like keypoint σ: 1.2^level, level 0–7 drawn at random.
+fn with_keypoint_sigmas(rng: &mut SplitMix64, observations: &[Observation]) -> Vec<Observation> {
+    observations
+        .iter()
+        .map(|o| Observation { sigma: 1.2_f64.powi((rng.uniform_in(0.0, 8.0)).floor() as i32), ..*o })
+        .collect()
+}
+
+/// The residual's Jacobians against central differences of the whitened residual
+/// (u(state) − pixel) / (σ_px σ_o), each observation with its own keypoint σ.
 #[test]
 fn jacobians_match_finite_differences() {
     let mut rng = SplitMix64::new(1);
     let (camera, cams, landmarks, observations) = scene(&mut rng, 5, 60, 0.0);
+    let observations = with_keypoint_sigmas(&mut rng, &observations);
     let offset = SE3::exp(&rng.twist(0.1, 0.1));
     let labels: Vec<SE3> = cams.iter().map(|c| *c * offset.inverse()).collect();
     let state = State { labels: labels.clone(), offset, points: landmarks.clone() };
@@ -62,7 +72,7 @@ fn jacobians_match_finite_differences() {
     let h = 1e-6;
     for o in observations.iter().step_by(37) {
         let l = problem.linearize(&state, o).expect("in front");
-        let r = |s: &State| s.residual_px(&camera, o).expect("in front") / options.pixel_sigma_px;
+        let r = |s: &State| s.residual_px(&camera, o).expect("in front") / (options.pixel_sigma_px * o.sigma);
         for a in 0..6 {
             let mut e = Vector6::zeros();
             e[a] = h;
@@ -91,6 +101,46 @@ fn jacobians_match_finite_differences() {
             assert!((fd - l.j_point.column(a)).norm() < 1e-5 * fd.norm().max(1.0), "point axis {a}");
         }
     }
+}
+
+/// The cost is Σ_o ρ(‖r_o‖² / (σ_px σ_o)²) + Σ_k ρ_label(e_kᵀΛe_k) + e_Xᵀ Λ_X e_X, summed here
+/// term by term from the definitions: a coarse keypoint (σ_o > 1) counts for 1/σ_o² as much.
+#[test]
+fn the_cost_weighs_each_observation_by_its_keypoint_sigma() {
+    let mut rng = SplitMix64::new(4);
+    let (camera, cams, landmarks, observations) = scene(&mut rng, 4, 40, 1.5);
+    let observations = with_keypoint_sigmas(&mut rng, &observations);
+    let offset = SE3::exp(&rng.twist(0.05, 0.05));
+    let labels: Vec<SE3> = cams.iter().map(|c| *c * offset.inverse() * SE3::exp(&rng.twist(0.01, 0.01))).collect();
+    let state = State { labels: cams.iter().map(|c| *c * offset.inverse()).collect(), offset, points: landmarks };
+    let options = AdjustmentOptions { pixel_sigma_px: 0.8, ..AdjustmentOptions::default() };
+    let sigma = LabelSigma { translation_m: 0.02, rotation_rad: 0.01 };
+    let inliers = vec![true; observations.len()];
+    let problem = Problem::new(&camera, &labels, &observations, &inliers, &options, sigma);
+    let huber = |s: f64| if s <= 4.0 { s } else { 4.0 * s.sqrt() - 4.0 };
+    let cauchy = |s: f64| 9.0 * (1.0 + s / 9.0).ln();
+    let mut views = vec![0usize; state.points.len()];
+    for o in &observations {
+        views[o.point] += 1;
+    }
+    let mut expected = 0.0;
+    // (a point one keyframe sees constrains nothing: the problem leaves it out)
+    for o in observations.iter().filter(|o| views[o.point] >= 2) {
+        let x = state.labels[o.keyframe] * state.offset;
+        let u = crate::camera::project(&camera, &x, &state.points[o.point]).uv;
+        expected += huber(((u - o.pixel) / (0.8 * o.sigma)).norm_squared());
+    }
+    for (l, b) in labels.iter().zip(&state.labels) {
+        let e = (l.inverse() * *b).log();
+        let s = (e.fixed_rows::<3>(0).norm_squared() / 0.02_f64.powi(2))
+            + e.fixed_rows::<3>(3).norm_squared() / 0.01_f64.powi(2);
+        expected += cauchy(s);
+    }
+    let ex = state.offset.log();
+    expected += ex.fixed_rows::<3>(0).norm_squared() / 0.04 + ex.fixed_rows::<3>(3).norm_squared() / 0.04;
+    let cost = problem.cost(&state);
+    assert!((cost - expected).abs() < 1e-9 * expected, "{cost} against {expected}");
+    assert!(observations.iter().any(|o| o.sigma > 3.0) && observations.iter().any(|o| o.sigma < 1.1));
 }
 
 /// The dense normal matrix of the whole problem (keyframes, offset, points) at `state`.
@@ -333,7 +383,7 @@ fn bad_inputs_are_refused_by_name() {
     let camera = Camera::new(525.0, 525.0, 320.0, 240.0).expect("valid");
     let labels = vec![SE3::identity(); 2];
     let points = vec![Vector3::new(0.0, 0.0, 4.0)];
-    let o = |keyframe, point| Observation { keyframe, point, pixel: Vector2::new(320.0, 240.0) };
+    let o = |keyframe, point| Observation { keyframe, point, pixel: Vector2::new(320.0, 240.0), sigma: 1.0 };
     let err = bundle_adjust(&camera, &labels, &points, &[o(2, 0)], &AdjustmentOptions::default()).expect_err("kf 2");
     assert!(err.to_string().contains("observations[0]"), "{err}");
     let err = bundle_adjust(&camera, &[], &points, &[], &AdjustmentOptions::default()).expect_err("empty");
