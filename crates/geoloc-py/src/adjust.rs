@@ -9,7 +9,7 @@ use nalgebra::{Vector2, Vector3};
 use numpy::{IntoPyArray, PyArray1, PyArray2, PyArray3, PyReadonlyArray1, PyReadonlyArray2};
 use pyo3::prelude::*;
 
-use crate::convert::{indices, matrices_to_array3, matrix_to_array, one_pose, poses, rows};
+use crate::convert::{indices, matrices_to_array, matrices_to_array3, matrix_to_array, one_pose, poses, rows};
 use crate::errors::{invalid, to_py_err};
 
 /// The adjusted problem (see `geoloc.adjustment.bundle_adjust`).
@@ -41,10 +41,7 @@ impl Adjusted {
     /// The adjusted points (N, 3), world.
     #[getter]
     fn points<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray2<f64>> {
-        let flat: Vec<f64> = self.inner.points.iter().flat_map(|p| [p.x, p.y, p.z]).collect();
-        numpy::ndarray::Array2::from_shape_vec((self.inner.points.len(), 3), flat)
-            .expect("three values per point")
-            .into_pyarray(py)
+        matrices_to_array(py, &self.inner.points)
     }
 
     /// Marginal covariances of the B_k (K, 6, 6), right perturbation, translation first.

@@ -231,22 +231,14 @@ impl FeatureMap {
         let inner = Arc::clone(&self.inner);
         let p = py.detach(move || inner.label_adjustment_problem()).map_err(to_py_err)?;
         let as_i64 = |v: Vec<usize>| v.into_iter().map(|i| i as i64).collect::<Vec<i64>>();
-        let points: Vec<f64> = p.points.iter().flat_map(|x| [x.x, x.y, x.z]).collect();
-        let pixels: Vec<f64> = p.observations.iter().flat_map(|o| [o.pixel.x, o.pixel.y]).collect();
-        let (n, m) = (p.points.len(), p.observations.len());
+        let pixels: Vec<_> = p.observations.iter().map(|o| o.pixel).collect();
         Ok((
             numpy::IntoPyArray::into_pyarray(as_i64(p.keyframes), py),
             matrices_to_array3(py, &p.labels.iter().map(|x| x.matrix()).collect::<Vec<_>>()),
-            numpy::IntoPyArray::into_pyarray(
-                numpy::ndarray::Array2::from_shape_vec((n, 3), points).expect("three values per point"),
-                py,
-            ),
+            matrices_to_array(py, &p.points),
             numpy::IntoPyArray::into_pyarray(as_i64(p.observations.iter().map(|o| o.keyframe).collect()), py),
             numpy::IntoPyArray::into_pyarray(as_i64(p.observations.iter().map(|o| o.point).collect()), py),
-            numpy::IntoPyArray::into_pyarray(
-                numpy::ndarray::Array2::from_shape_vec((m, 2), pixels).expect("two values per pixel"),
-                py,
-            ),
+            matrices_to_array(py, &pixels),
         ))
     }
 
