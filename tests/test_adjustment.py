@@ -145,8 +145,12 @@ def test_keypoint_sigmas_weigh_the_pixel_terms() -> None:
         bundle_adjust(bad)
     zero = AdjustmentProblem(problem.intrinsics, problem.labels, problem.points, problem.obs_keyframes,
                              problem.obs_points, problem.obs_pixels, obs_sigmas=np.where(np.arange(len(sigmas)) == 3, 0.0, sigmas))
-    with pytest.raises(InvalidInputError, match=re.escape("observations[3]")):
+    with pytest.raises(InvalidInputError, match="obs_sigmas: entry 3"):
         bundle_adjust(zero)
+    nan = AdjustmentProblem(problem.intrinsics, problem.labels, problem.points, problem.obs_keyframes,
+                            problem.obs_points, problem.obs_pixels, obs_sigmas=np.full(len(sigmas), np.nan))
+    with pytest.raises(InvalidInputError, match="obs_sigmas"):
+        bundle_adjust(nan)
 
 
 def _replaced(problem: AdjustmentProblem, **changes: Any) -> AdjustmentProblem:
@@ -187,6 +191,8 @@ def test_bad_input_names_the_argument(change: dict[str, Any], name: str) -> None
         ({"outlier_px": float("nan")}, "outlier_px"),
         ({"start": np.eye(4)}, "start"),
         ({"offset": np.zeros((4, 4))}, "offset"),
+        ({"pixel_sigma": 0.0}, "pixel_sigma"),
+        ({"max_iterations": True}, "max_iterations"),
     ],
 )
 def test_bad_options_name_the_option(kwargs: dict[str, Any], name: str) -> None:

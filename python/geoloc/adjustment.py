@@ -23,7 +23,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from . import _core
-from ._validation import real_scalar
+from ._validation import as_float64, real_scalar
 from .exceptions import InvalidInputError
 from .geometry import _index_array, _pose_stack, _real_array
 
@@ -94,9 +94,11 @@ def bundle_adjust(
     point_ids = _index_array(problem.obs_points, "obs_points", m)
     sigmas = None
     if problem.obs_sigmas is not None:
-        sigmas = _real_array(problem.obs_sigmas, "obs_sigmas")
+        sigmas = np.ascontiguousarray(as_float64(problem.obs_sigmas, "obs_sigmas"))
         if sigmas.shape != (m,):
             raise InvalidInputError(f"obs_sigmas: expected shape ({m},) like obs_pixels, got {sigmas.shape}")
+        if not (sigmas > 0).all():
+            raise InvalidInputError(f"obs_sigmas: entry {int(np.argmin(sigmas > 0))} is {sigmas[np.argmin(sigmas > 0)]}, must be > 0")
     intrinsics = tuple(real_scalar(v, "intrinsics") for v in problem.intrinsics)
     if len(intrinsics) != 4:
         raise InvalidInputError(f"intrinsics: expected (fx, fy, cx, cy), got {len(intrinsics)} values")
@@ -123,5 +125,13 @@ def bundle_adjust(
         estimate_offset=bool(estimate_offset),
         max_iterations=int(max_iterations),
         outlier_px=real_scalar(outlier_px, "outlier_px"),
-        pixel_sigma=real_scalar(pixel_sigma, "pixel_sigma"),
+        pixel_sigma=_positive(pixel_sigma, "pixel_sigma"),
     )
+
+
+def _positive(value: Any, name: str) -> float:
+    """A finite real number > 0 (the core names its own option otherwise)."""
+    v = real_scalar(value, name)
+    if not (np.isfinite(v) and v > 0):
+        raise InvalidInputError(f"{name}: must be finite and > 0, got {v}")
+    return v
