@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import re
 import sys
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -169,6 +171,8 @@ def _replaced(problem: AdjustmentProblem, **changes: Any) -> AdjustmentProblem:
         ({"labels": np.eye(4)}, "labels"),
         ({"labels": np.stack([np.eye(4), 2 * np.eye(4)])}, "labels"),
         ({"intrinsics": (525.0, 525.0, 320.0)}, "intrinsics"),
+        ({"intrinsics": 525.0}, "intrinsics"),
+        ({"intrinsics": (525.0, 525.0, 320.0, "240")}, "intrinsics"),
         ({"intrinsics": (-525.0, 525.0, 320.0, 240.0)}, "f"),
         ({"obs_keyframes": np.array([0, 0, 5])}, "observations[2]"),
         ({"obs_points": np.array([0, 1, 9])}, "observations[2]"),
@@ -186,6 +190,8 @@ def test_bad_input_names_the_argument(change: dict[str, Any], name: str) -> None
     ("kwargs", "name"),
     [
         ({"label_sigma": (0.01,)}, "label_sigma"),
+        ({"label_sigma": 0.01}, "label_sigma"),
+        ({"label_sigma": (0.01, None)}, "label_sigma"),
         ({"label_sigma": (0.0, 0.01)}, "label_sigma"),
         ({"max_iterations": 0}, "max_iterations"),
         ({"outlier_px": float("nan")}, "outlier_px"),
@@ -223,3 +229,22 @@ def test_a_maps_problem_is_the_one_its_build_adjusts() -> None:
     assert np.allclose(adjusted.keyframe_poses[problem.keyframes], ours.label_poses, rtol=0, atol=1e-12)
     with pytest.raises(InvalidInputError, match="labels"):
         adjusted.label_adjustment_problem()
+
+
+def test_threads_at_once_give_the_bits_of_one_call() -> None:
+    """Four threads adjusting the same problem at once (the core releases the GIL) each return
+    exactly what one call alone returns: no state is shared between calls."""
+    problem, _ = _problem(seed=3)
+    alone = bundle_adjust(problem, label_sigma=SIGMA)
+    barrier = threading.Barrier(4)
+
+    def adjust(_: int) -> Any:
+        barrier.wait()
+        return bundle_adjust(problem, label_sigma=SIGMA)
+
+    with ThreadPoolExecutor(4) as pool:
+        results = list(pool.map(adjust, range(4)))
+    for r in results:
+        for name in ("label_poses", "camera_poses", "offset", "points", "label_pose_covariances", "point_covariances"):
+            assert np.array_equal(getattr(r, name), getattr(alone, name)), name
+        assert r.cost == alone.cost and r.iterations == alone.iterations

@@ -13,6 +13,7 @@ MIN_NOISE_SAMPLES: int
 MAX_THREADS: int
 CHI2_6_95: float
 CHI2_6_999: float
+ADJUSTMENT_SIGMA_RANGE: tuple[float, float]
 
 def chi2_quantile(p: NDArray[np.float64], dof: int) -> NDArray[np.float64]: ...
 def num_threads_warning(value: str | None) -> str | None: ...

@@ -25,11 +25,15 @@ from numpy.typing import ArrayLike, NDArray
 from . import _core
 from ._validation import as_float64, real_scalar
 from .exceptions import InvalidInputError
-from .geometry import _index_array, _pose_stack, _real_array
+from .geometry import _index_array, _matrix_stack, _pose_stack, _real_array
 
 __all__ = ["Adjustment", "AdjustmentProblem", "bundle_adjust"]
 
 Array = NDArray[np.float64]
+
+#: ``max_iterations`` beyond this is this (a cap no adjustment reaches: each round stops when
+#: the cost no longer decreases), so that any integer ≥ 1 is a valid cap.
+_ITERATIONS_CAP = 2**32
 
 #: The result of :func:`bundle_adjust` (a compiled class): ``label_poses`` (K, 4, 4) the
 #: adjusted B_k, ``camera_poses`` (K, 4, 4) T_k = B_k X, ``offset`` (4, 4) X, ``points``
@@ -92,27 +96,33 @@ def bundle_adjust(
     m = len(pixels)
     keyframes = _index_array(problem.obs_keyframes, "obs_keyframes", m)
     point_ids = _index_array(problem.obs_points, "obs_points", m)
+    pixel_sigma = _sigma(pixel_sigma, "pixel_sigma")
     sigmas = None
     if problem.obs_sigmas is not None:
         sigmas = np.ascontiguousarray(as_float64(problem.obs_sigmas, "obs_sigmas"))
         if sigmas.shape != (m,):
             raise InvalidInputError(f"obs_sigmas: expected shape ({m},) like obs_pixels, got {sigmas.shape}")
-        if not (sigmas > 0).all():
-            raise InvalidInputError(f"obs_sigmas: entry {int(np.argmin(sigmas > 0))} is {sigmas[np.argmin(sigmas > 0)]}, must be > 0")
-    intrinsics = tuple(real_scalar(v, "intrinsics") for v in problem.intrinsics)
-    if len(intrinsics) != 4:
-        raise InvalidInputError(f"intrinsics: expected (fx, fy, cx, cy), got {len(intrinsics)} values")
+        low, high = _core.ADJUSTMENT_SIGMA_RANGE
+        bad = ~((sigmas > 0) & (sigmas * pixel_sigma >= low) & (sigmas * pixel_sigma <= high))
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise InvalidInputError(
+                f"obs_sigmas: entry {i} is {sigmas[i]}: times pixel_sigma it must lie in [{low:g}, {high:g}] px")
+    intrinsics = as_float64(problem.intrinsics, "intrinsics")
+    if intrinsics.shape != (4,):
+        raise InvalidInputError(f"intrinsics: expected (fx, fy, cx, cy), got shape {intrinsics.shape}")
     sigma = None
     if label_sigma is not None:
-        if len(label_sigma) != 2:
-            raise InvalidInputError("label_sigma: expected (translation m, rotation rad)")
-        sigma = (real_scalar(label_sigma[0], "label_sigma"), real_scalar(label_sigma[1], "label_sigma"))
+        pair = as_float64(label_sigma, "label_sigma")
+        if pair.shape != (2,):
+            raise InvalidInputError(f"label_sigma: expected (translation m, rotation rad), got shape {pair.shape}")
+        sigma = (float(pair[0]), float(pair[1]))
     if isinstance(max_iterations, bool) or not isinstance(max_iterations, (int, np.integer)) or max_iterations < 1:
         raise InvalidInputError(f"max_iterations: expected an integer ≥ 1, got {max_iterations!r:.40}")
     start_flat = None if start is None else _pose_stack(start, "start")
-    offset_arr = None if offset is None else np.ascontiguousarray(_real_array(offset, "offset"))
+    offset_arr = None if offset is None else np.ascontiguousarray(_matrix_stack(offset, "offset", (4, 4)))
     return _core.bundle_adjust(
-        intrinsics,
+        (float(intrinsics[0]), float(intrinsics[1]), float(intrinsics[2]), float(intrinsics[3])),
         labels,
         points,
         keyframes,
@@ -123,15 +133,17 @@ def bundle_adjust(
         offset=offset_arr,
         label_sigma=sigma,
         estimate_offset=bool(estimate_offset),
-        max_iterations=int(max_iterations),
+        max_iterations=min(int(max_iterations), _ITERATIONS_CAP),
         outlier_px=real_scalar(outlier_px, "outlier_px"),
-        pixel_sigma=_positive(pixel_sigma, "pixel_sigma"),
+        pixel_sigma=pixel_sigma,
     )
 
 
-def _positive(value: Any, name: str) -> float:
-    """A finite real number > 0 (the core names its own option otherwise)."""
+def _sigma(value: Any, name: str) -> float:
+    """A σ the adjustment can whiten by: a real number within the core's
+    ``ADJUSTMENT_SIGMA_RANGE`` (the core names its own option otherwise)."""
     v = real_scalar(value, name)
-    if not (np.isfinite(v) and v > 0):
-        raise InvalidInputError(f"{name}: must be finite and > 0, got {v}")
+    low, high = _core.ADJUSTMENT_SIGMA_RANGE
+    if not low <= v <= high:
+        raise InvalidInputError(f"{name}: must lie in [{low:g}, {high:g}], got {v}")
     return v

@@ -586,10 +586,50 @@ def feature_localizer_specs() -> list[Spec]:
     ]
 
 
+def _adjustment_problem() -> dict[str, np.ndarray]:
+    """Four keyframes 10 cm apart looking at 30 points 3–5 m away, every point seen by every
+    keyframe (exact pixels), the labels the camera poses."""
+    rng = np.random.default_rng(7)
+    labels = _track(4)
+    labels[:, 0, 3] = 0.1 * np.arange(4)
+    depth = rng.uniform(3.0, 5.0, 30)
+    points = np.c_[rng.uniform(-0.4, 0.4, 30) * depth, rng.uniform(-0.3, 0.3, 30) * depth, depth]
+    fx, fy, cx, cy = CAMERA_PY
+    local = points[None] - labels[:, None, :3, 3]
+    pixels = np.stack([fx * local[..., 0] / local[..., 2] + cx, fy * local[..., 1] / local[..., 2] + cy], -1)
+    return {"labels": labels, "points": points, "obs_keyframes": np.repeat(np.arange(4), 30),
+            "obs_points": np.tile(np.arange(30), 4), "obs_pixels": pixels.reshape(-1, 2), "obs_sigmas": np.ones(120)}
+
+
+ADJ = _adjustment_problem()
+
+
+def adjustment_specs() -> list[Spec]:
+    a = lambda v: ("array", v)  # noqa: E731
+    m = "adjustment"
+    problem = call("geoloc.adjustment.AdjustmentProblem", CAMERA_PY, *(ADJ[k] for k in
+                   ("labels", "points", "obs_keyframes", "obs_points", "obs_pixels")))
+    obs = ["obs_keyframes", "obs_points", "obs_pixels", "obs_sigmas"]
+    return [
+        # the problem's fields: fixtures.adjust builds the problem from them and adjusts it
+        Spec(m, "fixtures.adjust", {"intrinsics": ("any", CAMERA_PY), **{k: a(v) for k, v in ADJ.items()}},
+             (), "any", timeout=60,
+             # the core names an observation it refuses: observations[i]
+             aliases={"labels": ["obs_keyframes", "observations"], "points": ["obs_points", "observations"],
+                      **{k: [*(o for o in obs if o != k), "observations"] for k in obs}}),
+        Spec(m, "geoloc.adjustment.bundle_adjust",
+             {"problem": ("any", problem), "label_sigma": ("any", (0.02, 0.02)), "start": a(ADJ["labels"]),
+              "offset": a(np.eye(4)), "estimate_offset": ("bool", True), "max_iterations": ("int", 10),
+              "outlier_px": ("float", 4.0), "pixel_sigma": ("float", 1.0)}, ("problem",), "any", timeout=60,
+             aliases={"start": ["labels"]}),
+        Spec(m, attr(("cached", "small_map_labels_kept"), "label_adjustment_problem"), {}, (), "any", timeout=60),
+    ]
+
+
 def all_specs(with_onnx: bool = False) -> dict[str, list[Spec]]:
     groups: dict[str, list[Spec]] = {}
     for fn in (lie_specs, geometry_specs, matching_specs, retrieval_specs, temporal_specs, camera_specs, features_specs,
-               evaluation_specs, plots_specs, datasets_specs, map_specs, feature_localizer_specs):
+               evaluation_specs, plots_specs, datasets_specs, map_specs, feature_localizer_specs, adjustment_specs):
         for s in fn():
             groups.setdefault(s.module, []).append(s)
     for s in descriptor_specs(with_onnx):

@@ -21,6 +21,14 @@ def small_map(tmp: Path) -> Any:
     return geoloc.Map.build(seq[:10], n_features=300, branching=4, depth=2)
 
 
+def small_map_labels_kept(tmp: Path) -> Any:
+    """The small map built without adjusting its labels: it has a label adjustment problem to give."""
+    import geoloc
+
+    seq = geoloc.datasets.synthetic_room(n_frames=12, seed=0)
+    return geoloc.Map.build(seq[:10], n_features=300, branching=4, depth=2, adjust_labels=False)
+
+
 def small_map_file(tmp: Path) -> str:
     m = small_map(tmp)
     path = tmp / "small.geoloc"
@@ -73,3 +81,13 @@ def onnx_descriptor(tmp: Path) -> Any:
     from geoloc import OnnxDescriptor
 
     return OnnxDescriptor(onnx_model(tmp))
+
+
+def adjust(intrinsics: Any, labels: Any, points: Any, obs_keyframes: Any, obs_points: Any, obs_pixels: Any,
+           obs_sigmas: Any) -> Any:
+    """geoloc.adjustment.bundle_adjust of the problem these fields make (σ given: one round
+    pair, no estimate), so that a case can mutate a field of the problem."""
+    from geoloc.adjustment import AdjustmentProblem, bundle_adjust
+
+    problem = AdjustmentProblem(intrinsics, labels, points, obs_keyframes, obs_points, obs_pixels, obs_sigmas)
+    return bundle_adjust(problem, label_sigma=(0.02, 0.02), max_iterations=10)

@@ -54,6 +54,20 @@ pub const WIDE_LABEL_SIGMA: LabelSigma = LabelSigma { translation_m: 0.1, rotati
 /// Most passes of the label-σ estimate.
 const SCALE_PASSES: usize = 6;
 
+/// The σ an adjustment can whiten by (px for pixels, m and rad for poses): the residuals are
+/// scaled by σ⁻¹ and the normal equations by σ⁻², which beyond this range over- or
+/// underflow (a keypoint σ of 1e-200 px made every cost infinite).
+pub const SIGMA_RANGE: (f64, f64) = (1e-9, 1e9);
+
+/// Whether `sigma` is finite and within [`SIGMA_RANGE`].
+fn usable_sigma(sigma: f64) -> bool {
+    (SIGMA_RANGE.0..=SIGMA_RANGE.1).contains(&sigma)
+}
+
+fn sigma_error(name: impl Into<String>, sigma: f64) -> GeolocError {
+    GeolocError::invalid(name, format!("σ must lie in [{:e}, {:e}], got {sigma}", SIGMA_RANGE.0, SIGMA_RANGE.1))
+}
+
 /// Standard deviations of a label's error (right perturbation of world_from_label).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct LabelSigma {
@@ -70,12 +84,10 @@ impl LabelSigma {
     }
 
     fn check(&self, name: &str) -> Result<()> {
-        for v in [self.translation_m, self.rotation_rad] {
-            if !(v.is_finite() && v > 0.0) {
-                return Err(GeolocError::invalid(name, format!("σ must be finite and > 0, got {v}")));
-            }
+        match [self.translation_m, self.rotation_rad].into_iter().find(|v| !usable_sigma(*v)) {
+            Some(v) => Err(sigma_error(name, v)),
+            None => Ok(()),
         }
-        Ok(())
     }
 }
 
@@ -123,10 +135,11 @@ impl AdjustmentOptions {
     /// # Errors
     /// A σ or threshold that is not finite and > 0, or no iteration (each named).
     pub fn check(&self) -> Result<()> {
-        for (name, v) in [("pixel_sigma_px", self.pixel_sigma_px), ("outlier_px", self.outlier_px)] {
-            if !(v.is_finite() && v > 0.0) {
-                return Err(GeolocError::invalid(name, format!("must be finite and > 0, got {v}")));
-            }
+        if !usable_sigma(self.pixel_sigma_px) {
+            return Err(sigma_error("pixel_sigma_px", self.pixel_sigma_px));
+        }
+        if !(self.outlier_px.is_finite() && self.outlier_px > 0.0) {
+            return Err(GeolocError::invalid("outlier_px", format!("must be finite and > 0, got {}", self.outlier_px)));
         }
         if let Some(s) = &self.label_sigma {
             s.check("label_sigma")?;
@@ -151,7 +164,7 @@ pub struct Observation {
     pub point: usize,
     /// The pixel.
     pub pixel: Vector2<f64>,
-    /// The keypoint's σ relative to `pixel_sigma_px` (finite, > 0).
+    /// The keypoint's σ relative to `pixel_sigma_px` (> 0; times `pixel_sigma_px` within [`SIGMA_RANGE`]).
     pub sigma: f64,
 }
 
@@ -245,11 +258,12 @@ pub fn bundle_adjust_from(
     options: &AdjustmentOptions,
 ) -> Result<Adjustment> {
     options.check()?;
-    check_inputs(labels, points, observations)?;
+    check_inputs(labels, points, observations, options.pixel_sigma_px)?;
     if start.0.len() != labels.len() {
         return Err(GeolocError::invalid("start", format!("{} poses for {} labels", start.0.len(), labels.len())));
     }
     let mut state = State { labels: start.0.to_vec(), offset: *start.1, points: points.to_vec() };
+    check_start(camera, &state, observations, options.pixel_sigma_px)?;
     let mut inliers = vec![true; observations.len()];
     let start_rms = rms_px(camera, &state, observations, &inliers);
     let mut iterations = 0;
@@ -317,7 +331,14 @@ pub fn bundle_adjust_from(
     })
 }
 
-fn check_inputs(labels: &[SE3], points: &[Vector3<f64>], observations: &[Observation]) -> Result<()> {
+/// Labels and points finite; each observation's keyframe and point in range, its pixel
+/// finite and its whitening σ (`pixel_sigma_px` × its σ) usable.
+fn check_inputs(
+    labels: &[SE3],
+    points: &[Vector3<f64>],
+    observations: &[Observation],
+    pixel_sigma_px: f64,
+) -> Result<()> {
     if labels.is_empty() {
         return Err(GeolocError::invalid("labels", "the adjustment needs at least one keyframe"));
     }
@@ -331,18 +352,38 @@ fn check_inputs(labels: &[SE3], points: &[Vector3<f64>], observations: &[Observa
         if o.keyframe >= labels.len()
             || o.point >= points.len()
             || !o.pixel.iter().all(|v| v.is_finite())
-            || !(o.sigma.is_finite() && o.sigma > 0.0)
+            || !(o.sigma.is_finite() && o.sigma > 0.0 && usable_sigma(o.sigma * pixel_sigma_px))
         {
             return Err(GeolocError::invalid(
                 format!("observations[{i}]"),
                 format!(
-                    "keyframe {} of {}, point {} of {}, pixel {:?}, σ {}",
+                    "keyframe {} (of {} labels), point {} (of {} points), pixel {:?}, σ {}",
                     o.keyframe,
                     labels.len(),
                     o.point,
                     points.len(),
                     o.pixel,
                     o.sigma
+                ),
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// Every observation's whitened residual at the start has a finite square (a pixel 1e300 px
+/// from its point's projection would make the cost infinite before the first step).
+fn check_start(camera: &Camera, state: &State, observations: &[Observation], pixel_sigma_px: f64) -> Result<()> {
+    for (i, o) in observations.iter().enumerate() {
+        if let Some(r) = state.residual_px(camera, o)
+            && !(r / (pixel_sigma_px * o.sigma)).norm_squared().is_finite()
+        {
+            return Err(GeolocError::invalid(
+                format!("observations[{i}]"),
+                format!(
+                    "pixel {:?} lies {:e} px from its point's projection at the start (the points, start and offset given)",
+                    o.pixel,
+                    r.norm()
                 ),
             ));
         }

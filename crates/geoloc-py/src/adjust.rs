@@ -169,6 +169,7 @@ pub fn bundle_adjust(
 }
 
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add("ADJUSTMENT_SIGMA_RANGE", geoloc_core::adjust::SIGMA_RANGE)?;
     m.add_function(wrap_pyfunction!(bundle_adjust, m)?)?;
     m.add_class::<Adjusted>()?;
     Ok(())

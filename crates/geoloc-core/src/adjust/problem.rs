@@ -431,7 +431,10 @@ impl<'a> Problem<'a> {
             }
         }
         if !cost.is_finite() {
-            return Err(GeolocError::invalid("observations", "the adjustment diverged"));
+            return Err(GeolocError::invalid(
+                "observations",
+                "the adjustment diverged (its cost is not finite; label_sigma and pixel_sigma_px weigh its terms)",
+            ));
         }
         Ok((state, iterations, start))
     }
@@ -465,10 +468,14 @@ impl<'a> Problem<'a> {
     pub(super) fn covariances(&self, state: &State) -> Result<Covariances> {
         let n = self.labels.len();
         let reduced = self.reduce(state, 0.0);
-        let factor = reduced
-            .s
-            .cholesky()
-            .ok_or_else(|| GeolocError::invalid("observations", "the adjusted map's normal equations are singular"))?;
+        let factor = reduced.s.cholesky().ok_or_else(|| {
+            GeolocError::invalid(
+                "observations",
+                "the adjusted map's normal equations are singular: the observations and the label priors \
+                 (label_sigma weighed against pixel_sigma_px; a start far beyond label_sigma from its label \
+                 loses its prior's pull) do not fix every keyframe, point and the gauge",
+            )
+        })?;
         let z = factor.selected_inverse();
         let label_poses = (0..n).map(|k| *z.block(k, k)).collect();
         let (label_offset, offset) = if self.options.estimate_offset {

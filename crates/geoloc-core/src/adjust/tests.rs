@@ -395,6 +395,23 @@ fn bad_inputs_are_refused_by_name() {
         ..AdjustmentOptions::default()
     };
     assert!(bad.check().expect_err("nan").to_string().contains("label_sigma"));
+    // σ whose σ⁻² over- or underflows the normal equations (a denormal σ made every cost infinite)
+    let bad = AdjustmentOptions { pixel_sigma_px: 5e-324, ..AdjustmentOptions::default() };
+    assert!(bad.check().expect_err("denormal").to_string().contains("pixel_sigma_px"));
+    let bad = AdjustmentOptions {
+        label_sigma: Some(LabelSigma { translation_m: 0.02, rotation_rad: 1e300 }),
+        ..AdjustmentOptions::default()
+    };
+    assert!(bad.check().expect_err("huge").to_string().contains("label_sigma"));
+    let tiny = Observation { sigma: 1e-12, ..o(0, 0) };
+    let err =
+        bundle_adjust(&camera, &labels, &points, &[o(1, 0), tiny], &AdjustmentOptions::default()).expect_err("σ_o");
+    assert!(err.to_string().contains("observations[1]"), "{err}");
+    // a pixel whose squared residual at the start overflows: named, not "diverged"
+    let far = Observation { pixel: Vector2::new(1e300, 240.0), ..o(0, 0) };
+    let err =
+        bundle_adjust(&camera, &labels, &points, &[o(1, 0), far], &AdjustmentOptions::default()).expect_err("far");
+    assert!(err.to_string().contains("observations[1]"), "{err}");
 }
 
 /// τ against the closed form of an AR(1) sequence, (1 + φ)/(1 − φ), and thinning: keyframes
