@@ -64,6 +64,7 @@ fn usable_sigma(sigma: f64) -> bool {
     (SIGMA_RANGE.0..=SIGMA_RANGE.1).contains(&sigma)
 }
 
+/// The error naming `name`, a σ outside [`SIGMA_RANGE`].
 fn sigma_error(name: impl Into<String>, sigma: f64) -> GeolocError {
     GeolocError::invalid(name, format!("σ must lie in [{:e}, {:e}], got {sigma}", SIGMA_RANGE.0, SIGMA_RANGE.1))
 }
@@ -133,7 +134,8 @@ impl AdjustmentOptions {
     /// Checks the options.
     ///
     /// # Errors
-    /// A σ or threshold that is not finite and > 0, or no iteration (each named).
+    /// A σ outside [`SIGMA_RANGE`], an outlier threshold that is not finite and > 0, or no
+    /// iteration (each named).
     pub fn check(&self) -> Result<()> {
         if !usable_sigma(self.pixel_sigma_px) {
             return Err(sigma_error("pixel_sigma_px", self.pixel_sigma_px));
