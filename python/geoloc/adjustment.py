@@ -103,7 +103,8 @@ def bundle_adjust(
         if sigmas.shape != (m,):
             raise InvalidInputError(f"obs_sigmas: expected shape ({m},) like obs_pixels, got {sigmas.shape}")
         low, high = _core.ADJUSTMENT_SIGMA_RANGE
-        bad = ~((sigmas > 0) & (sigmas * pixel_sigma >= low) & (sigmas * pixel_sigma <= high))
+        scaled = sigmas * pixel_sigma  # pixel_sigma > 0: within the range only when σ > 0
+        bad = ~((scaled >= low) & (scaled <= high))
         if bad.any():
             i = int(np.argmax(bad))
             raise InvalidInputError(

@@ -14,19 +14,21 @@ def small_room(tmp: Path) -> Any:
     return geoloc.datasets.synthetic_room(n_frames=12, seed=0)
 
 
-def small_map(tmp: Path) -> Any:
+def _small_room_map(**options: Any) -> Any:
+    """A map of the first 10 frames of a 12-frame synthetic room, built with ``options``."""
     import geoloc
 
     seq = geoloc.datasets.synthetic_room(n_frames=12, seed=0)
-    return geoloc.Map.build(seq[:10], n_features=300, branching=4, depth=2)
+    return geoloc.Map.build(seq[:10], n_features=300, branching=4, depth=2, **options)
+
+
+def small_map(tmp: Path) -> Any:
+    return _small_room_map()
 
 
 def small_map_labels_kept(tmp: Path) -> Any:
     """The small map built without adjusting its labels: it has a label adjustment problem to give."""
-    import geoloc
-
-    seq = geoloc.datasets.synthetic_room(n_frames=12, seed=0)
-    return geoloc.Map.build(seq[:10], n_features=300, branching=4, depth=2, adjust_labels=False)
+    return _small_room_map(adjust_labels=False)
 
 
 def small_map_file(tmp: Path) -> str:

@@ -354,7 +354,7 @@ fn check_inputs(
         if o.keyframe >= labels.len()
             || o.point >= points.len()
             || !o.pixel.iter().all(|v| v.is_finite())
-            || !(o.sigma.is_finite() && o.sigma > 0.0 && usable_sigma(o.sigma * pixel_sigma_px))
+            || !usable_sigma(o.sigma * pixel_sigma_px)
         {
             return Err(GeolocError::invalid(
                 format!("observations[{i}]"),
