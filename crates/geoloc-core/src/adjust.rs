@@ -56,7 +56,7 @@ const SCALE_PASSES: usize = 6;
 
 /// The σ an adjustment can whiten by (px for pixels, m and rad for poses): the residuals are
 /// scaled by σ⁻¹ and the normal equations by σ⁻², which beyond this range over- or
-/// underflow (a keypoint σ of 1e-200 px made every cost infinite).
+/// underflow (a keypoint σ of 1e-200 px makes every cost infinite).
 pub const SIGMA_RANGE: (f64, f64) = (1e-9, 1e9);
 
 /// Whether `sigma` is finite and within [`SIGMA_RANGE`].

@@ -395,7 +395,7 @@ fn bad_inputs_are_refused_by_name() {
         ..AdjustmentOptions::default()
     };
     assert!(bad.check().expect_err("nan").to_string().contains("label_sigma"));
-    // σ whose σ⁻² over- or underflows the normal equations (a denormal σ made every cost infinite)
+    // σ whose σ⁻² over- or underflows the normal equations (a denormal σ makes every cost infinite)
     let bad = AdjustmentOptions { pixel_sigma_px: 5e-324, ..AdjustmentOptions::default() };
     assert!(bad.check().expect_err("denormal").to_string().contains("pixel_sigma_px"));
     let bad = AdjustmentOptions {
@@ -407,7 +407,7 @@ fn bad_inputs_are_refused_by_name() {
     let err =
         bundle_adjust(&camera, &labels, &points, &[o(1, 0), tiny], &AdjustmentOptions::default()).expect_err("σ_o");
     assert!(err.to_string().contains("observations[1]"), "{err}");
-    // a pixel whose squared residual at the start overflows: named, not "diverged"
+    // a pixel whose squared residual at the start overflows: named as that observation
     let far = Observation { pixel: Vector2::new(1e300, 240.0), ..o(0, 0) };
     let err =
         bundle_adjust(&camera, &labels, &points, &[o(1, 0), far], &AdjustmentOptions::default()).expect_err("far");
