@@ -18,6 +18,7 @@ mod persist;
 
 pub use build::BuildOptions;
 pub use group_matches::GroupMatches;
+use labels::camera_frame_covariance;
 pub use labels::{LabelAdjustment, LabelRun};
 pub use model::{ModelOptions, PairMatches, SceneModel};
 pub use persist::{
@@ -84,7 +85,8 @@ pub struct Map {
     pub camera: Camera,
     /// The keyframes, in capture order.
     pub keyframes: Vec<Keyframe>,
-    /// Covariances of the pose labels (right perturbation), if known.
+    /// Covariances of the keyframe poses (right perturbation), if known: those given with the
+    /// labels, or after [`Map::with_adjusted_labels`] the adjusted poses' relative to the labels' frame.
     pub pose_covariances: Option<Vec<Matrix6<f64>>>,
     /// The retrieval structure.
     pub retrieval: Retrieval,
@@ -441,7 +443,9 @@ impl Map {
     /// labels, the epipolar check widened so that it does not decide between labels and
     /// images), then keyframe poses, points and the label-to-camera offset adjusted with the
     /// labels as robust priors. The keyframes' `world_from_cam` become the adjusted camera
-    /// poses, `pose_covariances` their marginal covariances, and [`Map::labels`] keeps the
+    /// poses, `pose_covariances` their marginal covariances relative to the labels' frame
+    /// (the adjusted labels' seen from the camera, the offset held: Ad_{X⁻¹} Σ_B Ad_{X⁻¹}ᵀ,
+    /// as `labels::camera_frame_covariance` gives it), and [`Map::labels`] keeps the
     /// labels and the report. A 3D model built before is dropped (it belongs to the labels).
     ///
     /// # Errors
@@ -585,7 +589,10 @@ impl Map {
             for (kf, b) in self.keyframes.iter_mut().zip(&adjusted) {
                 kf.world_from_cam = *b * x;
             }
-            self.pose_covariances = Some(nearest.iter().map(|&s| adjustment.camera_pose_covariances[s]).collect());
+            // relative to the labels' frame: the offset's uncertainty is not the answers' error
+            let covariances =
+                nearest.iter().map(|&s| camera_frame_covariance(&x, &adjustment.label_pose_covariances[s]));
+            self.pose_covariances = Some(covariances.collect());
         }
         self.labels = Some(record);
         self.model = None;

@@ -394,13 +394,27 @@ fn relative(a: &SE3, b: &SE3) -> SE3 {
     a.inverse() * *b
 }
 
+/// The covariance of the camera pose T = B X that a label pose B with covariance `covariance`
+/// (right perturbation) implies with X = `offset` held: Ad_{X⁻¹} Σ Ad_{X⁻¹}ᵀ (exactly symmetric).
+///
+/// What a keyframe's camera pose is known to *relative to the labels' frame*: the offset's own
+/// uncertainty Σ_X moves every camera pose and the points triangulated from them together,
+/// and a pose located against them and reported in the labels' convention, T X⁻¹, takes the
+/// same X back off — so Σ_X is no part of the error of that answer (it is added where a
+/// result is given as the camera's own pose).
+pub(crate) fn camera_frame_covariance(offset: &SE3, covariance: &Matrix6<f64>) -> Matrix6<f64> {
+    let a = offset.inverse().adjoint();
+    let c = a * covariance * a.transpose();
+    (c + c.transpose()) * 0.5
+}
+
 /// Per twist axis, the median over `covariances` (of label poses B_k, right perturbation) of
 /// the variance of the camera pose T_k = B_k X they imply with X = `offset` fixed:
-/// diag(Ad_{X⁻¹} Σ_k Ad_{X⁻¹}ᵀ) ([`LabelAdjustment::pose_variance`]); zero for none.
+/// diag([`camera_frame_covariance`]) ([`LabelAdjustment::pose_variance`]); zero for none.
 pub(crate) fn camera_frame_variance(offset: &SE3, covariances: &[Matrix6<f64>]) -> Vector6<f64> {
-    let a = offset.inverse().adjoint();
     Vector6::from_fn(|axis, _| {
-        let mut v: Vec<f64> = covariances.iter().map(|c| (a * c * a.transpose())[(axis, axis)].max(0.0)).collect();
+        let mut v: Vec<f64> =
+            covariances.iter().map(|c| camera_frame_covariance(offset, c)[(axis, axis)].max(0.0)).collect();
         median(&mut v, EvenMedian::Mean).unwrap_or(0.0)
     })
 }
@@ -414,8 +428,8 @@ fn rows<const R: usize, const C: usize>(m: &nalgebra::SMatrix<f64, R, C>) -> Vec
 mod tests {
     use super::*;
 
-    /// The camera-frame variance against a finite-difference Jacobian of ε ↦ log(T⁻¹ B exp(ε) X)
-    /// (T = B X), pushed through each covariance, then the median per axis.
+    /// The camera-frame covariance and variance against a finite-difference Jacobian J of
+    /// ε ↦ log(T⁻¹ B exp(ε) X) (T = B X): J Σ Jᵀ for each covariance, then the median per axis.
     #[test]
     fn the_pose_variance_is_the_label_covariance_seen_from_the_camera() {
         let mut rng = crate::testing::SplitMix64::new(9);
@@ -435,6 +449,11 @@ mod tests {
                 m * m.transpose() + Matrix6::identity() * (k as f64) * 1e-5
             })
             .collect();
+        for c in &covariances {
+            let (got, want) = (camera_frame_covariance(&x, c), j * c * j.transpose());
+            assert!((got - want).abs().max() < 1e-6 * want.abs().max(), "{got} vs {want}");
+            assert_eq!(got, got.transpose());
+        }
         let got = camera_frame_variance(&x, &covariances);
         for axis in 0..6 {
             let mut v: Vec<f64> = covariances.iter().map(|c| (j * c * j.transpose())[(axis, axis)]).collect();
