@@ -5,8 +5,10 @@
 //!
 //! After [`super::Map::with_adjusted_labels`] the keyframes' `world_from_cam` are the adjusted
 //! *camera* poses T_k = B_k X (what triangulation and PnP need), `pose_covariances` their
-//! marginal covariances, and [`LabelAdjustment`] keeps the labels L_k, X = label_from_cam and
-//! the report. A pose in the labels' convention is T X⁻¹ ([`LabelAdjustment::to_label`]).
+//! marginal covariances relative to the labels' frame ([`camera_frame_covariance`]: X held,
+//! its own uncertainty Σ_X is not an answer's error), and [`LabelAdjustment`] keeps the
+//! labels L_k, X = label_from_cam and the report. A pose in the labels' convention is T X⁻¹
+//! ([`LabelAdjustment::to_label`]).
 
 use nalgebra::{Matrix6, Vector6};
 

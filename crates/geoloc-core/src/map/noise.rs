@@ -266,7 +266,8 @@ fn map_covariance(samples: &[HoldoutSample], keyframe_variance: &Vector6<f64>) -
 /// the measurement covariance already explains (m_a ≤ c_a) has a map noise the samples cannot
 /// resolve, not a zero one, and one standard error is the smallest noise they cannot rule
 /// out — and the median variance of the keyframe poses (the bundle adjustment's marginal
-/// covariances; zero when the map has none): the map's poses are known no better than that,
+/// covariances relative to the labels' frame, the offset's own uncertainty left out as in the
+/// near regime; zero when the map has none): the map's poses are known no better than that,
 /// so its points are not either.
 fn excess_second_moment(samples: &[HoldoutSample]) -> (Vector6<f64>, Vector6<f64>) {
     let n = samples.len() as f64;
