@@ -10,7 +10,7 @@
 //! | `keypoints` | f64 (N, 2) | undistorted pixels (corrected by the self-calibration, if any) |
 //! | `descriptors` | u8 (N, W) or f32 (N, W) | local descriptors (binary or float) |
 //! | `keyframes.global_descriptors` | f32 (K, D) | only for global-descriptor or fused retrieval |
-//! | `keyframes.pose_covariances` | f64 (K, 6, 6) | optional; right perturbation, translation first |
+//! | `keyframes.pose_covariances` | f64 (K, 6, 6) | optional; right perturbation, translation first; adjusted: relative to the labels' frame |
 //! | `vocabulary.node_offsets` | i64 (nodes + 1) | BoW or fused only: see [`crate::bow::VocabularyArrays`] |
 //! | `vocabulary.centres` | u8 or f32 (R, W) | BoW or fused only: the tree's cluster centres |
 //! | `vocabulary.children` | i64 (R) | BoW or fused only: child node index, or −word − 1 |
