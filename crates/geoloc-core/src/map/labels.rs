@@ -754,7 +754,16 @@ mod map_tests {
             assert!((s.rotation_rad - se3::phi(&d).norm()).abs() < 0.3f64.to_radians(), "{s:?} against {d}");
         }
         assert!(steps.iter().all(|s| s.translation_m < 0.01 || [15, 22].iter().any(|e| s.start < *e && *e < s.end)));
-        assert!(adjusted.pose_covariances.is_some());
+        // the keyframe covariances, seen back in the labels' frame (Ad_X C Ad_Xᵀ), are the
+        // ones each correction's significance was measured with: the offset's Σ_X is not in them
+        assert!(record.offset_covariance.trace() > 0.0, "the offset was estimated");
+        let ad = record.offset.adjoint();
+        for (k, c) in adjusted.pose_covariances.as_ref().expect("covariances").iter().enumerate() {
+            let e = record.corrections[k];
+            let q = (e.transpose() * (ad * c * ad.transpose()).try_inverse().expect("spd") * e)[0];
+            let want = record.significance[k];
+            assert!((q - want).abs() <= 1e-6 * want.max(1.0), "keyframe {k}: {q} against {want}");
+        }
         let file = adjusted.to_map_file("{}").expect("file");
         let back = Map::from_map_file(&file).expect("loads").0;
         assert_eq!(back.labels, adjusted.labels);
