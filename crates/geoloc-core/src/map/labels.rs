@@ -757,10 +757,9 @@ mod map_tests {
         // the keyframe covariances, seen back in the labels' frame (Ad_X C Ad_Xᵀ), are the
         // ones each correction's significance was measured with: the offset's Σ_X is not in them
         assert!(record.offset_covariance.trace() > 0.0, "the offset was estimated");
-        let ad = record.offset.adjoint();
         for (k, c) in adjusted.pose_covariances.as_ref().expect("covariances").iter().enumerate() {
             let e = record.corrections[k];
-            let q = (e.transpose() * (ad * c * ad.transpose()).try_inverse().expect("spd") * e)[0];
+            let q = (e.transpose() * record.covariance_to_label(c).try_inverse().expect("spd") * e)[0];
             let want = record.significance[k];
             assert!((q - want).abs() <= 1e-6 * want.max(1.0), "keyframe {k}: {q} against {want}");
         }
