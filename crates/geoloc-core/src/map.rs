@@ -120,6 +120,10 @@ pub struct AdjustmentProblem {
     pub points: Vec<nalgebra::Vector3<f64>>,
     /// Keyframe `keyframe` (an index into `labels`) sees point `point` at `pixel`.
     pub observations: Vec<Observation>,
+    /// The views of the points that the triangulation from the start poses rejected: the
+    /// adjustment's candidates ([`crate::adjust::bundle_adjust_with_candidates`]), which join
+    /// once the poses have moved to where they fit.
+    pub candidates: Vec<Observation>,
 }
 
 /// Which build steps [`Map::with_build_steps`] runs, in this order: the labels' adjustment,
@@ -565,12 +569,13 @@ impl Map {
         };
         let problem = self.skeleton_problem(&labels, &start)?;
         let chosen = &problem.keyframes;
-        let adjustment = crate::adjust::bundle_adjust_from(
+        let adjustment = crate::adjust::bundle_adjust_with_candidates(
             &self.camera,
             &problem.labels,
             (&problem.start, &offset),
             &problem.points,
             &problem.observations,
+            &problem.candidates,
             options,
         )?;
         let (adjusted, nearest) = interpolated_corrections(&labels, chosen, &adjustment.label_poses);
@@ -624,7 +629,7 @@ impl Map {
         let keyframes: Vec<Keyframe> = chosen.iter().map(|&k| self.keyframes[k].clone()).collect();
         let tracks = adjustment_tracks();
         let pairs = PairMatches::compute(&keyframes, &tracks)?;
-        let model = SceneModel::assemble(&self.camera, &keyframes, None, &tracks, &pairs)?;
+        let (model, rejected) = SceneModel::assemble_with_rejected(&self.camera, &keyframes, None, &tracks, &pairs)?;
         // every keypoint alike (σ 1): weighted by its detector scale (ORB 1.2^level) the
         // adjustment moved the 7-Scenes folds both ways — translation medians down on four,
         // rotation up on five (400–499 0.60 → 0.91°), recall down on five (docs/labels.md)
@@ -632,12 +637,22 @@ impl Map {
             .observations(&keyframes)
             .map(|(keyframe, point, pixel)| Observation { keyframe, point, pixel, sigma: 1.0 })
             .collect();
+        let candidates = rejected
+            .iter()
+            .map(|v| Observation {
+                keyframe: v.keyframe,
+                point: v.point,
+                pixel: keyframes[v.keyframe].keypoints[v.keypoint],
+                sigma: 1.0,
+            })
+            .collect();
         let pick = |v: &[SE3]| chosen.iter().map(|&k| v[k]).collect::<Vec<_>>();
         Ok(AdjustmentProblem {
             labels: pick(labels),
             start: pick(start),
             points: model.points,
             observations,
+            candidates,
             keyframes: chosen,
         })
     }

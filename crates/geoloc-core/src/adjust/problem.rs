@@ -14,21 +14,22 @@ use crate::parallel::map_slice;
 pub(super) type Matrix6x3 = SMatrix<f64, 6, 3>;
 pub(super) type Matrix2x6 = SMatrix<f64, 2, 6>;
 
-/// Marks observations whose reprojection error exceeds `max_px` (or that lie behind the
-/// camera) as outliers: in pixels, whatever the keypoint's σ (a threshold of 4σ kept the
-/// coarse keypoints' gross matches and moved the 7-Scenes skeleton of frames 0–599 further
-/// from the SfM reference, 0.22 → 0.26° median).
-pub(super) fn drop_outliers(
+/// Classifies every observation afresh at `state`: the first `given` are used when their
+/// reprojection error is at most `outlier_px`, the rest (the candidates) when it is at most
+/// `readmit_px`; none behind the camera. In pixels, whatever the keypoint's σ (a threshold of
+/// 4σ kept the coarse keypoints' gross matches and moved the 7-Scenes skeleton of frames
+/// 0–599 further from the SfM reference, 0.22 → 0.26° median).
+pub(super) fn classify_observations(
     camera: &Camera,
     state: &State,
     observations: &[Observation],
-    max_px: f64,
+    given: usize,
+    options: &AdjustmentOptions,
     inliers: &mut [bool],
 ) {
-    for (o, inlier) in observations.iter().zip(inliers.iter_mut()) {
-        if *inlier {
-            *inlier = state.residual_px(camera, o).is_some_and(|r| r.norm() <= max_px);
-        }
+    for (i, (o, inlier)) in observations.iter().zip(inliers.iter_mut()).enumerate() {
+        let max_px = if i < given { options.outlier_px } else { options.readmit_px };
+        *inlier = state.residual_px(camera, o).is_some_and(|r| r.norm() <= max_px);
     }
 }
 

@@ -270,6 +270,19 @@ impl SceneModel {
         options: &ModelOptions,
         pair_matches: &PairMatches,
     ) -> Result<Self> {
+        Ok(Self::assemble_with_rejected(camera, keyframes, pose_covariances, options, pair_matches)?.0)
+    }
+
+    /// [`SceneModel::assemble`], and the views of its points that the triangulation rejected
+    /// ([`RejectedView`], keyframe by keyframe in track order): what the poses say does not
+    /// fit — an adjustment that moves the poses may find that it does.
+    pub(crate) fn assemble_with_rejected(
+        camera: &Camera,
+        keyframes: &[Keyframe],
+        pose_covariances: Option<&[nalgebra::Matrix6<f64>]>,
+        options: &ModelOptions,
+        pair_matches: &PairMatches,
+    ) -> Result<(Self, Vec<RejectedView>)> {
         let poses: Vec<SE3> = keyframes.iter().map(|k| k.world_from_cam).collect();
         let pairs = &pair_matches.pairs;
         let matches = epipolar_matches(camera, keyframes, pair_matches, options)?;
@@ -285,6 +298,7 @@ impl SceneModel {
         let tri = triangulate(camera, &poses, pose_covariances, &cam_ids, &track_ids, &pixels, &options.triangulation)?;
         let mut point_ids: Vec<Vec<Option<usize>>> = keyframes.iter().map(|k| vec![None; k.keypoints.len()]).collect();
         let (mut points, mut covariances, mut members) = (Vec::new(), Vec::new(), Vec::new());
+        let mut rejected = Vec::new();
         let mut o = 0;
         for (t, track) in tracks.iter().enumerate() {
             let inliers = &tri.observation_inliers[o..o + track.len()];
@@ -298,13 +312,29 @@ impl SceneModel {
             for &(k, i) in &kept {
                 point_ids[k][i] = Some(points.len());
             }
+            let outliers = track.iter().zip(inliers).filter(|(_, inlier)| !**inlier);
+            rejected.extend(outliers.map(|(&(keyframe, keypoint), _)| RejectedView {
+                keyframe,
+                keypoint,
+                point: points.len(),
+            }));
             points.push(p.point);
             covariances.push(p.covariance);
             members.push(kept);
         }
         let descriptors = representative_descriptors(keyframes, &members);
-        Self::from_parts(points, covariances, descriptors, point_ids)
+        Ok((Self::from_parts(points, covariances, descriptors, point_ids)?, rejected))
     }
+}
+
+/// A view of a point that its triangulation rejected: keyframe `keyframe`'s keypoint
+/// `keypoint`, matched into the track of point `point`, lies beyond the reprojection limit
+/// of the point the other views agree on.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) struct RejectedView {
+    pub(crate) keyframe: usize,
+    pub(crate) keypoint: usize,
+    pub(crate) point: usize,
 }
 
 /// Step 1: the pose-neighbour pairs (a, b), a < b, sorted (see the module doc).
