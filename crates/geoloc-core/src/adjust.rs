@@ -377,6 +377,20 @@ pub fn bundle_adjust_with_candidates(
     })
 }
 
+/// The covariance of the camera pose T = B X that a label pose B with covariance `covariance`
+/// (right perturbation) implies with X = `offset` held: Ad_{X⁻¹} Σ Ad_{X⁻¹}ᵀ (exactly symmetric).
+///
+/// What a keyframe's camera pose is known to *relative to the labels' frame*: the offset's own
+/// uncertainty Σ_X moves every camera pose and the points triangulated from them together,
+/// and a pose located against them and reported in the labels' convention, T X⁻¹, takes the
+/// same X back off — so Σ_X is no part of the error of that answer (it is added where a
+/// result is given as the camera's own pose).
+pub(crate) fn camera_frame_covariance(offset: &SE3, covariance: &Matrix6<f64>) -> Matrix6<f64> {
+    let a = offset.inverse().adjoint();
+    let c = a * covariance * a.transpose();
+    (c + c.transpose()) * 0.5
+}
+
 /// Labels and points finite; each observation's keyframe and point in range, its pixel
 /// finite and its whitening σ (`pixel_sigma_px` × its σ) usable.
 fn check_inputs(

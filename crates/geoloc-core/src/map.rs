@@ -18,7 +18,6 @@ mod persist;
 
 pub use build::BuildOptions;
 pub use group_matches::GroupMatches;
-use labels::camera_frame_covariance;
 pub use labels::{LabelAdjustment, LabelRun};
 pub use model::{ModelOptions, PairMatches, SceneModel};
 pub use persist::{
@@ -29,7 +28,7 @@ use std::borrow::Cow;
 
 use nalgebra::{Matrix6, Vector2, Vector6};
 
-use crate::adjust::{AdjustmentOptions, Observation};
+use crate::adjust::{AdjustmentOptions, Observation, camera_frame_covariance};
 use crate::bow::{BowDatabase, Vocabulary};
 use crate::camera::Camera;
 use crate::error::{GeolocError, Result};
@@ -449,7 +448,7 @@ impl Map {
     /// labels as robust priors. The keyframes' `world_from_cam` become the adjusted camera
     /// poses, `pose_covariances` their marginal covariances relative to the labels' frame
     /// (the adjusted labels' seen from the camera, the offset held: Ad_{X⁻¹} Σ_B Ad_{X⁻¹}ᵀ,
-    /// as `labels::camera_frame_covariance` gives it), and [`Map::labels`] keeps the
+    /// as `adjust::camera_frame_covariance` gives it), and [`Map::labels`] keeps the
     /// labels and the report. A 3D model built before is dropped (it belongs to the labels).
     ///
     /// # Errors

@@ -4,7 +4,7 @@
 
 use nalgebra::{Matrix2x3, Matrix3, Matrix6, SMatrix, Vector2, Vector3, Vector6};
 
-use super::{AdjustmentOptions, LabelSigma, Observation};
+use super::{AdjustmentOptions, LabelSigma, Observation, camera_frame_covariance};
 use crate::camera::Camera;
 use crate::error::{GeolocError, Result};
 use crate::lie::{SE3, se3, so3};
@@ -160,15 +160,18 @@ pub(super) struct Covariances {
 }
 
 impl Covariances {
-    /// Σ_T of T_k = B_k X: δT = Ad_{X⁻¹} δ_k + δ_X.
+    /// Σ_T of T_k = B_k X: δT = Ad_{X⁻¹} δ_k + δ_X, so Σ_T is the label pose's covariance
+    /// with X held ([`camera_frame_covariance`]) plus the offset's terms
+    /// Ad_{X⁻¹} Σ_kX + Σ_Xk Ad_{X⁻¹}ᵀ + Σ_X.
     pub(super) fn camera_poses(&self, offset: &SE3) -> Vec<Matrix6<f64>> {
         let a = offset.inverse().adjoint();
         self.label_poses
             .iter()
             .zip(&self.label_offset)
             .map(|(c, cx)| {
-                let m = a * c * a.transpose() + a * cx + cx.transpose() * a.transpose() + self.offset;
-                (m + m.transpose()) * 0.5
+                let cross = a * cx;
+                let offset_terms = cross + cross.transpose() + self.offset;
+                camera_frame_covariance(offset, c) + (offset_terms + offset_terms.transpose()) * 0.5
             })
             .collect()
     }

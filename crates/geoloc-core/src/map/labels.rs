@@ -12,7 +12,7 @@
 
 use nalgebra::{Matrix6, Vector6};
 
-use crate::adjust::{Adjustment, LabelSigma, correction, robust_sigma};
+use crate::adjust::{Adjustment, LabelSigma, camera_frame_covariance, correction, robust_sigma};
 use crate::lie::{SE3, se3};
 use crate::stats::chi2::CHI2_6_999;
 use crate::stats::{EvenMedian, median};
@@ -394,20 +394,6 @@ fn above_threshold(values: &[f64]) -> impl Iterator<Item = std::ops::Range<usize
 /// A⁻¹ B: the motion from pose A to pose B.
 fn relative(a: &SE3, b: &SE3) -> SE3 {
     a.inverse() * *b
-}
-
-/// The covariance of the camera pose T = B X that a label pose B with covariance `covariance`
-/// (right perturbation) implies with X = `offset` held: Ad_{X⁻¹} Σ Ad_{X⁻¹}ᵀ (exactly symmetric).
-///
-/// What a keyframe's camera pose is known to *relative to the labels' frame*: the offset's own
-/// uncertainty Σ_X moves every camera pose and the points triangulated from them together,
-/// and a pose located against them and reported in the labels' convention, T X⁻¹, takes the
-/// same X back off — so Σ_X is no part of the error of that answer (it is added where a
-/// result is given as the camera's own pose).
-pub(crate) fn camera_frame_covariance(offset: &SE3, covariance: &Matrix6<f64>) -> Matrix6<f64> {
-    let a = offset.inverse().adjoint();
-    let c = a * covariance * a.transpose();
-    (c + c.transpose()) * 0.5
 }
 
 /// Per twist axis, the median over `covariances` (of label poses B_k, right perturbation) of
