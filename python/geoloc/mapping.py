@@ -422,7 +422,8 @@ class Map:
         :func:`geoloc.adjustment.bundle_adjust` or a peer's adjuster: the skeleton keyframes
         (``keyframes``, the map's indices), their labels, the points triangulated from them
         and the tracks' observations, in this map's camera and keypoints (corrected when the
-        map estimated its camera). Only for a map built with ``adjust_labels=False``: an
+        map estimated its camera). The views the triangulation rejected, which the map's own
+        adjustment tries again once its poses fit them (its candidates), are not part of it. Only for a map built with ``adjust_labels=False``: an
         adjusted map's problem is that of other start poses (InvalidInputError naming
         ``labels``)."""
         keyframes, labels, points, obs_kf, obs_pt, obs_px = self._core.label_adjustment_problem()
