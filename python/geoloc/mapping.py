@@ -423,9 +423,9 @@ class Map:
         (``keyframes``, the map's indices), their labels, the points triangulated from them
         and the tracks' observations, in this map's camera and keypoints (corrected when the
         map estimated its camera). The views the triangulation rejected, which the map's own
-        adjustment tries again once its poses fit them (its candidates), are not part of it. Only for a map built with ``adjust_labels=False``: an
-        adjusted map's problem is that of other start poses (InvalidInputError naming
-        ``labels``)."""
+        adjustment tries again once its poses fit them (its candidates), are not part of it.
+        Only for a map built with ``adjust_labels=False``: an adjusted map's problem is that of
+        other start poses (InvalidInputError naming ``labels``)."""
         keyframes, labels, points, obs_kf, obs_pt, obs_px = self._core.label_adjustment_problem()
         return AdjustmentProblem(self._camera.intrinsics, labels, points, obs_kf, obs_pt, obs_px, keyframes=keyframes)
 
