@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -206,6 +207,18 @@ def test_damaged_map_files_are_refused(room_map: Map, tmp_path: Path) -> None:
             Map.load(bad)
     with pytest.raises(geoloc.GeolocError):
         Map.load(tmp_path / "missing.geoloc")
+
+
+def test_a_map_of_another_frontend_version_is_a_file_format_error(room_map: Map, tmp_path: Path) -> None:
+    """A file whose checksum holds but whose frontend record is of another version (a newer
+    package wrote it) is refused as a file-format error naming the file, like any other file
+    this package cannot read."""
+    for version in (2, None, [1]):
+        other = Map(room_map._core, room_map._camera, room_map._extractor, {**room_map._frontend, "version": version})
+        path = tmp_path / f"v{version}.geoloc"
+        other.save(path)
+        with pytest.raises(geoloc.FileFormatError, match=re.escape(f"v{version}.geoloc") + ".*" + re.escape(f"version {version!r}")):
+            Map.load(path)
 
 
 def test_save_refuses_a_missing_folder_and_keeps_the_old_file(room_map: Map, tmp_path: Path) -> None:

@@ -29,7 +29,7 @@ from ._io import shown
 from .adjustment import AdjustmentProblem
 from ._validation import as_batch, as_float64, check_progress, choice, given_options, keypoint_rows, network_rows, real_scalar
 from .camera import Camera
-from .exceptions import FileAccessError, InvalidInputError
+from .exceptions import FileAccessError, FileFormatError, InvalidInputError
 from .features import DEFAULT_KIND, DEFAULT_N_FEATURES, FeatureExtractor
 from .retrieval import _f32_rows, _local_descriptors
 
@@ -549,7 +549,11 @@ class Map:
         core, text = _core.FeatureMap.load(os.fspath(source))
         frontend = json.loads(text)
         if not isinstance(frontend, dict) or frontend.get("version", FRONTEND_VERSION) != FRONTEND_VERSION:
-            raise InvalidInputError(f"path: {str(path)!r} was not written by this version of geoloc's Python package")
+            found = frontend.get("version") if isinstance(frontend, dict) else frontend
+            raise FileFormatError(
+                f"{shown(source)}: its frontend record (version {found!r}) was not written by this version of "
+                f"geoloc's Python package, which reads version {FRONTEND_VERSION}"
+            )
         if "version" not in frontend:  # a FeatureMap file: the caller's own settings, no frontend record
             warnings.warn(
                 f"{shown(source)}: a map saved by the deprecated geoloc.localizer.FeatureMap; "
