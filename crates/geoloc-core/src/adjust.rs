@@ -198,6 +198,10 @@ pub struct Adjustment {
     pub points: Vec<Vector3<f64>>,
     /// Marginal covariance of each B_k (right perturbation, translation first).
     pub label_pose_covariances: Vec<Matrix6<f64>>,
+    /// Per keyframe k, the covariance of the mean error of its neighbours' B_a seen from k
+    /// (right perturbation of B_k): the part of the map's error a frame localized beside k
+    /// shares (see `neighbourhood_covariances` in the adjustment's problem).
+    pub label_neighbourhood_covariances: Vec<Matrix6<f64>>,
     /// Marginal covariance of each camera pose T_k = B_k X (right perturbation).
     pub camera_pose_covariances: Vec<Matrix6<f64>>,
     /// Covariance of X (zero when not estimated).
@@ -341,11 +345,15 @@ pub fn bundle_adjust_with_candidates(
             // the corrections of neighbouring keyframes are correlated (labels drift): an
             // i.i.d. prior of the scatter σ would hold the trajectory's slow shape τ times
             // too tightly, so σ grows by √τ
-            correlation = correlation_lengths(labels, &state.labels);
-            LabelSigma {
-                translation_m: sigma.translation_m * correlation.0.sqrt(),
-                rotation_rad: sigma.rotation_rad * correlation.1.sqrt(),
-            }
+            let inflated = |tau: (f64, f64)| LabelSigma {
+                translation_m: sigma.translation_m * tau.0.sqrt(),
+                rotation_rad: sigma.rotation_rad * tau.1.sqrt(),
+            };
+            // ... but not by the corrections that prior holds as outliers (a run of wrong
+            // labels is the kernel's, not drift)
+            let all = correlation_lengths(labels, &state.labels);
+            correlation = correlation_lengths_within(labels, &state.labels, Some(inflated(all)));
+            inflated(correlation)
         }
     };
     let problem = Problem::new(camera, labels, observations, &inliers, options, label_sigma);
@@ -363,6 +371,7 @@ pub fn bundle_adjust_with_candidates(
     Ok(Adjustment {
         camera_pose_covariances: covariances.camera_poses(&state.offset),
         label_pose_covariances: covariances.label_poses,
+        label_neighbourhood_covariances: covariances.label_neighbourhoods,
         offset_covariance: covariances.offset,
         point_covariances: covariances.points,
         label_poses: state.labels,
@@ -457,7 +466,7 @@ mod scale;
 
 use problem::{Problem, State, classify_observations, rms_px};
 use scale::estimate_label_sigma;
-pub use scale::{CORRELATION_SPACING, correlation_lengths, robust_sigma, skeleton};
+pub use scale::{CORRELATION_SPACING, correlation_lengths, correlation_lengths_within, robust_sigma, skeleton};
 
 #[cfg(test)]
 mod tests;

@@ -578,9 +578,10 @@ impl Map {
             options,
         )?;
         let (adjusted, nearest) = interpolated_corrections(&labels, chosen, &adjustment.label_poses);
-        let label_covariances: Vec<Matrix6<f64>> =
-            nearest.iter().map(|&s| adjustment.label_pose_covariances[s]).collect();
-        let mut record = LabelAdjustment::with_poses(labels, &adjusted, &label_covariances, &adjustment);
+        let of_nearest = |c: &[Matrix6<f64>]| -> Vec<Matrix6<f64>> { nearest.iter().map(|&s| c[s]).collect() };
+        let marginal = of_nearest(&adjustment.label_pose_covariances);
+        let neighbourhood = of_nearest(&adjustment.label_neighbourhood_covariances);
+        let mut record = LabelAdjustment::with_poses(labels, &adjusted, (&marginal, &neighbourhood), &adjustment);
         if let Some(tau) = correlation {
             // re-adjusted with the σ found before: keep how it was found
             record.correlation_keyframes = tau;

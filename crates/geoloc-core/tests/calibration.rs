@@ -136,10 +136,13 @@ fn a_jump_reinitializes_and_a_long_failure_is_lost_then_recovers() {
 /// are within 1 cm / 0.2° of the truth (the views that tie the run to the rest, which the
 /// triangulation from the labels rejects, join the adjustment once its first pass has moved
 /// the run: without them the run stayed 1–3.5 cm / 0.1–0.55° off), and the answers' NEES falls
-/// inside the χ²₆ 95 % region for at least 91 % of them (93 %, widened by the binomial σ of
-/// 120 answers). The covariance is conservative here: all 120 inside, median NEES ≈ 1.2
-/// against χ²₆'s 5.3 — the labels' σ is their scatter times √τ, and the displaced run makes
-/// the corrections look correlated (τ ≈ 11 where the other labels' noise is independent).
+/// inside the χ²₆ 95 % region for 91–99.5 % of them (93–99 %, widened by the binomial σ of
+/// 120 answers). It is conservative still: 119 of 120 inside, median NEES ≈ 3.6 against
+/// χ²₆'s 5.3 (a covariance of the pixel part plus the keyframes' measured common error puts
+/// 115 inside at a median of 5.4). It was 120 of 120 at a median of 1.2 while the map noise
+/// beside the path took one keyframe's marginal variance — whose own part the answer, resting
+/// on many keyframes' points, does not share — and τ counted the displaced run as drift
+/// (≈ 11; the labels' σ 1.05 cm against the true 3 mm).
 #[test]
 fn the_localizer_covers_the_truth_when_labels_sit_on_another_sensor_and_a_run_is_displaced() {
     use geoloc_core::lie::{SO3, se3};
@@ -203,5 +206,5 @@ fn the_localizer_covers_the_truth_when_labels_sit_on_another_sensor_and_a_run_is
     let coverage = inside as f64 / total as f64;
     eprintln!("NEES coverage {coverage:.3} of {total}");
     assert!(total >= 114, "{total} of 120 answered");
-    assert!(coverage >= 0.91, "coverage {coverage}");
+    assert!(coverage >= 0.91 && coverage < COVERAGE_BAND.1, "coverage {coverage}");
 }

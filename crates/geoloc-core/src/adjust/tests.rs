@@ -213,6 +213,57 @@ fn marginal_covariances_equal_the_dense_inverse() {
     }
 }
 
+/// The neighbourhood covariances equal the brute-force sum over the dense inverse's blocks,
+/// each keyframe's perturbation carried into k's frame by the finite-difference Jacobian of
+/// ε ↦ log(D exp(ε) D⁻¹), D = B_k⁻¹ B_a; on a path longer than a neighbourhood, the ends
+/// take the part of the window that exists.
+#[test]
+fn neighbourhood_covariances_equal_the_dense_inverse() {
+    let mut rng = SplitMix64::new(4);
+    let (camera, cams, landmarks, observations) = scene(&mut rng, 14, 60, 0.5);
+    let offset = SE3::exp(&rng.twist(0.05, 0.05));
+    let labels: Vec<SE3> =
+        cams.iter().map(|c| *c * offset.inverse() * SE3::exp(&rng.pose_noise(0.01, 0.005))).collect();
+    let options = AdjustmentOptions { pixel_loss: RobustLoss::None, ..AdjustmentOptions::default() };
+    let inliers = vec![true; observations.len()];
+    let sigma = LabelSigma { translation_m: 0.01, rotation_rad: 0.005 };
+    let problem = Problem::new(&camera, &labels, &observations, &inliers, &options, sigma);
+    let state = State { labels: labels.clone(), offset, points: landmarks.clone() };
+    let covariances = problem.covariances(&state).expect("regular");
+    let dense = dense_normal_matrix(&problem, &state, landmarks.len()).try_inverse().expect("invertible");
+    let n = labels.len();
+    let transport = |d: &SE3| {
+        let h = 1e-6;
+        let mut j = Matrix6::zeros();
+        for i in 0..6 {
+            let mut e = Vector6::zeros();
+            e[i] = h;
+            let plus = (*d * SE3::exp(&e) * d.inverse()).log();
+            let minus = (*d * SE3::exp(&(-e)) * d.inverse()).log();
+            j.set_column(i, &((plus - minus) / (2.0 * h)));
+        }
+        j
+    };
+    let scale = dense.amax();
+    for k in 0..n {
+        let (lo, hi) = (k.saturating_sub(NEIGHBOURHOOD_KEYFRAMES), (k + NEIGHBOURHOOD_KEYFRAMES).min(n - 1));
+        let m = (hi - lo + 1) as f64;
+        let mut want = Matrix6::zeros();
+        for a in lo..=hi {
+            for b in lo..=hi {
+                let ja = transport(&(labels[k].inverse() * labels[a]));
+                let jb = transport(&(labels[k].inverse() * labels[b]));
+                want += ja * dense.fixed_view::<6, 6>(6 * a, 6 * b) * jb.transpose();
+            }
+        }
+        want /= m * m;
+        let got = covariances.label_neighbourhoods[k];
+        assert!((got - want).amax() < 1e-6 * scale, "keyframe {k}: {got} against {want}");
+        // the mean of the neighbourhood is known better than one keyframe
+        assert!(got.trace() < covariances.label_poses[k].trace(), "keyframe {k}");
+    }
+}
+
 /// One GN step of the reduced system equals the dense solve of the full normal equations.
 #[test]
 fn the_reduced_step_equals_the_dense_step() {
@@ -523,4 +574,31 @@ fn correlation_length_of_an_ar1_sequence() {
         dense.iter().map(|b| *b * SE3::exp(&(Vector6::from_fn(|_, _| rng.normal()) * 0.01))).collect();
     let (tt, _) = correlation_lengths(&labels, &dense);
     assert!(tt < 1.3, "repeated keyframes counted: τ {tt}");
+}
+
+/// τ over the corrections a prior holds: independent label noise with a run of 40 of 1000
+/// labels displaced together by 20 σ reads as a long correlation over all corrections and
+/// as none without the run — which a prior of the scatter times √τ holds as outliers.
+#[test]
+fn a_displaced_run_is_not_counted_as_drift() {
+    let mut rng = SplitMix64::new(23);
+    let n = 1000;
+    let adjusted: Vec<SE3> =
+        (0..n).map(|k| SE3::new(SO3::identity(), Vector3::new(0.1 * k as f64, 0.0, 0.0))).collect();
+    let labels: Vec<SE3> = adjusted
+        .iter()
+        .enumerate()
+        .map(|(k, b)| {
+            let noise = Vector6::from_fn(|_, _| rng.normal() * 0.01);
+            let run = if (500..540).contains(&k) { Vector6::repeat(0.2) } else { Vector6::zeros() };
+            *b * SE3::exp(&(noise + run)).inverse()
+        })
+        .collect();
+    let all = correlation_lengths(&labels, &adjusted);
+    assert_eq!(all, correlation_lengths_within(&labels, &adjusted, None));
+    assert!(all.0 > 10.0 && all.1 > 10.0, "τ over all corrections {all:?}");
+    let scatter = 0.01;
+    let prior = LabelSigma { translation_m: scatter * all.0.sqrt(), rotation_rad: scatter * all.1.sqrt() };
+    let (tt, tr) = correlation_lengths_within(&labels, &adjusted, Some(prior));
+    assert!(tt < 1.3 && tr < 1.3, "τ without the run ({tt}, {tr})");
 }

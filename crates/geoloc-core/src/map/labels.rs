@@ -41,9 +41,11 @@ pub struct LabelAdjustment {
     /// Per keyframe: e_kᵀ Σ_k⁻¹ e_k with Σ_k the adjusted label pose's marginal covariance.
     pub significance: Vec<f64>,
     /// Per twist axis (translation first), the median over the keyframes of the variance of
-    /// the adjusted label pose B_k as a perturbation of the camera pose T_k = B_k X with X
-    /// held fixed: diag(Ad_{X⁻¹} Σ_k Ad_{X⁻¹}ᵀ) (B_k exp(ε) X = T_k exp(Ad_{X⁻¹} ε)). How well
-    /// the map's poses are known in the labels' frame, without the offset's own uncertainty
+    /// their neighbourhood's mean label-pose error ([`Adjustment::label_neighbourhood_covariances`],
+    /// Σ̄_k) as a perturbation of the camera pose T_k = B_k X with X held fixed:
+    /// diag(Ad_{X⁻¹} Σ̄_k Ad_{X⁻¹}ᵀ) (B_k exp(ε) X = T_k exp(Ad_{X⁻¹} ε)). How well the map's
+    /// poses are known in the labels' frame, as far as a frame resting on a neighbourhood's
+    /// points shares it, without the offset's own uncertainty
     /// (which a result in the labels' convention, T X⁻¹, does not carry): the map noise of a
     /// query as close to the keyframes as they are to each other
     /// ([`crate::map::noise`], the near regime). Zero in files saved before it.
@@ -99,21 +101,24 @@ pub struct LabelStep {
 impl LabelAdjustment {
     /// The record of `adjustment` of `labels` (one adjusted pose per label).
     pub fn new(labels: Vec<SE3>, adjustment: &Adjustment) -> Self {
-        Self::with_poses(labels, &adjustment.label_poses, &adjustment.label_pose_covariances, adjustment)
+        let covariances = (&adjustment.label_pose_covariances[..], &adjustment.label_neighbourhood_covariances[..]);
+        Self::with_poses(labels, &adjustment.label_poses, covariances, adjustment)
     }
 
-    /// The record of `labels` adjusted to `adjusted` (world_from_label) with the marginal
-    /// covariances `covariances`, the rest from `adjustment` (which may have adjusted a
-    /// subset of the keyframes).
+    /// The record of `labels` adjusted to `adjusted` (world_from_label) with `covariances`
+    /// (per keyframe the marginal one, and that of its neighbourhood's mean error,
+    /// [`Adjustment::label_neighbourhood_covariances`]), the rest from `adjustment` (which
+    /// may have adjusted a subset of the keyframes).
     pub fn with_poses(
         labels: Vec<SE3>,
         adjusted: &[SE3],
-        covariances: &[Matrix6<f64>],
+        covariances: (&[Matrix6<f64>], &[Matrix6<f64>]),
         adjustment: &Adjustment,
     ) -> Self {
+        let (marginal, neighbourhood) = covariances;
         let (corrections, significance) =
-            labels.iter().zip(adjusted).zip(covariances).map(|((l, b), c)| correction(l, b, c)).unzip();
-        let pose_variance = camera_frame_variance(&adjustment.offset, covariances);
+            labels.iter().zip(adjusted).zip(marginal).map(|((l, b), c)| correction(l, b, c)).unzip();
+        let pose_variance = camera_frame_variance(&adjustment.offset, neighbourhood);
         let used = adjustment.inliers.iter().filter(|i| **i).count();
         Self {
             labels,

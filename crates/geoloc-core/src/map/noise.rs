@@ -49,16 +49,18 @@
 //! at least ν₁ = 1.1–1.7 in [`pose_distance`]'s units, 10 cm or 5° = 1; the folds' test
 //! queries 1.35–6.3). A query beside the mapped path — the common case of a robot or a phone
 //! in a mapped room — is as close to a keyframe as the keyframes are to each other (ν₀ =
-//! 0.10–0.11 on 7-Scenes), and its pose shares the error of those keyframes' poses, which the
-//! adjustment knows: C_near, per axis the median variance of the adjusted label poses
-//! ([`crate::map::LabelAdjustment::pose_variance`]; the offset's own uncertainty left out, as
-//! a result in the labels' convention does not carry it). Between the two the noise is
+//! 0.10–0.11 on 7-Scenes), and its pose shares the error those keyframes' poses have in
+//! common, which the adjustment knows: C_near, per axis the median variance of the mean error
+//! of a keyframe's neighbourhood ([`crate::map::LabelAdjustment::pose_variance`]; not one
+//! keyframe's marginal variance, whose own part a frame resting on many keyframes' points does
+//! not share; the offset's own uncertainty left out, as a result in the labels' convention
+//! does not carry it). Between the two the noise is
 //! interpolated linearly in ν ([`crate::map::NearNoise`], [`crate::map::MapNoise::covariance_at`]).
 //! Measured on 7-Scenes 0–699 with every 10th frame a query against a map of the rest
 //! (`benchmarks/calibration.py --near-path`, against the SfM reference, single image, 0.9 cm
 //! median error): with C_map alone all 70 answers fell in their 95 % region at a median NEES
-//! of 0.2 (σ_p 3.9 cm); with the near regime 100 % in NEES and 94 % on the weakest axis, at a
-//! median NEES of 2.7 (σ_p 0.6 cm).
+//! of 0.2 (σ_p 3.9 cm); with the near regime 91 % in NEES and 79 % on the weakest axis, at a
+//! median NEES of 4.6 (σ_p 0.5 cm).
 
 use std::sync::Arc;
 
