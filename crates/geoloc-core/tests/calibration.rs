@@ -139,10 +139,12 @@ fn a_jump_reinitializes_and_a_long_failure_is_lost_then_recovers() {
 /// inside the χ²₆ 95 % region for 91–99.5 % of them (93–99 %, widened by the binomial σ of
 /// 120 answers). It is conservative still: 119 of 120 inside, median NEES ≈ 3.6 against
 /// χ²₆'s 5.3 (a covariance of the pixel part plus the keyframes' measured common error puts
-/// 115 inside at a median of 5.4). It was 120 of 120 at a median of 1.2 while the map noise
-/// beside the path took one keyframe's marginal variance — whose own part the answer, resting
-/// on many keyframes' points, does not share — and τ counted the displaced run as drift
-/// (≈ 11; the labels' σ 1.05 cm against the true 3 mm).
+/// 115 inside at a median of 5.4). Both halves of the map noise beside the path matter here:
+/// it is the keyframes' common error, not one keyframe's marginal variance (whose own part an
+/// answer resting on many keyframes' points does not share), and τ does not count the
+/// displaced run as drift (counted, τ ≈ 11 and the labels' σ 1.05 cm for the true 3 mm);
+/// with the marginal variance and τ over all corrections all 120 fall inside at a median NEES
+/// of 1.2, with the common error but that τ at 1.5.
 #[test]
 fn the_localizer_covers_the_truth_when_labels_sit_on_another_sensor_and_a_run_is_displaced() {
     use geoloc_core::lie::{SO3, se3};
