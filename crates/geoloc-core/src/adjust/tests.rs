@@ -181,12 +181,17 @@ fn dense_normal_matrix(problem: &Problem<'_>, state: &State, n_points: usize) ->
     h
 }
 
-/// The marginal covariances (selected inverse through the Schur complement) equal the blocks
-/// of the dense inverse of the full normal matrix.
-#[test]
-fn marginal_covariances_equal_the_dense_inverse() {
-    let mut rng = SplitMix64::new(2);
-    let (camera, cams, landmarks, observations) = scene(&mut rng, 6, 40, 0.5);
+/// A [`scene`] of `keyframes` cameras and `landmarks` points (seed `seed`, 0.5 px noise), its
+/// labels on an offset sensor with 1 cm / 0.3° of noise, and at the truth: the labels, the
+/// number of points, the adjustment's covariances and the dense inverse of its full normal
+/// matrix (keyframes, offset, points).
+fn covariances_and_dense_inverse(
+    seed: u64,
+    keyframes: usize,
+    landmarks: usize,
+) -> (Vec<SE3>, usize, Covariances, DMatrix<f64>) {
+    let mut rng = SplitMix64::new(seed);
+    let (camera, cams, landmarks, observations) = scene(&mut rng, keyframes, landmarks, 0.5);
     let offset = SE3::exp(&rng.twist(0.05, 0.05));
     let labels: Vec<SE3> =
         cams.iter().map(|c| *c * offset.inverse() * SE3::exp(&rng.pose_noise(0.01, 0.005))).collect();
@@ -197,6 +202,14 @@ fn marginal_covariances_equal_the_dense_inverse() {
     let state = State { labels: labels.clone(), offset, points: landmarks.clone() };
     let covariances = problem.covariances(&state).expect("regular");
     let dense = dense_normal_matrix(&problem, &state, landmarks.len()).try_inverse().expect("invertible");
+    (labels, landmarks.len(), covariances, dense)
+}
+
+/// The marginal covariances (selected inverse through the Schur complement) equal the blocks
+/// of the dense inverse of the full normal matrix.
+#[test]
+fn marginal_covariances_equal_the_dense_inverse() {
+    let (labels, points, covariances, dense) = covariances_and_dense_inverse(2, 6, 40);
     let n = labels.len();
     let scale = dense.amax();
     for k in 0..n {
@@ -207,7 +220,7 @@ fn marginal_covariances_equal_the_dense_inverse() {
     }
     let want = dense.fixed_view::<6, 6>(6 * n, 6 * n).into_owned();
     assert!((covariances.offset - want).amax() < 1e-9 * scale);
-    for j in (0..landmarks.len()).step_by(3) {
+    for j in (0..points).step_by(3) {
         let want = dense.fixed_view::<3, 3>(6 * (n + 1) + 3 * j, 6 * (n + 1) + 3 * j).into_owned();
         assert!((covariances.points[j] - want).amax() < 1e-9 * scale, "point {j}");
     }
@@ -219,18 +232,7 @@ fn marginal_covariances_equal_the_dense_inverse() {
 /// take the part of the window that exists.
 #[test]
 fn neighbourhood_covariances_equal_the_dense_inverse() {
-    let mut rng = SplitMix64::new(4);
-    let (camera, cams, landmarks, observations) = scene(&mut rng, 14, 60, 0.5);
-    let offset = SE3::exp(&rng.twist(0.05, 0.05));
-    let labels: Vec<SE3> =
-        cams.iter().map(|c| *c * offset.inverse() * SE3::exp(&rng.pose_noise(0.01, 0.005))).collect();
-    let options = AdjustmentOptions { pixel_loss: RobustLoss::None, ..AdjustmentOptions::default() };
-    let inliers = vec![true; observations.len()];
-    let sigma = LabelSigma { translation_m: 0.01, rotation_rad: 0.005 };
-    let problem = Problem::new(&camera, &labels, &observations, &inliers, &options, sigma);
-    let state = State { labels: labels.clone(), offset, points: landmarks.clone() };
-    let covariances = problem.covariances(&state).expect("regular");
-    let dense = dense_normal_matrix(&problem, &state, landmarks.len()).try_inverse().expect("invertible");
+    let (labels, _, covariances, dense) = covariances_and_dense_inverse(4, 14, 60);
     let n = labels.len();
     let transport = |d: &SE3| {
         let h = 1e-6;
