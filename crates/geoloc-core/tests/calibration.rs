@@ -131,27 +131,16 @@ fn a_jump_reinitializes_and_a_long_failure_is_lost_then_recovers() {
 /// further 20 cm / 5°; keypoints with the 1 px noise the localizer assumes (the paper's). The
 /// default map (labels adjusted, map noise estimated; the synthetic camera is exact, so the
 /// camera is not re-estimated) and localizer, single image: 40 queries per scene, on the
-/// path and 3 cm, 10 cm and 50 cm beside it, in three scenes. Against the truth in the labels'
-/// convention (T X⁻¹, what the results are given in), the adjusted poses of the displaced run
-/// are within 1 cm / 0.2° of the truth (the views that tie the run to the rest, which the
-/// triangulation from the labels rejects, join the adjustment once its first pass has moved
-/// the run: without them the run stayed 1–3.5 cm / 0.1–0.55° off), and the answers' NEES falls
-/// inside the χ²₆ 95 % region for 91–99.5 % of them (93–99 %, widened by the binomial σ of
-/// 120 answers). It is conservative still: 119 of 120 inside, median NEES ≈ 3.6 against
-/// χ²₆'s 5.3 (a covariance of the pixel part plus the keyframes' measured common error puts
-/// 115 inside at a median of 5.4). Both halves of the map noise beside the path matter here:
-/// it is the keyframes' common error, not one keyframe's marginal variance (whose own part an
-/// answer resting on many keyframes' points does not share), and τ does not count the
-/// displaced run as drift (counted, τ ≈ 11 and the labels' σ 1.05 cm for the true 3 mm);
-/// with the marginal variance and τ over all corrections all 120 fall inside at a median NEES
-/// of 1.2, with the common error but that τ at 1.5.
-#[test]
-fn the_localizer_covers_the_truth_when_labels_sit_on_another_sensor_and_a_run_is_displaced() {
+/// path and 3 cm, 10 cm and 50 cm beside it. Against the truth in the labels' convention
+/// (T X⁻¹, what the results are given in), the adjusted poses of the displaced run are within
+/// 1 cm / 0.2° of the truth (the views that tie the run to the rest, which the triangulation
+/// from the labels rejects, join the adjustment once its first pass has moved the run: without
+/// them the run stayed 1–3.5 cm / 0.1–0.55° off). Returns each answer's NEES against the truth.
+fn sensor_offset_scene_nees(seed: u64) -> Vec<f64> {
     use geoloc_core::lie::{SO3, se3};
     use geoloc_core::map::BuildOptions;
     use nalgebra::{Vector2, Vector3};
     const KEYFRAMES_PER_PASS: usize = 80;
-    let (mut inside, mut total) = (0usize, 0usize);
     let axis = Vector3::new(0.3, -1.0, 0.5).normalize();
     let offset = SE3::new(SO3::exp(&(axis * 3f64.to_radians())), Vector3::new(0.04, -0.02, 0.02));
     let bump = SE3::exp(&se3::twist(&Vector3::new(0.12, 0.1, -0.12), &(axis * 5f64.to_radians())));
@@ -163,50 +152,88 @@ fn the_localizer_covers_the_truth_when_labels_sit_on_another_sensor_and_a_run_is
         }
         (keypoints, data)
     };
-    for seed in 1..=3 {
-        let mut rng = SplitMix64::new(seed);
-        let world = LandmarkScene::new(&mut rng, LANDMARKS, 8.0);
-        let (mut keyframes, mut times) = (Vec::new(), Vec::new());
-        for j in 0..2 * KEYFRAMES_PER_PASS {
-            let (i, side) = (j % KEYFRAMES_PER_PASS, 0.5 * (j / KEYFRAMES_PER_PASS) as f64);
-            let cam = testing::walk(i as f64 * 0.1, side, -2.5);
-            let (keypoints, data) = observe(&world, &mut rng, &cam);
-            let label = cam * offset.inverse() * SE3::exp(&rng.pose_noise(0.003, 0.002));
-            keyframes.push(Keyframe {
-                world_from_cam: if (30..42).contains(&j) { bump * label } else { label },
-                keypoints,
-                descriptors: DescriptorSet::Binary { data, width: WIDTH },
-                global: None,
-            });
-            times.push(j as f64 * 0.2);
-        }
-        let options = BuildOptions { refine_intrinsics: false, ..BuildOptions::default() };
-        let map = Map::build_with_options(world.camera, keyframes, None, Some(&times), &options).expect("builds");
-        let record = map.labels.as_ref().expect("adjusted");
-        assert!(record.applied, "seed {seed}: the adjustment is applied");
-        for k in 30..42 {
-            let truth = testing::walk(k as f64 * 0.1, 0.0, -2.5) * offset.inverse();
-            let d = (record.to_label(&map.keyframes[k].world_from_cam).inverse() * truth).log();
-            let (t, r) = (se3::rho(&d).norm(), se3::phi(&d).norm());
-            assert!(t < 0.01 && r < 0.2f64.to_radians(), "seed {seed} keyframe {k}: {t} m, {} deg", r.to_degrees());
-        }
-        let map = Arc::new(map);
-        let mut loc = Localizer::new(Arc::clone(&map), LocalizerOptions::default()).expect("valid");
-        for q in 0..40 {
-            let t = (q as f64 * 2.0 + 0.5) * 0.1;
-            let cam = testing::walk(t, [0.0, 0.03, 0.1, 0.5][q % 4], -2.5);
-            let (keypoints, data) = observe(&world, &mut rng, &cam);
-            loc.reset();
-            let frame = testing::landmark_frame(t, &keypoints, &data);
-            let result = map.to_label_convention(loc.localize(&frame).expect("valid"));
-            let Some(e) = result.estimate else { continue };
-            let d = (e.world_from_cam.inverse() * (cam * offset.inverse())).log();
-            total += 1;
-            inside += usize::from((d.transpose() * e.covariance.try_inverse().expect("spd") * d)[0] <= CHI2_6_95);
-        }
+    let mut rng = SplitMix64::new(seed);
+    let world = LandmarkScene::new(&mut rng, LANDMARKS, 8.0);
+    let (mut keyframes, mut times) = (Vec::new(), Vec::new());
+    for j in 0..2 * KEYFRAMES_PER_PASS {
+        let (i, side) = (j % KEYFRAMES_PER_PASS, 0.5 * (j / KEYFRAMES_PER_PASS) as f64);
+        let cam = testing::walk(i as f64 * 0.1, side, -2.5);
+        let (keypoints, data) = observe(&world, &mut rng, &cam);
+        let label = cam * offset.inverse() * SE3::exp(&rng.pose_noise(0.003, 0.002));
+        keyframes.push(Keyframe {
+            world_from_cam: if (30..42).contains(&j) { bump * label } else { label },
+            keypoints,
+            descriptors: DescriptorSet::Binary { data, width: WIDTH },
+            global: None,
+        });
+        times.push(j as f64 * 0.2);
     }
-    let coverage = inside as f64 / total as f64;
-    eprintln!("NEES coverage {coverage:.3} of {total}");
+    let options = BuildOptions { refine_intrinsics: false, ..BuildOptions::default() };
+    let map = Map::build_with_options(world.camera, keyframes, None, Some(&times), &options).expect("builds");
+    let record = map.labels.as_ref().expect("adjusted");
+    assert!(record.applied, "seed {seed}: the adjustment is applied");
+    for k in 30..42 {
+        let truth = testing::walk(k as f64 * 0.1, 0.0, -2.5) * offset.inverse();
+        let d = (record.to_label(&map.keyframes[k].world_from_cam).inverse() * truth).log();
+        let (t, r) = (se3::rho(&d).norm(), se3::phi(&d).norm());
+        assert!(t < 0.01 && r < 0.2f64.to_radians(), "seed {seed} keyframe {k}: {t} m, {} deg", r.to_degrees());
+    }
+    let map = Arc::new(map);
+    let mut loc = Localizer::new(Arc::clone(&map), LocalizerOptions::default()).expect("valid");
+    let mut nees = Vec::new();
+    for q in 0..40 {
+        let t = (q as f64 * 2.0 + 0.5) * 0.1;
+        let cam = testing::walk(t, [0.0, 0.03, 0.1, 0.5][q % 4], -2.5);
+        let (keypoints, data) = observe(&world, &mut rng, &cam);
+        loc.reset();
+        let frame = testing::landmark_frame(t, &keypoints, &data);
+        let result = map.to_label_convention(loc.localize(&frame).expect("valid"));
+        let Some(e) = result.estimate else { continue };
+        let d = (e.world_from_cam.inverse() * (cam * offset.inverse())).log();
+        nees.push((d.transpose() * e.covariance.try_inverse().expect("spd") * d)[0]);
+    }
+    nees
+}
+
+/// The fraction of `nees` inside the χ²₆ 95 % region, and their median.
+fn coverage_and_median(mut nees: Vec<f64>) -> (f64, f64) {
+    let inside = nees.iter().filter(|&&n| n <= CHI2_6_95).count();
+    nees.sort_by(f64::total_cmp);
+    (inside as f64 / nees.len() as f64, nees[nees.len() / 2])
+}
+
+/// [`sensor_offset_scene_nees`] in three scenes: 114 or more of the 120 answered, and their
+/// NEES inside the χ²₆ 95 % region for 91–99.5 % of them (93–97 %, widened by the binomial σ
+/// of 120 answers; ten scenes put 97.0 % of 400 inside — `sensor_offset_coverage_over_ten_scenes`
+/// — and these three 119 of 120). Both halves of the map noise beside the path matter here:
+/// it is the keyframes' common error, not one keyframe's marginal variance (whose own part an
+/// answer resting on many keyframes' points does not share), and τ does not count the
+/// displaced run as drift (counted, τ ≈ 11 and the labels' σ 1.05 cm for the true 3 mm);
+/// with the marginal variance and τ over all corrections all 120 fall inside at a median NEES
+/// of 1.2, with the common error but that τ at 1.5.
+#[test]
+fn the_localizer_covers_the_truth_when_labels_sit_on_another_sensor_and_a_run_is_displaced() {
+    let nees: Vec<f64> = (1..=3).flat_map(sensor_offset_scene_nees).collect();
+    let total = nees.len();
+    let (coverage, median) = coverage_and_median(nees);
+    eprintln!("NEES coverage {coverage:.3} of {total}, median NEES {median:.2}");
     assert!(total >= 114, "{total} of 120 answered");
     assert!(coverage >= 0.91 && coverage < COVERAGE_BAND.1, "coverage {coverage}");
+}
+
+/// The measurement behind the three-scene check's band, in ten scenes (about 6 min, so not in
+/// the suite: `cargo test --release -p geoloc-core --test calibration -- --ignored`): 388 of
+/// the 400 answers inside the χ²₆ 95 % region (97.0 %; binomial 95 % interval 94.8–98.4 %),
+/// median NEES 4.1 against χ²₆'s 5.3 — on the path 95 of 100, 3 cm beside it 98, 10 cm
+/// (between the passes, ν ≈ 1) 98, on the second pass 97. The band asserted is 93–97 %
+/// widened by the binomial σ of 400 answers (≈ 1 %).
+#[test]
+#[ignore = "a ten-scene measurement (about 6 min); the suite runs the three-scene check"]
+fn sensor_offset_coverage_over_ten_scenes() {
+    let nees: Vec<f64> = (1..=10).flat_map(sensor_offset_scene_nees).collect();
+    let total = nees.len();
+    let (coverage, median) = coverage_and_median(nees);
+    eprintln!("NEES coverage {coverage:.3} of {total}, median NEES {median:.2}");
+    assert!(total >= 380, "{total} of 400 answered");
+    assert!((0.92..=0.98).contains(&coverage), "coverage {coverage}");
 }
