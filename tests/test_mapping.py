@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import pickle
 import re
 import subprocess
 import sys
@@ -207,6 +208,63 @@ def test_damaged_map_files_are_refused(room_map: Map, tmp_path: Path) -> None:
             Map.load(bad)
     with pytest.raises(geoloc.GeolocError):
         Map.load(tmp_path / "missing.geoloc")
+
+
+def test_a_map_travels_as_its_file_bytes_and_pickles_into_another_process(
+    room_map: Map, room: datasets.Sequence, tmp_path: Path
+) -> None:
+    """``to_bytes`` is the saved file byte for byte; ``from_bytes`` and a pickle (sent to a new
+    process, as a process pool sends it) give the same map: the same settings and bit-identical
+    answers."""
+    path = tmp_path / "room.geoloc"
+    room_map.save(path)
+    data = room_map.to_bytes()
+    assert data == path.read_bytes()
+    expected = [r.pose.tobytes().hex() for r in _localize_queries(room_map, room)]  # type: ignore[attr-defined]
+    for copy in (Map.from_bytes(data), Map.from_bytes(bytearray(data)), pickle.loads(pickle.dumps(room_map))):
+        assert copy.settings == room_map.settings and copy.camera.intrinsics == room_map.camera.intrinsics
+        assert [r.pose.tobytes().hex() for r in _localize_queries(copy, room)] == expected  # type: ignore[attr-defined]
+        assert copy.to_bytes() == data
+    script = (
+        "import pickle, sys; from geoloc import datasets, Localizer\n"
+        f"room = datasets.synthetic_room(n_frames={ROOM_FRAMES}); m = pickle.loads(sys.stdin.buffer.read()); loc = Localizer(m)\n"
+        f"for i in {QUERIES!r}:\n"
+        "    loc.reset(); print(loc.localize(room.gray(i), float(room.timestamps[i])).pose.tobytes().hex())\n"
+    )
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(Path(geoloc.__file__).parents[1]), os.environ.get("PYTHONPATH", "")]))
+    out = subprocess.run([sys.executable, "-c", script], input=pickle.dumps(room_map), capture_output=True, env=env, check=True)
+    assert out.stdout.decode().split() == expected
+
+
+def test_bad_map_bytes_are_refused_naming_the_argument(room_map: Map) -> None:
+    data = room_map.to_bytes()
+    for cut in sorted({0, 1, 8, 64, len(data) // 2, len(data) - 1}):
+        with pytest.raises(geoloc.FileFormatError, match="^data: "):
+            Map.from_bytes(data[:cut])
+    flipped = bytearray(data)
+    flipped[-1] ^= 1
+    with pytest.raises(geoloc.FileFormatError, match="^data: .*checksum mismatch"):
+        Map.from_bytes(flipped)
+    for wrong in (None, "room.geoloc", Path("room.geoloc"), [1, 2]):
+        with pytest.raises(geoloc.InvalidInputError, match="^data: expected the bytes of a saved map"):
+            Map.from_bytes(wrong)  # type: ignore[arg-type]
+    other = Map(room_map._core, room_map._camera, room_map._extractor, {**room_map._frontend, "version": 2})
+    with pytest.raises(geoloc.FileFormatError, match=r"^data: its frontend record \(version 2\)"):
+        Map.from_bytes(other.to_bytes())
+
+
+def test_an_unpickled_map_still_refuses_to_save_over_its_inputs(room_map: Map, tmp_path: Path) -> None:
+    image = tmp_path / "frame-000000.color.png"
+    image.write_bytes(b"an input image")
+    built = Map(room_map._core, room_map._camera, room_map._extractor, room_map._frontend, (("sequence", image),))
+    with pytest.raises(geoloc.InvalidInputError, match="same file as the input sequence"):
+        pickle.loads(pickle.dumps(built)).save(image)
+    assert image.read_bytes() == b"an input image"
+
+
+def test_a_localizer_is_not_pickled_and_says_what_to_pickle(room_map: Map) -> None:
+    with pytest.raises(TypeError, match="pickle its map"):
+        pickle.dumps(Localizer(room_map))
 
 
 def test_a_map_of_another_frontend_version_is_a_file_format_error(room_map: Map, tmp_path: Path) -> None:

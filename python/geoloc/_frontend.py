@@ -31,41 +31,42 @@ def camera_record(camera: Camera) -> dict[str, Any]:
     return {"width": camera.width, "height": camera.height, "dist": list(camera.dist or ())}
 
 
-def _record(frontend: dict[str, Any], key: str, fields: dict[str, type | tuple[type, ...]], path: str) -> dict[str, Any]:
+def _record(frontend: dict[str, Any], key: str, fields: dict[str, type | tuple[type, ...]], source: str) -> dict[str, Any]:
     """``frontend[key]``, a dict holding ``fields`` of the given types; else FileFormatError
     naming the file and the field."""
     record = frontend.get(key)
     if not isinstance(record, dict):
-        raise FileFormatError(f"path: {path!r}: the map's frontend header has no {key!r} record (got {type(record).__name__})")
+        raise FileFormatError(f"{source}: the map's frontend header has no {key!r} record (got {type(record).__name__})")
     for name, kind in fields.items():
         value = record.get(name)
         if not isinstance(value, kind) or (isinstance(value, bool) and kind is int):
-            raise FileFormatError(f"path: {path!r}: the map's frontend field {key}.{name} is missing or malformed ({value!r:.40})")
+            raise FileFormatError(f"{source}: the map's frontend field {key}.{name} is missing or malformed ({value!r:.40})")
     return record
 
 
 def frontend_parts(
-    frontend: dict[str, Any], intrinsics: tuple[float, float, float, float], path: str
+    frontend: dict[str, Any], intrinsics: tuple[float, float, float, float], source: str
 ) -> tuple[FeatureExtractor | None, Camera]:
     """The feature extractor (None for a map built from features) and the camera a map
     file's frontend header records, checked field by field: a hand-made or damaged header
-    is a FileFormatError naming the field."""
-    cam = _record(frontend, "camera", {"width": int, "height": int, "dist": list}, path)
+    is a FileFormatError naming the field after ``source`` (the file or argument it came from,
+    as the message names it: ``path: 'room.geoloc'``, ``data``)."""
+    cam = _record(frontend, "camera", {"width": int, "height": int, "dist": list}, source)
     retrieval = frontend.get("retrieval")
     if retrieval not in ("bow", "global", "fused") and not isinstance(retrieval, dict):
-        raise FileFormatError(f"path: {path!r}: the map's frontend field retrieval is missing or malformed ({retrieval!r:.40})")
+        raise FileFormatError(f"{source}: the map's frontend field retrieval is missing or malformed ({retrieval!r:.40})")
     if "features" not in frontend:
-        raise FileFormatError(f"path: {path!r}: the map's frontend header has no 'features' record")
+        raise FileFormatError(f"{source}: the map's frontend header has no 'features' record")
     extractor = None
     if frontend["features"] is not None:  # None: a map built from features
-        f = _record(frontend, "features", {"kind": str, "n_features": int, "root_sift": bool}, path)
+        f = _record(frontend, "features", {"kind": str, "n_features": int, "root_sift": bool}, source)
         try:
             extractor = FeatureExtractor(f["kind"], f["n_features"], root_sift=f["root_sift"])
         except InvalidInputError as e:
-            raise FileFormatError(f"path: {path!r}: the map's frontend field features is not valid ({e})") from None
+            raise FileFormatError(f"{source}: the map's frontend field features is not valid ({e})") from None
     try:
         fx, fy, cx, cy = intrinsics
         camera = Camera(fx, fy, cx, cy, width=cam["width"], height=cam["height"], dist=cam["dist"] or None)
     except (InvalidInputError, TypeError) as e:
-        raise FileFormatError(f"path: {path!r}: the map's frontend field camera is not valid ({e})") from None
+        raise FileFormatError(f"{source}: the map's frontend field camera is not valid ({e})") from None
     return extractor, camera

@@ -286,6 +286,12 @@ class Localizer:
         localized by geometry alone)."""
         self._core.reset()
 
+    def __reduce__(self) -> tuple[Any, ...]:
+        raise TypeError(
+            "a Localizer cannot be pickled: it holds one stream's motion history; pickle its map "
+            "(a geoloc.Map pickles as its file's bytes) and make a Localizer in each process"
+        )
+
     def localize_sequence(
         self, sequence: Any, mode: str = "sequential", progress: ProgressCallback | None = None
     ) -> list[Localization]:

@@ -547,19 +547,53 @@ class Map:
         if kind is not None:  # never opened: a FIFO would block the reader
             raise FileAccessError(f"{shown(source)}: cannot read the map: it is {kind}, not a regular file")
         core, text = _core.FeatureMap.load(os.fspath(source))
+        loaded = cls._from_core(core, text, f"path: {shown(source)!r}")
+        loaded._loaded_from = Path(source)
+        return loaded
+
+    def to_bytes(self) -> bytes:
+        """The bytes :meth:`save` writes, in memory — a map sent to another process or kept in
+        a database; :meth:`from_bytes` reads them back. A map pickles as these bytes."""
+        text = json.dumps(self._frontend, sort_keys=True, allow_nan=False)
+        data: bytes = self._core.to_bytes(text)
+        return data
+
+    @classmethod
+    def from_bytes(cls, data: bytes | bytearray | memoryview) -> Map:
+        """A map from :meth:`to_bytes`'s bytes (or a map file's, read whole), checked whole as
+        :meth:`load` checks a file: truncated, corrupt or other-version bytes raise
+        :class:`geoloc.exceptions.FileFormatError`."""
+        if not isinstance(data, (bytes, bytearray, memoryview)):
+            raise InvalidInputError(f"data: expected the bytes of a saved map, got {type(data).__name__}")
+        try:
+            core, text = _core.FeatureMap.from_bytes(bytes(data))
+        except FileFormatError as exc:
+            raise FileFormatError(f"data: {exc}") from None
+        return cls._from_core(core, text, "data")
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        # pickled as the file's bytes, with the files it was built from (a save over one of
+        # them stays refused in the process that unpickles it)
+        return (_unpickled_map, (self.to_bytes(), self._inputs))
+
+    @classmethod
+    def _from_core(cls, core: Any, text: str, source: str) -> Map:
+        """The map of a core map and its frontend record ``text``, which must be of this version
+        or absent (a FeatureMap file); ``source`` names where they were read from in messages
+        (``path: 'room.geoloc'``, ``data``)."""
         frontend = json.loads(text)
         if not isinstance(frontend, dict) or frontend.get("version", FRONTEND_VERSION) != FRONTEND_VERSION:
             found = frontend.get("version") if isinstance(frontend, dict) else frontend
             raise FileFormatError(
-                f"{shown(source)}: its frontend record (version {found!r}) was not written by this version of "
+                f"{source}: its frontend record (version {found!r}) was not written by this version of "
                 f"geoloc's Python package, which reads version {FRONTEND_VERSION}"
             )
         if "version" not in frontend:  # a FeatureMap file: the caller's own settings, no frontend record
             warnings.warn(
-                f"{shown(source)}: a map saved by the deprecated geoloc.localizer.FeatureMap; "
+                f"{source}: a map saved by the deprecated geoloc.localizer.FeatureMap; "
                 "it loads as a map built from features (save it again to upgrade it)",
                 DeprecationWarning,
-                stacklevel=2,
+                stacklevel=3,
             )
             frontend = {
                 "version": FRONTEND_VERSION,
@@ -568,10 +602,15 @@ class Map:
                 "retrieval": core.retrieval,
                 "source": {"keyframes": len(core)},
             }
-        extractor, camera = frontend_parts(frontend, core.intrinsics, str(path))
-        loaded = cls(core, camera, extractor, frontend)
-        loaded._loaded_from = Path(source)
-        return loaded
+        extractor, camera = frontend_parts(frontend, core.intrinsics, source)
+        return cls(core, camera, extractor, frontend)
+
+
+def _unpickled_map(data: bytes, inputs: tuple[tuple[str, Path], ...]) -> Map:
+    """The map :meth:`Map.__reduce__` pickled."""
+    unpickled = Map.from_bytes(data)
+    unpickled._inputs = inputs
+    return unpickled
 
 
 def __getattr__(name: str) -> Any:

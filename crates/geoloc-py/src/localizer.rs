@@ -10,7 +10,7 @@ use geoloc_core::map::{Keyframe, Map as CoreMap, RetrievalMethod, RetrievalQuery
 use nalgebra::Vector2;
 use numpy::{PyArray2, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2, PyUntypedArrayMethods};
 use pyo3::prelude::*;
-use pyo3::types::PyDict;
+use pyo3::types::{PyBytes, PyDict};
 
 use crate::convert::{BorrowedDescriptors, matrices, matrices_to_array, matrices_to_array3, poses, rows};
 use crate::errors::{invalid, to_py_err};
@@ -318,6 +318,19 @@ impl FeatureMap {
     /// Writes the map to `path` atomically; `frontend` is the caller's settings (JSON object text).
     fn save(&self, py: Python<'_>, path: PathBuf, frontend: &str) -> PyResult<()> {
         py.detach(|| self.inner.save(&path, frontend)).map_err(to_py_err)
+    }
+
+    /// The bytes `save` writes, in memory; `frontend` as for `save`.
+    fn to_bytes<'py>(&self, py: Python<'py>, frontend: &str) -> PyResult<Bound<'py, PyBytes>> {
+        let bytes = py.detach(|| self.inner.to_bytes(frontend)).map_err(to_py_err)?;
+        Ok(PyBytes::new(py, &bytes))
+    }
+
+    /// Reads a map from the bytes of a saved one: the map and its frontend settings (JSON text).
+    #[staticmethod]
+    fn from_bytes(py: Python<'_>, data: &[u8]) -> PyResult<(Self, String)> {
+        let (map, header) = py.detach(|| CoreMap::from_bytes(data)).map_err(to_py_err)?;
+        Ok((Self { inner: Arc::new(map) }, header.frontend.to_string()))
     }
 
     /// Reads a map written by `save`: the map and its frontend settings (JSON text).

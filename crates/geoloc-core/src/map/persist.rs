@@ -645,6 +645,25 @@ impl Map {
         Ok((map, header))
     }
 
+    /// The bytes [`Map::save`] writes, in memory: a map sent to another process or kept in a
+    /// database; [`Map::from_bytes`] reads them back.
+    ///
+    /// # Errors
+    /// As [`Map::to_map_file`] and [`MapFile::to_bytes`].
+    pub fn to_bytes(&self, frontend: &str) -> Result<Vec<u8>> {
+        self.to_map_file(frontend)?.to_bytes()
+    }
+
+    /// Reads a map from the bytes of a saved map ([`Map::to_bytes`], or a map file read
+    /// whole), checking everything first as [`Map::load`] does.
+    ///
+    /// # Errors
+    /// `Format` as [`MapFile::from_bytes`] and [`Map::from_map_file`] (truncated, corrupt,
+    /// another version, a checksum mismatch).
+    pub fn from_bytes(bytes: &[u8]) -> Result<(Self, MapHeader)> {
+        Self::from_map_file(&MapFile::from_bytes(bytes)?)
+    }
+
     /// Saves the map to `path` atomically (see [`file::write`]).
     ///
     /// # Errors
@@ -1385,6 +1404,32 @@ mod tests {
         std::fs::write(&path, &bytes[..bytes.len() / 2]).expect("truncate");
         let err = Map::load(&path).expect_err("truncated");
         assert!(err.to_string().contains("scene.geoloc"), "{err}");
+        std::fs::remove_dir_all(&dir).expect("cleanup");
+    }
+
+    /// The bytes in memory are the saved file's, byte for byte, and read back to the same map
+    /// with the same frontend record; a truncated or altered copy is refused as a file is.
+    #[test]
+    fn the_bytes_in_memory_are_the_saved_file() {
+        let dir = std::env::temp_dir().join(format!("geoloc-persist-bytes-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("temp dir");
+        let path = dir.join("scene.geoloc");
+        let original = map(true, RetrievalKind::Bow { branching: 3, depth: 2 }, true);
+        let frontend = r#"{"features":"orb"}"#;
+        original.save(&path, frontend).expect("saves");
+        let bytes = original.to_bytes(frontend).expect("serializes");
+        assert_eq!(bytes, std::fs::read(&path).expect("read"));
+        let (back, header) = Map::from_bytes(&bytes).expect("reads");
+        assert_same(&original, &back);
+        assert_eq!(header.frontend.to_string(), frontend);
+        let err = Map::from_bytes(&bytes[..bytes.len() - 9]).expect_err("truncated");
+        assert!(matches!(err, GeolocError::Format { .. }), "{err}");
+        let mut altered = bytes.clone();
+        let last = altered.len() - 1;
+        altered[last] ^= 1;
+        let err = Map::from_bytes(&altered).expect_err("altered");
+        assert!(err.to_string().contains("checksum mismatch"), "{err}");
+        assert!(matches!(Map::from_bytes(&[]), Err(GeolocError::Format { .. })));
         std::fs::remove_dir_all(&dir).expect("cleanup");
     }
 }
