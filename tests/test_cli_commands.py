@@ -324,6 +324,20 @@ def test_localize_to_standard_output_writes_what_a_file_would_get(room_map: Path
     assert not (tmp_path / "-").exists()
 
 
+def test_a_reader_of_standard_output_that_goes_away_ends_the_run_quietly(room_map: Path) -> None:
+    """``geoloc localize … --out - | head``: the reader gone, the run ends as a tool the SIGPIPE
+    ends (status 141), with no error line and no traceback."""
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(Path(geoloc.__file__).parents[1]), os.environ.get("PYTHONPATH", "")]))
+    args = ("localize", "--map", str(room_map), "--format", "synthetic", "--synthetic-frames", str(ROOM_FRAMES), "--frames", "30:33", "--out", "-")
+    with subprocess.Popen([sys.executable, "-m", "geoloc", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env) as run:
+        assert run.stdout is not None and run.stderr is not None
+        run.stdout.close()  # nobody reads: the first write fails with EPIPE
+        stderr = run.stderr.read().decode()
+        status = run.wait(timeout=300)
+    assert status == 141, stderr
+    assert stderr == "", stderr
+
+
 def test_a_run_that_loses_every_frame_fails_with_exit_1_and_writes_nothing(room_map: Path, tmp_path: Path) -> None:
     """Losing every frame is a failed run (exit 1), not a usage or input error (exit 2)."""
     import cv2

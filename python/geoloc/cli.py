@@ -365,6 +365,11 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     return parser, handlers
 
 
+#: The number of SIGPIPE (the signal a writer to a pipe nobody reads gets), also where the
+#: signal module lacks it.
+SIGPIPE = int(getattr(signal, "SIGPIPE", 13))
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``geoloc`` with ``argv`` (default: ``sys.argv[1:]``); return the exit status."""
     from ._io import shown
@@ -389,6 +394,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         signum = e.args[0] if e.args and isinstance(e.args[0], int) else signal.SIGINT
         print(f"geoloc {args.command}: interrupted", file=sys.stderr)
         return 128 + int(signum)
+    except BrokenPipeError:
+        # the reader of standard output went away (`| head`): stop quietly with the status of a
+        # tool the SIGPIPE ended, standard output pointed at /dev/null so that the interpreter's
+        # last flush does not fail again
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+        return 128 + SIGPIPE
     except (GeolocError, ValueError, OSError) as e:
         if args.debug:
             traceback.print_exc()
