@@ -126,6 +126,9 @@ def test_adjusted_keyframes_agree_with_the_image_reference(kitchen: tuple[Sequen
     assert np.median(r) < 0.7 * np.median(r_labels), (np.median(r), np.median(r_labels))
     report = m.labels
     assert report is not None and report["applied"] and report["rms_px"][1] < report["rms_px"][0]
+    # the labels drift, and step by 4-5 cm at frames 447-449, but never jump beyond what the
+    # adjustment's tracks tolerate: the images find no break, nothing is re-placed
+    assert report["breaks"] == [] and report["replaced"] == []
     # the runs are the stretches of ≥ 3 keyframes whose corrections are significant (χ²₆ 99.9 %)
     significant = np.array(report["significance"]) > CHI2_6_999
     assert report["runs"], "the labels' drift shows as runs of significant corrections"
@@ -184,3 +187,25 @@ def test_build_map_summary_of_unchecked_labels_states_only_that() -> None:
 
     line = describe_labels({"state": "kept (not checked: no tracks between the keyframes)", "observations": [0, 0]})
     assert line == "labels kept (not checked: no tracks between the keyframes)"
+
+
+def test_build_map_names_the_jumps_in_the_labels_and_warns_of_one_left_unrepaired() -> None:
+    """The summary line names each break, the parts re-placed and how far; a break no re-placed
+    part reconciles is a warning (the keyframes beyond it keep their labels' error)."""
+    from geoloc.commands._common import describe_labels
+
+    found = {
+        "state": "adjusted", "observations": [1000, 10], "runs": [], "steps": [], "rms_px": [4.0, 1.4],
+        "label_sigma_m": 0.003, "label_sigma_deg": 0.1, "median_correction_m": 0.002, "median_correction_deg": 0.05,
+        "label_from_cam_translation_m": [0.04, 0.0, 0.0], "label_from_cam_rotation_deg": 3.0,
+        "breaks": [{"at": 42, "repaired": True}, {"at": 90, "repaired": False}],
+        "replaced": [
+            {"start": 30, "end": 42, "correction": [0.1] * 6, "correction_m": 0.39, "correction_deg": 10.0},
+            {"start": 90, "end": 95, "correction": None, "correction_m": None, "correction_deg": None},
+        ],
+    }
+    line = describe_labels(found)
+    assert "jumps in the labels the images show (before keyframe): 42, 90 — re-placed: 30-41 moved 39.0 cm / 10.0°" in line
+    assert line.endswith("WARNING: the images could not place the labels beyond 90")
+    quiet = describe_labels({**found, "breaks": [], "replaced": []})
+    assert "jump" not in quiet and "WARNING" not in quiet

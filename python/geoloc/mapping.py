@@ -383,7 +383,17 @@ class Map:
         pairs k, k + 1 whose d_k = log((L_k⁻¹L_{k+1})⁻¹(B_k⁻¹B_{k+1}))^∨ is beyond the χ²₆
         99.9 % quantile of the pairs' robust scatter (``step_sigma_m``, ``step_sigma_deg``),
         each with ``start``, ``end`` (one past), the disagreement across it
-        (``translation_m``, ``rotation_deg``) and ``significance`` (its largest pair's), and
+        (``translation_m``, ``rotation_deg``) and ``significance`` (its largest pair's),
+        ``breaks``: jumps in the labels the images show before the adjustment — consecutive
+        keyframes ``at`` − 1, ``at`` whose descriptor matches an essential matrix explains
+        (``image_inliers``) while the labels' epipolar geometry keeps fewer than a third as
+        many (``label_inliers``, of ``matches``), ``repaired`` when a re-placed part begins or
+        ends there —, ``replaced``: the keyframes ``start`` …
+        ``end`` − 1 those jumps cut off that the images re-placed before the adjustment
+        (``correction``, log(C) with L' = C·L in the world frame, translation first;
+        ``correction_m``, ``correction_deg``; ``localized`` of them located by PnP, ``agreeing``
+        on it) — a break no segment's correction reconciles is a jump the map could not
+        repair: the keyframes beyond it keep their labels' error —, and
         per keyframe, as lists, ``corrections`` (K × 6) e_k = log(L_k⁻¹ B_k)^∨ — label L_k to
         adjusted pose B_k, right perturbation, translation (m) first, rotation (rad) — and
         ``significance`` (K) e_kᵀ Σ_k⁻¹ e_k, Σ_k the adjusted pose's covariance."""

@@ -11,6 +11,7 @@ mod build;
 pub mod file;
 pub mod fused_retrieval;
 pub mod group_matches;
+pub mod label_breaks;
 pub mod labels;
 pub mod model;
 pub mod noise;
@@ -557,16 +558,26 @@ impl Map {
     fn adjust_labels(&mut self, options: &AdjustmentOptions) -> Result<()> {
         self.group_matches = None; // the poses change
         // a map adjusted before starts from its adjusted poses, its labels stay the priors
-        let (labels, start, offset, correlation) = match self.labels.take() {
+        // the first adjustment re-places the segments that jumps in the labels cut off
+        // (label_breaks); a re-adjustment keeps what the first one found
+        let (labels, start, offset, correlation, breaks) = match self.labels.take() {
             Some(record) => (
                 record.labels.clone(),
                 record.label_poses(&self.poses()),
                 record.offset,
                 Some(record.correlation_keyframes),
+                (record.breaks, record.replaced),
             ),
-            None => (self.poses(), self.poses(), SE3::identity(), None),
+            None => {
+                let labels = self.poses();
+                let (start, breaks, replaced) = label_breaks::repaired_start(self, &labels)?;
+                (labels, start, SE3::identity(), None, (breaks, replaced))
+            }
         };
-        let problem = self.skeleton_problem(&labels, &start)?;
+        // tracks from the start poses where a segment was re-placed (from the labels, they
+        // would keep it an island), else from the keyframes' poses
+        let moved = correlation.is_none() && breaks.1.iter().any(|r| r.correction.is_some());
+        let problem = self.skeleton_problem(&labels, &start, moved.then_some(&start[..]))?;
         let chosen = &problem.keyframes;
         let adjustment = crate::adjust::bundle_adjust_with_candidates(
             &self.camera,
@@ -586,6 +597,7 @@ impl Map {
             // re-adjusted with the σ found before: keep how it was found
             record.correlation_keyframes = tau;
         }
+        (record.breaks, record.replaced) = breaks;
         // labels the images do not contradict stay as they are (the record says so); the
         // decision is the first adjustment's, a re-adjustment refines an applied one
         record.applied = correlation.is_some() || record.significant();
@@ -618,15 +630,27 @@ impl Map {
             return Err(GeolocError::invalid("labels", "the map's labels are adjusted already"));
         }
         let poses = self.poses();
-        self.skeleton_problem(&poses, &poses)
+        self.skeleton_problem(&poses, &poses, None)
     }
 
     /// The adjustment problem of the skeleton of `start` ([`crate::adjust::skeleton`]): the
     /// labels `labels` and the start poses `start` (one per keyframe) picked at the skeleton's
-    /// keyframes, with the tracks the skeleton's pairs give.
-    fn skeleton_problem(&self, labels: &[SE3], start: &[SE3]) -> Result<AdjustmentProblem> {
+    /// keyframes, with the tracks the skeleton's pairs give — paired, checked and triangulated
+    /// with the camera poses `track_poses` (one per keyframe; None: the keyframes' own).
+    fn skeleton_problem(
+        &self,
+        labels: &[SE3],
+        start: &[SE3],
+        track_poses: Option<&[SE3]>,
+    ) -> Result<AdjustmentProblem> {
         let chosen = crate::adjust::skeleton(start);
-        let keyframes: Vec<Keyframe> = chosen.iter().map(|&k| self.keyframes[k].clone()).collect();
+        let keyframes: Vec<Keyframe> = chosen
+            .iter()
+            .map(|&k| match track_poses {
+                Some(poses) => Keyframe { world_from_cam: poses[k], ..self.keyframes[k].clone() },
+                None => self.keyframes[k].clone(),
+            })
+            .collect();
         let tracks = adjustment_tracks();
         let pairs = PairMatches::compute(&keyframes, &tracks)?;
         let (model, rejected) = SceneModel::assemble_with_rejected(&self.camera, &keyframes, None, &tracks, &pairs)?;
@@ -921,13 +945,18 @@ pub fn calibration_tracks() -> ModelOptions {
 pub fn adjustment_tracks() -> ModelOptions {
     let calibration = calibration_tracks();
     ModelOptions {
-        epipolar_px: 12.0,
-        triangulation: TriangulationOptions { max_residual_px: 12.0, ..calibration.triangulation },
+        epipolar_px: ADJUSTMENT_EPIPOLAR_PX,
+        triangulation: TriangulationOptions { max_residual_px: ADJUSTMENT_EPIPOLAR_PX, ..calibration.triangulation },
         revisit_neighbours: ADJUSTMENT_REVISITS,
         revisit_gap: ADJUSTMENT_REVISIT_GAP,
         ..calibration
     }
 }
+
+/// The epipolar check and the triangulation's reprojection limit of the labels' adjustment's
+/// tracks ([`adjustment_tracks`], px): labels a few centimetres and a degree off move points
+/// by that much.
+pub const ADJUSTMENT_EPIPOLAR_PX: f64 = 12.0;
 
 /// Revisit pairs per skeleton keyframe in the labels' adjustment ([`adjustment_tracks`]).
 pub const ADJUSTMENT_REVISITS: usize = 6;

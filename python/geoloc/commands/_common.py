@@ -300,12 +300,23 @@ def describe_labels(found: dict[str, Any] | None) -> str:
     steps = ", ".join(f"{s['start']}-{s['end'] - 1} ({100 * s['translation_m']:.1f} cm / {s['rotation_deg']:.1f}°)"
                       for s in largest) or "none"
     before, after = found["rms_px"]
+    replaced = ", ".join(
+        f"{r['start']}-{r['end'] - 1} moved {100 * r['correction_m']:.1f} cm / {r['correction_deg']:.1f}°"
+        for r in found.get("replaced", []) if r["correction"] is not None
+    )
+    left = [b["at"] for b in found.get("breaks", []) if not b["repaired"]]
+    jumps = ""
+    if found.get("breaks"):
+        jumps = (f"; jumps in the labels the images show (before keyframe): {', '.join(str(b['at']) for b in found['breaks'])}"
+                 f" — re-placed: {replaced or 'none'}")
+        if left:
+            jumps += f"; WARNING: the images could not place the labels beyond {', '.join(map(str, left))}"
     return (
         f"labels {state}: σ {1e3 * found['label_sigma_m']:.1f} mm / {found['label_sigma_deg']:.2f}°, median correction "
         f"{1e3 * found['median_correction_m']:.1f} mm / {found['median_correction_deg']:.2f}°, label-to-camera offset "
         f"{100 * float(np.linalg.norm(found['label_from_cam_translation_m'])):.1f} cm / {found['label_from_cam_rotation_deg']:.2f}°; "
         f"track residuals {before:.2f} -> {after:.2f} px rms; runs of significant corrections (keyframes): {runs}; "
-        f"{len(found['steps'])} step(s) in the labels' motion, largest (keyframes): {steps}"
+        f"{len(found['steps'])} step(s) in the labels' motion, largest (keyframes): {steps}{jumps}"
     )
 
 

@@ -1,7 +1,8 @@
 //! The map's pose labels corrected by bundle adjustment ([`crate::adjust`]): what the labels
 //! were, the label-to-camera offset, each label's correction and its significance, the
-//! runs of keyframes whose labels disagree with the images, and the steps where the labels'
-//! motion jumps away from the images'.
+//! runs of keyframes whose labels disagree with the images, the steps where the labels'
+//! motion jumps away from the images', and the breaks the images found before the adjustment
+//! ([`super::label_breaks`]).
 //!
 //! After [`super::Map::with_adjusted_labels`] the keyframes' `world_from_cam` are the adjusted
 //! *camera* poses T_k = B_k X (what triangulation and PnP need), `pose_covariances` their
@@ -12,6 +13,7 @@
 
 use nalgebra::{Matrix6, Vector6};
 
+use super::label_breaks::{LabelBreak, LabelSegment};
 use crate::adjust::{Adjustment, LabelSigma, camera_frame_covariance, correction, robust_sigma};
 use crate::lie::{SE3, se3};
 use crate::stats::chi2::CHI2_6_999;
@@ -64,6 +66,12 @@ pub struct LabelAdjustment {
     /// the labels, and the map keeps them (its keyframes hold the labels, results need no
     /// conversion).
     pub applied: bool,
+    /// Jumps in the labels the images show between consecutive keyframes
+    /// ([`super::label_breaks`]); empty in files saved before them.
+    pub breaks: Vec<LabelBreak>,
+    /// The segments between the breaks other than the longest, each with the correction
+    /// that re-placed its start poses (or none, when the images could not place it).
+    pub replaced: Vec<LabelSegment>,
 }
 
 /// A run of consecutive keyframes whose labels the images correct significantly.
@@ -132,6 +140,8 @@ impl LabelAdjustment {
             rms_px: adjustment.rms_px,
             observations: (used, adjustment.inliers.len() - used),
             applied: true,
+            breaks: Vec::new(),
+            replaced: Vec::new(),
         }
     }
 
@@ -215,7 +225,45 @@ impl LabelAdjustment {
             describe_steps(&self.steps()),
             self.rms_px.0,
             self.rms_px.1,
-        )
+        ) + &self.describe_breaks()
+    }
+
+    /// Whether the break before keyframe `at` was repaired: a re-placed part begins or ends there.
+    pub fn break_repaired(&self, at: usize) -> bool {
+        self.replaced.iter().any(|r| r.correction.is_some() && (r.start == at || r.end == at))
+    }
+
+    /// The breaks in words, empty when there are none: how many, the keyframes re-placed and
+    /// how far, and the breaks no re-placed part reconciles.
+    fn describe_breaks(&self) -> String {
+        if self.breaks.is_empty() {
+            return String::new();
+        }
+        let moved: Vec<String> = self
+            .replaced
+            .iter()
+            .filter_map(|r| {
+                let c = Vector6::from(r.correction?);
+                Some(format!(
+                    "{}-{} by {:.1} cm / {:.1}°",
+                    r.start,
+                    r.end - 1,
+                    1e2 * se3::rho(&c).norm(),
+                    se3::phi(&c).norm().to_degrees()
+                ))
+            })
+            .collect();
+        let left: Vec<String> =
+            self.breaks.iter().filter(|b| !self.break_repaired(b.at)).map(|b| b.at.to_string()).collect();
+        let mut text = format!(
+            "; {} jump(s) in the labels the images show, re-placed: {}",
+            self.breaks.len(),
+            if moved.is_empty() { "none".to_string() } else { moved.join(", ") }
+        );
+        if !left.is_empty() {
+            text += &format!("; not repaired before keyframe(s) {}", left.join(", "));
+        }
+        text
     }
 
     /// The adjusted keyframe poses in the labels' convention, B_k = T_k X⁻¹, from the
@@ -269,6 +317,22 @@ impl LabelAdjustment {
             })).collect::<Vec<_>>(),
             "step_sigma_m": step_sigma.translation_m,
             "step_sigma_deg": step_sigma.rotation_rad.to_degrees(),
+            "breaks": self.breaks.iter().map(|b| serde_json::json!({
+                "at": b.at, "matches": b.matches,
+                "label_inliers": b.label_inliers, "image_inliers": b.image_inliers,
+                "rotation_deg": b.rotation_deg, "repaired": self.break_repaired(b.at),
+            })).collect::<Vec<_>>(),
+            "replaced": self.replaced.iter().map(|r| {
+                let (t, deg) = r.correction.map_or((None, None), |c| {
+                    let c = Vector6::from(c);
+                    (Some(se3::rho(&c).norm()), Some(se3::phi(&c).norm().to_degrees()))
+                });
+                serde_json::json!({
+                    "start": r.start, "end": r.end, "correction": r.correction,
+                    "correction_m": t, "correction_deg": deg,
+                    "localized": r.localized, "agreeing": r.agreeing,
+                })
+            }).collect::<Vec<_>>(),
             "steps": self.steps().iter().map(|s| serde_json::json!({
                 "start": s.start, "end": s.end,
                 "translation_m": s.translation_m,
@@ -470,6 +534,8 @@ mod tests {
             rms_px: (1.0, 1.0),
             observations: (0, 0),
             applied: true,
+            breaks: Vec::new(),
+            replaced: Vec::new(),
         }
     }
 

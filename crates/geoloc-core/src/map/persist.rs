@@ -166,6 +166,12 @@ pub struct LabelsHeader {
     /// [`LabelAdjustment::pose_variance`] (6 values; absent in files saved before it: zero).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub pose_variance: Vec<f64>,
+    /// [`LabelAdjustment::breaks`] (absent in files saved before them, or when none).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub breaks: Vec<super::label_breaks::LabelBreak>,
+    /// [`LabelAdjustment::replaced`] (absent likewise).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub replaced: Vec<super::label_breaks::LabelSegment>,
 }
 
 fn applied() -> bool {
@@ -187,6 +193,8 @@ impl LabelsHeader {
             correlation_keyframes: [l.correlation_keyframes.0, l.correlation_keyframes.1],
             applied: l.applied,
             pose_variance: l.pose_variance.iter().copied().collect(),
+            breaks: l.breaks.clone(),
+            replaced: l.replaced.clone(),
         }
     }
 
@@ -229,6 +237,8 @@ impl LabelsHeader {
             rms_px: (self.rms_px[0], self.rms_px[1]),
             observations: (self.observations[0], self.observations[1]),
             applied: self.applied,
+            breaks: self.breaks.clone(),
+            replaced: self.replaced.clone(),
         })
     }
 }
