@@ -78,8 +78,9 @@ pub struct LabelBreak {
     pub rotation_deg: f64,
 }
 
-/// A segment of keyframes between breaks, other than the held (longest) one, and how the
-/// images re-placed it (see the module doc).
+/// Keyframes between breaks, outside the held (longest) segment, and how the images re-placed
+/// them (see the module doc): a part re-placed by one correction, or the rest of a segment the
+/// images could not place.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct LabelSegment {
     /// First keyframe.
@@ -157,6 +158,8 @@ pub fn repaired_start(map: &Map, labels: &[SE3]) -> Result<(Vec<SE3>, Vec<LabelB
                 Side::After => segment.end,
             };
             if !placed[boundary] {
+                // its neighbour could not be placed: neither can it
+                replaced.push(LabelSegment::kept(&segment, 0, 0));
                 break;
             }
             // the pair (i, i + 1) across the boundary
@@ -172,13 +175,16 @@ pub fn repaired_start(map: &Map, labels: &[SE3]) -> Result<(Vec<SE3>, Vec<LabelB
             let Some(PlacedPart { part, correction, localized, agreeing }) =
                 placed_part(map, &start, &placed, &segment, side)?
             else {
+                replaced.push(LabelSegment::kept(&segment, 0, 0));
                 break;
             };
             let moved: Vec<SE3> = start[part.clone()].iter().map(|p| correction * *p).collect();
             let mut trial = start.clone();
             trial[part.clone()].copy_from_slice(&moved);
             if broken_pair(map, &trial, pair)?.is_some() {
-                break; // the correction does not reconcile the labels with the images there
+                // the correction does not reconcile the labels with the images there
+                replaced.push(LabelSegment::kept(&segment, localized, agreeing));
+                break;
             }
             start = trial;
             placed[part.clone()].iter_mut().for_each(|p| *p = true);
@@ -206,6 +212,14 @@ enum Side {
     Before,
     /// The keyframe after it.
     After,
+}
+
+impl LabelSegment {
+    /// Keyframes `segment` left at their labels, after `localized` were located and `agreeing`
+    /// agreed.
+    fn kept(segment: &Range<usize>, localized: usize, agreeing: usize) -> Self {
+        Self { start: segment.start, end: segment.end, correction: None, localized, agreeing }
+    }
 }
 
 /// What [`placed_part`] found: the keyframes `part` that `correction` re-places, and how many

@@ -69,8 +69,9 @@ pub struct LabelAdjustment {
     /// Jumps in the labels the images show between consecutive keyframes
     /// ([`super::label_breaks`]); empty in files saved before them.
     pub breaks: Vec<LabelBreak>,
-    /// The segments between the breaks other than the longest, each with the correction
-    /// that re-placed its start poses (or none, when the images could not place it).
+    /// The keyframes between the breaks outside the longest segment that were re-placed, each
+    /// part with the correction that moved its start poses, and those the images could not
+    /// place (no correction: they keep their labels).
     pub replaced: Vec<LabelSegment>,
 }
 
