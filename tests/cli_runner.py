@@ -10,11 +10,16 @@ from pathlib import Path
 import geoloc
 
 
+def checkout_env() -> dict[str, str]:
+    """This process's environment with this checkout's package first on ``PYTHONPATH``: what a
+    child Python process needs to import the geoloc under test."""
+    return dict(os.environ, PYTHONPATH=os.pathsep.join([str(Path(geoloc.__file__).parents[1]), os.environ.get("PYTHONPATH", "")]))
+
+
 def run_geoloc(*args: str, cwd: Path | None = None, timeout: float | None = None) -> subprocess.CompletedProcess[str]:
     """`python -m geoloc ARGS` with this checkout's package first on the path (``timeout``:
     seconds before subprocess.TimeoutExpired, for runs that could block)."""
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join([str(Path(geoloc.__file__).parents[1]), env.get("PYTHONPATH", "")])
+    env = checkout_env()
     return subprocess.run(
         [sys.executable, "-m", "geoloc", *args], capture_output=True, text=True, cwd=cwd, env=env, timeout=timeout,
         errors="surrogateescape",

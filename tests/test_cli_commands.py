@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 import geoloc
+from cli_runner import checkout_env
 from cli_runner import one_line_error as _one_line_error
 from cli_runner import run_geoloc as _run
 from geoloc import datasets, evaluation, lie
@@ -327,7 +328,7 @@ def test_localize_to_standard_output_writes_what_a_file_would_get(room_map: Path
 def test_a_reader_of_standard_output_that_goes_away_ends_the_run_quietly(room_map: Path) -> None:
     """``geoloc localize … --out - | head``: the reader gone, the run ends as a tool the SIGPIPE
     ends (status 141), with no error line and no traceback."""
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(Path(geoloc.__file__).parents[1]), os.environ.get("PYTHONPATH", "")]))
+    env = checkout_env()
     args = ("localize", "--map", str(room_map), "--format", "synthetic", "--synthetic-frames", str(ROOM_FRAMES), "--frames", "30:33", "--out", "-")
     with subprocess.Popen([sys.executable, "-m", "geoloc", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env) as run:
         assert run.stdout is not None and run.stderr is not None

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import geoloc
-from cli_runner import one_line_error, run_geoloc
+from cli_runner import checkout_env, one_line_error, run_geoloc
 from geoloc import datasets
 from geoloc._images import write_image
 
@@ -178,7 +178,7 @@ def test_a_stop_signal_ends_a_command_as_ctrl_c_does(tmp_path: Path, name: str) 
 
     out = tmp_path / "m.geoloc"
     out.write_bytes(b"the previous map")
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(Path(geoloc.__file__).parents[1]), os.environ.get("PYTHONPATH", "")]))
+    env = checkout_env()
     proc = subprocess.Popen(
         [sys.executable, "-m", "geoloc", "build-map", "--format", "synthetic", "--synthetic-frames", "3000", "--out", str(out)],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,

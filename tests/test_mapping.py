@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 import pickle
 import re
 import subprocess
@@ -13,6 +12,7 @@ import numpy as np
 import pytest
 
 import geoloc
+from cli_runner import checkout_env
 from geoloc import datasets, evaluation
 from geoloc import Localizer, Map
 
@@ -42,6 +42,20 @@ def _localize_queries(m: Map, room: datasets.Sequence) -> list[object]:
         loc.reset()
         out.append(loc.localize(room.gray(i), float(room.timestamps[i])))
     return out
+
+
+def _poses_in_a_new_process(the_map: str, *args: str, stdin: bytes | None = None) -> list[str]:
+    """The poses (hex of their bytes) of the :data:`QUERIES`, each localized afresh, in a new
+    Python process against the map the expression ``the_map`` gives there (``args`` its
+    ``sys.argv[1:]``, ``stdin`` its standard input)."""
+    script = (
+        "import pickle, sys; import geoloc; from geoloc import datasets\n"
+        f"room = datasets.synthetic_room(n_frames={ROOM_FRAMES}); loc = geoloc.Localizer({the_map})\n"
+        f"for i in {QUERIES!r}:\n"
+        "    loc.reset(); print(loc.localize(room.gray(i), float(room.timestamps[i])).pose.tobytes().hex())\n"
+    )
+    out = subprocess.run([sys.executable, "-c", script, *args], input=stdin, capture_output=True, env=checkout_env(), check=True)
+    return out.stdout.decode().split()
 
 
 # ---------------------------------------------------------------------------- build
@@ -175,15 +189,7 @@ def test_a_saved_map_gives_bit_identical_results_in_a_new_process(room_map: Map,
     path = tmp_path / "room.geoloc"
     room_map.save(path)
     expected = [r.pose.tobytes().hex() for r in _localize_queries(room_map, room)]  # type: ignore[attr-defined]
-    script = (
-        "import sys; from geoloc import datasets; from geoloc import Map, Localizer\n"
-        f"room = datasets.synthetic_room(n_frames={ROOM_FRAMES}); m = Map.load(sys.argv[1]); loc = Localizer(m)\n"
-        f"for i in {QUERIES!r}:\n"
-        "    loc.reset(); print(loc.localize(room.gray(i), float(room.timestamps[i])).pose.tobytes().hex())\n"
-    )
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(Path(geoloc.__file__).parents[1]), os.environ.get("PYTHONPATH", "")]))
-    out = subprocess.run([sys.executable, "-c", script, str(path)], capture_output=True, text=True, env=env, check=True)
-    assert out.stdout.split() == expected
+    assert _poses_in_a_new_process("geoloc.Map.load(sys.argv[1])", str(path)) == expected
     loaded = Map.load(path)
     assert loaded.settings == room_map.settings and len(loaded) == len(room_map)
     assert loaded.camera.intrinsics == room_map.camera.intrinsics
@@ -225,15 +231,7 @@ def test_a_map_travels_as_its_file_bytes_and_pickles_into_another_process(
         assert copy.settings == room_map.settings and copy.camera.intrinsics == room_map.camera.intrinsics
         assert [r.pose.tobytes().hex() for r in _localize_queries(copy, room)] == expected  # type: ignore[attr-defined]
         assert copy.to_bytes() == data
-    script = (
-        "import pickle, sys; from geoloc import datasets, Localizer\n"
-        f"room = datasets.synthetic_room(n_frames={ROOM_FRAMES}); m = pickle.loads(sys.stdin.buffer.read()); loc = Localizer(m)\n"
-        f"for i in {QUERIES!r}:\n"
-        "    loc.reset(); print(loc.localize(room.gray(i), float(room.timestamps[i])).pose.tobytes().hex())\n"
-    )
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(Path(geoloc.__file__).parents[1]), os.environ.get("PYTHONPATH", "")]))
-    out = subprocess.run([sys.executable, "-c", script], input=pickle.dumps(room_map), capture_output=True, env=env, check=True)
-    assert out.stdout.decode().split() == expected
+    assert _poses_in_a_new_process("pickle.loads(sys.stdin.buffer.read())", stdin=pickle.dumps(room_map)) == expected
 
 
 def test_bad_map_bytes_are_refused_naming_the_argument(room_map: Map) -> None:

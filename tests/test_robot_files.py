@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 import geoloc
+from cli_runner import checkout_env
 from geoloc import datasets
 from geoloc._images import write_image
 from geoloc._io import check_output_path, refuse_alias, write_json_atomic
@@ -244,7 +245,7 @@ def test_map_save_from_processes_to_one_path_leaves_one_complete_map(tmp_path: P
     small_map.save(source)
     target = tmp_path / "shared.geoloc"
     code = "import sys, geoloc\ngeoloc.Map.load(sys.argv[1]).save(sys.argv[2])\n"
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(Path(geoloc.__file__).parents[1]), os.environ.get("PYTHONPATH", "")]))
+    env = checkout_env()
     procs = [subprocess.Popen([sys.executable, "-c", code, str(source), str(target)], env=env) for _ in range(4)]
     assert [p.wait(timeout=120) for p in procs] == [0] * 4
     assert len(geoloc.Map.load(target)) == len(small_map)

@@ -210,6 +210,16 @@ fn coverage_and_median(mut nees: Vec<f64>) -> (f64, f64) {
     (inside as f64 / nees.len() as f64, nees[nees.len() / 2])
 }
 
+/// [`sensor_offset_scene_nees`] over the scenes `seeds`: the answers, their coverage and
+/// median NEES (printed).
+fn sensor_offset_coverage(seeds: std::ops::RangeInclusive<u64>) -> (usize, f64, f64) {
+    let nees: Vec<f64> = seeds.flat_map(sensor_offset_scene_nees).collect();
+    let total = nees.len();
+    let (coverage, median) = coverage_and_median(nees);
+    eprintln!("NEES coverage {coverage:.3} of {total}, median NEES {median:.2}");
+    (total, coverage, median)
+}
+
 /// [`sensor_offset_scene_nees`] in three scenes: 114 or more of the 120 answered, at least 91 %
 /// of them inside the χ²₆ 95 % region (93–97 % asked, widened by the binomial σ of 120), and
 /// a median NEES of at least 2.5 (χ²₆'s is 5.35; a covariance 1.5 times too wide in σ gives
@@ -223,10 +233,7 @@ fn coverage_and_median(mut nees: Vec<f64>) -> (f64, f64) {
 /// of 1.2, with the common error but that τ at 1.5.
 #[test]
 fn the_localizer_covers_the_truth_when_labels_sit_on_another_sensor_and_a_run_is_displaced() {
-    let nees: Vec<f64> = (1..=3).flat_map(sensor_offset_scene_nees).collect();
-    let total = nees.len();
-    let (coverage, median) = coverage_and_median(nees);
-    eprintln!("NEES coverage {coverage:.3} of {total}, median NEES {median:.2}");
+    let (total, coverage, median) = sensor_offset_coverage(1..=3);
     assert!(total >= 114, "{total} of 120 answered");
     assert!(coverage >= 0.91 && median >= 2.5, "coverage {coverage}, median NEES {median}");
 }
@@ -242,10 +249,7 @@ fn the_localizer_covers_the_truth_when_labels_sit_on_another_sensor_and_a_run_is
 #[test]
 #[ignore = "a ten-scene measurement (about 6 min); the suite runs the three-scene check"]
 fn sensor_offset_coverage_over_ten_scenes() {
-    let nees: Vec<f64> = (1..=10).flat_map(sensor_offset_scene_nees).collect();
-    let total = nees.len();
-    let (coverage, median) = coverage_and_median(nees);
-    eprintln!("NEES coverage {coverage:.3} of {total}, median NEES {median:.2}");
+    let (total, coverage, median) = sensor_offset_coverage(1..=10);
     assert!(total >= 380, "{total} of 400 answered");
     assert!(coverage >= 0.92 && median >= 2.5, "coverage {coverage}, median NEES {median}");
 }
