@@ -153,20 +153,16 @@ pub fn repaired_start(map: &Map, labels: &[SE3]) -> Result<(Vec<SE3>, Vec<LabelB
         // a segment may hold keyframes on both sides of a jump the epipolar check missed:
         // each pass places the part next to the placed side, the rest is tried again
         while !segment.is_empty() {
-            let boundary = match side {
-                Side::Before => segment.start - 1,
-                Side::After => segment.end,
+            // the placed keyframe across the boundary, and the pair (pair, pair + 1) it makes
+            let (boundary, pair) = match side {
+                Side::Before => (segment.start - 1, segment.start - 1),
+                Side::After => (segment.end, segment.end - 1),
             };
             if !placed[boundary] {
                 // its neighbour could not be placed: neither can it
                 replaced.push(LabelSegment::kept(&segment, 0, 0));
                 break;
             }
-            // the pair (i, i + 1) across the boundary
-            let pair = match side {
-                Side::Before => boundary,
-                Side::After => boundary - 1,
-            };
             if broken_pair(map, &start, pair)?.is_none() {
                 // consistent with its placed neighbour: placed as it is
                 placed[segment.clone()].iter_mut().for_each(|p| *p = true);
