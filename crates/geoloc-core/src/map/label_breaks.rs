@@ -38,7 +38,7 @@ use std::ops::Range;
 use nalgebra::Vector6;
 
 use super::{ADJUSTMENT_EPIPOLAR_PX, Keyframe, Map, ModelOptions, SceneModel};
-use crate::error::Result;
+use crate::error::{GeolocError, Result};
 use crate::essential::{TwoViewOptions, verify_two_view};
 use crate::lie::{SE3, se3};
 use crate::matching::{MatchOptions, epipolar_filter, match_descriptors};
@@ -100,8 +100,15 @@ pub struct LabelSegment {
 /// doc), in capture order.
 ///
 /// # Errors
-/// As descriptor matching and [`verify_two_view`] (descriptors and keypoints the map checked).
+/// `poses` not one per keyframe; as descriptor matching and [`verify_two_view`] (descriptors
+/// and keypoints the map checked).
 pub fn find_breaks(map: &Map, poses: &[SE3]) -> Result<Vec<LabelBreak>> {
+    if poses.len() != map.keyframes.len() {
+        return Err(GeolocError::invalid(
+            "poses",
+            format!("{} poses for {} keyframes", poses.len(), map.keyframes.len()),
+        ));
+    }
     let found = map_indices(map.keyframes.len().saturating_sub(1), 8, |i| broken_pair(map, poses, i));
     Ok(found.into_iter().collect::<Result<Vec<_>>>()?.into_iter().flatten().collect())
 }
@@ -132,7 +139,8 @@ fn broken_pair(map: &Map, poses: &[SE3], i: usize) -> Result<Option<LabelBreak>>
 /// where the images place them (see the module doc); the breaks; and the segments re-placed.
 ///
 /// # Errors
-/// As [`find_breaks`], [`SceneModel::build`] and [`solve_pnp`].
+/// As [`find_breaks`] (`labels` not one per keyframe: named `poses`), [`SceneModel::build`]
+/// and [`solve_pnp`].
 pub fn repaired_start(map: &Map, labels: &[SE3]) -> Result<(Vec<SE3>, Vec<LabelBreak>, Vec<LabelSegment>)> {
     let breaks = find_breaks(map, labels)?;
     let mut start = labels.to_vec();
@@ -344,6 +352,11 @@ mod tests {
         let (_, map, _) = fixture::scene(60, false);
         let truth = map.poses();
         assert!(find_breaks(&map, &truth).expect("checks").is_empty());
+        let err = repaired_start(&map, &truth[1..]).expect_err("one pose short");
+        assert!(
+            matches!(err, crate::error::GeolocError::InvalidInput { .. }) && err.to_string().contains("poses"),
+            "{err}"
+        );
         let (start, breaks, replaced) = repaired_start(&map, &truth).expect("repairs");
         assert!(breaks.is_empty() && replaced.is_empty());
         assert_eq!(start, truth);
