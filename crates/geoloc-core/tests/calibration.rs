@@ -242,10 +242,8 @@ fn the_localizer_covers_the_truth_when_labels_sit_on_another_sensor_and_a_run_is
 /// suite: `cargo test --release -p geoloc-core --test calibration -- --ignored`): 393 of the
 /// 400 answers inside the χ²₆ 95 % region (98.25 %; binomial 95 % interval 96.4–99.3 %),
 /// median NEES 3.9 against χ²₆'s 5.35 — conservative by about a point against the 93–97 %
-/// asked. (Before the displaced run was re-placed ahead of the adjustment
-/// ([`geoloc_core::map::label_breaks`]) the adjustment recovered it to 8 mm instead of 4 mm,
-/// and 388 of 400 fell inside, 97.0 %, median 4.1.) Asserted: at least 92 % inside, median
-/// NEES at least 2.5, as in the three-scene check.
+/// asked. Asserted: at least 92 % inside, median NEES at least 2.5, as in the three-scene
+/// check.
 #[test]
 #[ignore = "a ten-scene measurement (about 6 min); the suite runs the three-scene check"]
 fn sensor_offset_coverage_over_ten_scenes() {
