@@ -556,8 +556,12 @@ def map_specs() -> list[Spec]:
              ("image", "timestamp"), "localization", timeout=60, frozen=("image",)),
         Spec("mapping", "geoloc.Map.load", {"path": ("any", ("cached", "small_map_file"))}, ("path",), "any",
              timeout=60),
+        Spec("mapping", "geoloc.Map.from_bytes", {"data": ("any", call(attr(m, "to_bytes")))}, ("data",), "any",
+             timeout=60),
     ] + [Spec("mapping", "geoloc.Map.load", {"path": ("any", ("file", g, ".geoloc"))}, ("path",), "any", frozen=("path",),
-              extra={"names": ["path", ".geoloc"]}) for g in garbage]
+              extra={"names": ["path", ".geoloc"]}) for g in garbage] + [
+        Spec("mapping", "geoloc.Map.from_bytes", {"data": ("any", g)}, ("data",), "any", frozen=("data",),
+             extra={"names": ["data"]}) for g in garbage]
 
 
 def feature_localizer_specs() -> list[Spec]:
