@@ -128,7 +128,8 @@ def test_adjusted_keyframes_agree_with_the_image_reference(kitchen: tuple[Sequen
     assert report is not None and report["applied"] and report["rms_px"][1] < report["rms_px"][0]
     # the labels drift, and step by 4-5 cm at frames 447-449, but never jump beyond what the
     # adjustment's tracks tolerate: the images find no break, nothing is re-placed
-    assert report["breaks"] == [] and report["replaced"] == []
+    # nor do revisits disagree with them beyond it: retrieval finds no loop to close
+    assert report["breaks"] == [] and report["replaced"] == [] and report["loops"] == []
     # the runs are the stretches of ≥ 3 keyframes whose corrections are significant (χ²₆ 99.9 %)
     significant = np.array(report["significance"]) > CHI2_6_999
     assert report["runs"], "the labels' drift shows as runs of significant corrections"
@@ -208,4 +209,8 @@ def test_build_map_names_the_jumps_in_the_labels_and_warns_of_one_left_unrepaire
     assert "jumps in the labels the images show (before keyframe): 42, 90 — re-placed: 30-41 moved 39.0 cm / 10.0°" in line
     assert line.endswith("WARNING: the images could not place the labels beyond 90")
     quiet = describe_labels({**found, "breaks": [], "replaced": []})
-    assert "jump" not in quiet and "WARNING" not in quiet
+    assert "jump" not in quiet and "WARNING" not in quiet and "revisit" not in quiet
+    loops = [{"a": a, "b": a + 80, "closed": a != 4} for a in range(5)]
+    revisits = describe_labels({**found, "loops": loops})
+    assert "5 revisit(s) whose labels disagree with the images (keyframes 0-80, 1-81, 2-82, …), 4 closed" in revisits
+    assert revisits.endswith("1 left open (they disagree with the other loops and the labels' motion)")

@@ -393,7 +393,13 @@ class Map:
         (``correction``, log(C) with L' = C·L in the world frame, translation first;
         ``correction_m``, ``correction_deg``; ``localized`` of them located by PnP, ``agreeing``
         on it) — a break no segment's correction reconciles is a jump the map could not
-        repair: the keyframes beyond it keep their labels' error —, and
+        repair: the keyframes beyond it keep their labels' error —, ``loops``: revisits whose
+        labels disagree with the images — keyframes ``a`` < ``b`` the map's retrieval paired
+        whose matches an essential matrix explains (``image_inliers``) while the labels keep
+        fewer than a third (``label_inliers``, of ``matches``), with ``disagreement`` (b
+        located by PnP against a's neighbourhood: log((L_a⁻¹L_b)⁻¹ Z_ab), b's frame,
+        translation first; ``disagreement_m``, ``disagreement_deg``; None when not located)
+        and ``closed`` (the pose graph that moved the adjustment's start kept it) —, and
         per keyframe, as lists, ``corrections`` (K × 6) e_k = log(L_k⁻¹ B_k)^∨ — label L_k to
         adjusted pose B_k, right perturbation, translation (m) first, rotation (rad) — and
         ``significance`` (K) e_kᵀ Σ_k⁻¹ e_k, Σ_k the adjusted pose's covariance."""

@@ -12,6 +12,7 @@ pub mod file;
 pub mod fused_retrieval;
 pub mod group_matches;
 pub mod label_breaks;
+pub mod label_loops;
 pub mod labels;
 pub mod model;
 pub mod noise;
@@ -559,24 +560,27 @@ impl Map {
         self.group_matches = None; // the poses change
         // a map adjusted before starts from its adjusted poses, its labels stay the priors
         // the first adjustment re-places the segments that jumps in the labels cut off
-        // (label_breaks); a re-adjustment keeps what the first one found
-        let (labels, start, offset, correlation, breaks) = match self.labels.take() {
+        // (label_breaks), then closes the revisits whose labels disagree with the images
+        // (label_loops); a re-adjustment keeps what the first one found
+        let (labels, start, offset, correlation, found) = match self.labels.take() {
             Some(record) => (
                 record.labels.clone(),
                 record.label_poses(&self.poses()),
                 record.offset,
                 Some(record.correlation_keyframes),
-                (record.breaks, record.replaced),
+                (record.breaks, record.replaced, record.loops),
             ),
             None => {
                 let labels = self.poses();
                 let (start, breaks, replaced) = label_breaks::repaired_start(self, &labels)?;
-                (labels, start, SE3::identity(), None, (breaks, replaced))
+                let (start, loops) = label_loops::closed_start(self, &start)?;
+                (labels, start, SE3::identity(), None, (breaks, replaced, loops))
             }
         };
-        // tracks from the start poses where a segment was re-placed (from the labels, they
-        // would keep it an island), else from the keyframes' poses
-        let moved = correlation.is_none() && breaks.1.iter().any(|r| r.correction.is_some());
+        // tracks from the start poses where a segment was re-placed or a loop closed (from
+        // the labels, they would keep it an island), else from the keyframes' poses
+        let moved = correlation.is_none()
+            && (found.1.iter().any(|r| r.correction.is_some()) || found.2.iter().any(|l| l.closed));
         let problem = self.skeleton_problem(&labels, &start, moved.then_some(&start[..]))?;
         let chosen = &problem.keyframes;
         let adjustment = crate::adjust::bundle_adjust_with_candidates(
@@ -597,7 +601,7 @@ impl Map {
             // re-adjusted with the σ found before: keep how it was found
             record.correlation_keyframes = tau;
         }
-        (record.breaks, record.replaced) = breaks;
+        (record.breaks, record.replaced, record.loops) = found;
         // labels the images do not contradict stay as they are (the record says so); the
         // decision is the first adjustment's, a re-adjustment refines an applied one
         record.applied = correlation.is_some() || record.significant();

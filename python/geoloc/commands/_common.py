@@ -311,6 +311,14 @@ def describe_labels(found: dict[str, Any] | None) -> str:
                  f" — re-placed: {replaced or 'none'}")
         if left:
             jumps += f"; WARNING: the images could not place the labels beyond {', '.join(map(str, left))}"
+    loops = found.get("loops", [])
+    if loops:
+        closed = sum(1 for lp in loops if lp["closed"])
+        pairs = ", ".join(f"{lp['a']}-{lp['b']}" for lp in loops[:3]) + (", …" if len(loops) > 3 else "")
+        jumps += (f"; {len(loops)} revisit(s) whose labels disagree with the images (keyframes {pairs}),"
+                  f" {closed} closed before the adjustment")
+        if closed < len(loops):
+            jumps += f"; {len(loops) - closed} left open (they disagree with the other loops and the labels' motion)"
     return (
         f"labels {state}: σ {1e3 * found['label_sigma_m']:.1f} mm / {found['label_sigma_deg']:.2f}°, median correction "
         f"{1e3 * found['median_correction_m']:.1f} mm / {found['median_correction_deg']:.2f}°, label-to-camera offset "

@@ -115,23 +115,51 @@ pub fn find_breaks(map: &Map, poses: &[SE3]) -> Result<Vec<LabelBreak>> {
 
 /// Whether keyframes `i` and `i + 1` of `map`, at `poses`, make a break (see the module doc).
 fn broken_pair(map: &Map, poses: &[SE3], i: usize) -> Result<Option<LabelBreak>> {
-    let (a, b) = (&map.keyframes[i], &map.keyframes[i + 1]);
-    let matches = match_descriptors(&a.descriptors.view(), &b.descriptors.view(), &MatchOptions::default())?;
+    Ok(disagreeing_pair(map, poses, i, i + 1)?.map(|d| LabelBreak {
+        at: i + 1,
+        matches: d.matches,
+        label_inliers: d.label_inliers,
+        image_inliers: d.image_inliers,
+        rotation_deg: d.rotation_deg,
+    }))
+}
+
+/// How the images and the poses of two keyframes disagree (see [`disagreeing_pair`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PairDisagreement {
+    /// Descriptor matches of the two keyframes.
+    pub matches: usize,
+    /// Of them, within the poses' epipolar geometry ([`ADJUSTMENT_EPIPOLAR_PX`]).
+    pub label_inliers: usize,
+    /// Of them, inliers of the essential matrix the images give.
+    pub image_inliers: usize,
+    /// Angle between the poses' relative rotation and the essential matrix's (degrees).
+    pub rotation_deg: f64,
+}
+
+/// Whether keyframes `a` and `b` of `map` disagree with their poses `poses`: an essential
+/// matrix explains at least [`BREAK_MIN_INLIERS`] of their descriptor matches (the images
+/// agree with each other) while the poses' epipolar geometry keeps fewer than
+/// 1/[`BREAK_RATIO`] as many at [`ADJUSTMENT_EPIPOLAR_PX`]. The essential matrix runs only
+/// where the poses lose most matches.
+pub fn disagreeing_pair(map: &Map, poses: &[SE3], a: usize, b: usize) -> Result<Option<PairDisagreement>> {
+    let (ka, kb) = (&map.keyframes[a], &map.keyframes[b]);
+    let matches = match_descriptors(&ka.descriptors.view(), &kb.descriptors.view(), &MatchOptions::default())?;
     if matches.len() < BREAK_MIN_INLIERS {
         return Ok(None);
     }
-    let (pa, pb) = (&poses[i], &poses[i + 1]);
-    let within = epipolar_filter(&map.camera, pa, pb, &a.keypoints, &b.keypoints, &matches, ADJUSTMENT_EPIPOLAR_PX)?;
+    let (pa, pb) = (&poses[a], &poses[b]);
+    let within = epipolar_filter(&map.camera, pa, pb, &ka.keypoints, &kb.keypoints, &matches, ADJUSTMENT_EPIPOLAR_PX)?;
     let label_inliers = within.iter().filter(|w| **w).count();
     // the essential matrix only where the poses lose most matches (never on 7-Scenes)
     if label_inliers as f64 * BREAK_RATIO >= matches.len() as f64 {
         return Ok(None);
     }
-    let two_view = verify_two_view(&map.camera, &a.keypoints, &b.keypoints, &matches, &TwoViewOptions::default())?;
+    let two_view = verify_two_view(&map.camera, &ka.keypoints, &kb.keypoints, &matches, &TwoViewOptions::default())?;
     let image_inliers = two_view.inliers;
-    let broken = image_inliers >= BREAK_MIN_INLIERS && (label_inliers as f64) * BREAK_RATIO < image_inliers as f64;
+    let disagree = image_inliers >= BREAK_MIN_INLIERS && (label_inliers as f64) * BREAK_RATIO < image_inliers as f64;
     let rotation_deg = two_view.b_from_a.rotation.distance(&(pb.inverse() * *pa).rotation).to_degrees();
-    Ok(broken.then_some(LabelBreak { at: i + 1, matches: matches.len(), label_inliers, image_inliers, rotation_deg }))
+    Ok(disagree.then_some(PairDisagreement { matches: matches.len(), label_inliers, image_inliers, rotation_deg }))
 }
 
 /// The start poses of the labels' adjustment of `map` (whose keyframes' poses are the labels
@@ -298,7 +326,7 @@ fn placed_part(
 
 /// The correction P_k start_k⁻¹ of keyframe `k` that its PnP pose P_k against `model` gives
 /// (its descriptors matched to the points'), None when PnP does not accept a pose.
-fn located_correction(map: &Map, model: &SceneModel, start: &[SE3], k: usize) -> Result<Option<SE3>> {
+pub(super) fn located_correction(map: &Map, model: &SceneModel, start: &[SE3], k: usize) -> Result<Option<SE3>> {
     let kf = &map.keyframes[k];
     let matches = match_descriptors(&kf.descriptors.view(), &model.descriptors.view(), &MatchOptions::default())?;
     if matches.len() < MIN_POINTS_RANSAC {

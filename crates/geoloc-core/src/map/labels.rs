@@ -14,6 +14,7 @@
 use nalgebra::{Matrix6, Vector6};
 
 use super::label_breaks::{LabelBreak, LabelSegment};
+use super::label_loops::LabelLoop;
 use crate::adjust::{Adjustment, LabelSigma, camera_frame_covariance, correction, robust_sigma};
 use crate::lie::{SE3, se3};
 use crate::stats::chi2::CHI2_6_999;
@@ -73,6 +74,10 @@ pub struct LabelAdjustment {
     /// part with the correction that moved its start poses, and those the images could not
     /// place (no correction: they keep their labels).
     pub replaced: Vec<LabelSegment>,
+    /// Revisits whose labels disagree with the images, found by retrieval
+    /// ([`super::label_loops`]), and whether the pose graph closed them before the adjustment;
+    /// empty in files saved before them.
+    pub loops: Vec<LabelLoop>,
 }
 
 /// A run of consecutive keyframes whose labels the images correct significantly.
@@ -143,6 +148,7 @@ impl LabelAdjustment {
             applied: true,
             breaks: Vec::new(),
             replaced: Vec::new(),
+            loops: Vec::new(),
         }
     }
 
@@ -227,6 +233,30 @@ impl LabelAdjustment {
             self.rms_px.0,
             self.rms_px.1,
         ) + &self.describe_breaks()
+            + &self.describe_loops()
+    }
+
+    /// The loops in words, empty when there are none: how many revisits disagree with the
+    /// labels, how many the pose graph closed, and the largest disagreement it closed.
+    fn describe_loops(&self) -> String {
+        if self.loops.is_empty() {
+            return String::new();
+        }
+        let closed: Vec<&LabelLoop> = self.loops.iter().filter(|l| l.closed).collect();
+        let largest = closed
+            .iter()
+            .filter_map(|l| l.disagreement.map(Vector6::from))
+            .max_by(|a, b| se3::rho(a).norm().total_cmp(&se3::rho(b).norm()));
+        let mut text = format!(
+            "; {} revisit(s) whose labels disagree with the images, {} closed before the adjustment",
+            self.loops.len(),
+            closed.len()
+        );
+        if let Some(d) = largest {
+            text +=
+                &format!(" (largest {:.1} cm / {:.1}°)", 1e2 * se3::rho(&d).norm(), se3::phi(&d).norm().to_degrees());
+        }
+        text
     }
 
     /// Whether the break before keyframe `at` was repaired: a re-placed part begins or ends there.
@@ -332,6 +362,18 @@ impl LabelAdjustment {
                     "start": r.start, "end": r.end, "correction": r.correction,
                     "correction_m": t, "correction_deg": deg,
                     "localized": r.localized, "agreeing": r.agreeing,
+                })
+            }).collect::<Vec<_>>(),
+            "loops": self.loops.iter().map(|l| {
+                let (t, deg) = l.disagreement.map_or((None, None), |d| {
+                    let d = Vector6::from(d);
+                    (Some(se3::rho(&d).norm()), Some(se3::phi(&d).norm().to_degrees()))
+                });
+                serde_json::json!({
+                    "a": l.a, "b": l.b, "matches": l.matches,
+                    "label_inliers": l.label_inliers, "image_inliers": l.image_inliers,
+                    "disagreement": l.disagreement, "disagreement_m": t, "disagreement_deg": deg,
+                    "closed": l.closed,
                 })
             }).collect::<Vec<_>>(),
             "steps": self.steps().iter().map(|s| serde_json::json!({
@@ -537,6 +579,7 @@ mod tests {
             applied: true,
             breaks: Vec::new(),
             replaced: Vec::new(),
+            loops: Vec::new(),
         }
     }
 

@@ -172,6 +172,9 @@ pub struct LabelsHeader {
     /// [`LabelAdjustment::replaced`] (absent likewise).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub replaced: Vec<super::label_breaks::LabelSegment>,
+    /// [`LabelAdjustment::loops`] (absent likewise).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub loops: Vec<super::label_loops::LabelLoop>,
 }
 
 fn applied() -> bool {
@@ -195,6 +198,7 @@ impl LabelsHeader {
             pose_variance: l.pose_variance.iter().copied().collect(),
             breaks: l.breaks.clone(),
             replaced: l.replaced.clone(),
+            loops: l.loops.clone(),
         }
     }
 
@@ -239,6 +243,7 @@ impl LabelsHeader {
             applied: self.applied,
             breaks: self.breaks.clone(),
             replaced: self.replaced.clone(),
+            loops: self.loops.clone(),
         })
     }
 }
