@@ -118,16 +118,20 @@ pub fn find_loops(map: &Map, poses: &[SE3]) -> Result<Vec<(usize, usize, PairDis
     if n <= LOOP_GAP {
         return Ok(Vec::new());
     }
-    let candidates = map_indices(n, 16, |k| {
+    let candidates = map_indices(n, 16, |k| -> Result<Vec<(usize, usize)>> {
         let kf = &map.keyframes[k];
         let query = RetrievalQuery {
             keypoints: &kf.keypoints,
             descriptors: kf.descriptors.view(),
             global: kf.global.as_deref(),
         };
-        let excluded = k.saturating_sub(LOOP_GAP - 1)..k + LOOP_GAP;
-        map.retrieve_top(&query, LOOP_CANDIDATES, excluded)
-            .map(|top| top.into_iter().map(move |b| (k.min(b), k.max(b))))
+        let excluded = k.saturating_sub(LOOP_GAP - 1)..(k + LOOP_GAP).min(n);
+        if excluded.len() == n {
+            // every keyframe lies within the gap of this one: no candidate
+            return Ok(Vec::new());
+        }
+        let top = map.retrieve_top(&query, LOOP_CANDIDATES, excluded)?;
+        Ok(top.into_iter().map(|b| (k.min(b), k.max(b))).collect())
     });
     let mut pairs: Vec<(usize, usize)> = Vec::new();
     for c in candidates {
@@ -303,6 +307,7 @@ pub fn pose_graph(labels: &[SE3], loops: &[LoopEdge]) -> Result<Vec<SE3>> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::map::model::fixture;
     use crate::testing::SplitMix64;
     use nalgebra::Vector3;
 
@@ -380,6 +385,55 @@ mod tests {
         }
         let (before, after) = (error(&labels, 0, 39), error(&poses, 0, 39));
         assert!(after.0 < before.0 / 5.0 && after.1 < before.1 / 5.0, "{before:?} -> {after:?}");
+    }
+
+    /// Exact labels: no loop, the start unchanged to the bit; a map whose keyframes all lie
+    /// within the gap of some keyframe has none to look for there (no error); poses that are
+    /// not one per keyframe are named.
+    #[test]
+    fn exact_labels_have_no_loops() {
+        let (_, short, _) = fixture::scene(15, true);
+        assert!(find_loops(&short, &short.poses()).expect("looks").is_empty());
+        let (_, map, _) = fixture::scene(40, true);
+        let truth = map.poses();
+        let (start, loops) = closed_start(&map, &truth).expect("looks");
+        assert!(loops.is_empty(), "{loops:?}");
+        assert_eq!(start, truth);
+        let err = find_loops(&map, &truth[1..]).expect_err("one pose short");
+        assert!(
+            matches!(err, crate::error::GeolocError::InvalidInput { .. }) && err.to_string().contains("poses"),
+            "{err}"
+        );
+    }
+
+    /// Two passes 0.5 m apart whose labels drift by 0.3 m / 5° from the first keyframe to the
+    /// last: the retrieval pairs keyframes of the two passes, the images tie them while the
+    /// labels do not, and the closed start brings the passes' relative poses back to a fifth of
+    /// the drift between them or less.
+    #[test]
+    fn a_drifting_second_pass_is_closed_onto_the_first() {
+        let (_, map, _) = fixture::scene(40, true);
+        let truth = map.poses();
+        let xi = se3::twist(&Vector3::new(0.2, 0.15, -0.15), &(Vector3::new(0.2, 1.0, 0.3).normalize() * 0.087));
+        let n = truth.len();
+        let labels: Vec<SE3> =
+            truth.iter().enumerate().map(|(k, t)| SE3::exp(&(xi * (k as f64 / (n - 1) as f64))) * *t).collect();
+        let between_passes = |poses: &[SE3]| {
+            let mut e: Vec<f64> = (0..40)
+                .map(|j| {
+                    let d =
+                        ((poses[j].inverse() * poses[j + 40]).inverse() * (truth[j].inverse() * truth[j + 40])).log();
+                    se3::rho(&d).norm()
+                })
+                .collect();
+            e.sort_by(f64::total_cmp);
+            e[20]
+        };
+        let (start, loops) = closed_start(&map, &labels).expect("closes");
+        assert!(!loops.is_empty() && loops.iter().all(|l| l.a < 40 && l.b >= 40), "{loops:?}");
+        assert!(loops.iter().filter(|l| l.closed).count() >= 20, "{loops:?}");
+        let (before, after) = (between_passes(&labels), between_passes(&start));
+        assert!(before > 0.1 && after < before / 5.0, "{before} -> {after}");
     }
 
     #[test]
