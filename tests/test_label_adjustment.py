@@ -181,36 +181,12 @@ def test_a_part_that_only_revisits_the_place_is_corrected_too(kitchen: tuple[Seq
     assert adjusted <= 0.75 and adjusted < 0.7 * labels, (adjusted, labels)
 
 
-def test_build_map_summary_of_unchecked_labels_states_only_that() -> None:
-    """Labels no track linked were adjusted against their priors alone: no σ, correction or
-    offset is printed as if measured."""
+def test_build_map_prints_the_cores_summary_of_the_labels() -> None:
+    """``geoloc build-map``'s line on the labels is the core's summary (``geoloc-rs info``
+    prints the same; its content is tested in the core), or says the labels were kept."""
     from geoloc.commands._common import describe_labels
 
-    line = describe_labels({"state": "kept (not checked: no tracks between the keyframes)", "observations": [0, 0]})
-    assert line == "labels kept (not checked: no tracks between the keyframes)"
-
-
-def test_build_map_names_the_jumps_in_the_labels_and_warns_of_one_left_unrepaired() -> None:
-    """The summary line names each break, the parts re-placed and how far; a break no re-placed
-    part reconciles is a warning (the keyframes beyond it keep their labels' error)."""
-    from geoloc.commands._common import describe_labels
-
-    found = {
-        "state": "adjusted", "observations": [1000, 10], "runs": [], "steps": [], "rms_px": [4.0, 1.4],
-        "label_sigma_m": 0.003, "label_sigma_deg": 0.1, "median_correction_m": 0.002, "median_correction_deg": 0.05,
-        "label_from_cam_translation_m": [0.04, 0.0, 0.0], "label_from_cam_rotation_deg": 3.0,
-        "breaks": [{"at": 42, "repaired": True}, {"at": 90, "repaired": False}],
-        "replaced": [
-            {"start": 30, "end": 42, "correction": [0.1] * 6, "correction_m": 0.39, "correction_deg": 10.0},
-            {"start": 90, "end": 95, "correction": None, "correction_m": None, "correction_deg": None},
-        ],
-    }
-    line = describe_labels(found)
-    assert "jumps in the labels the images show (before keyframe): 42, 90 — re-placed: 30-41 moved 39.0 cm / 10.0°" in line
-    assert line.endswith("WARNING: the images could not place the labels beyond 90")
-    quiet = describe_labels({**found, "breaks": [], "replaced": []})
-    assert "jump" not in quiet and "WARNING" not in quiet and "revisit" not in quiet
-    loops = [{"a": a, "b": a + 80, "closed": a != 4} for a in range(5)]
-    revisits = describe_labels({**found, "loops": loops})
-    assert "5 revisit(s) whose labels disagree with the images (keyframes 0-80, 1-81, 2-82, …), 4 closed" in revisits
-    assert revisits.endswith("1 left open (they disagree with the other loops and the labels' motion)")
+    found = {"state": "kept (not checked: no tracks between the keyframes)", "observations": [0, 0],
+             "summary": "kept (not checked: no tracks between the keyframes)"}
+    assert describe_labels(found) == "labels kept (not checked: no tracks between the keyframes)"
+    assert describe_labels(None) == "labels: kept as the keyframes' truth (--keep-labels)"

@@ -13,7 +13,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
-import numpy as np
 
 
 from ..exceptions import DatasetError, InvalidInputError
@@ -288,44 +287,11 @@ def describe_self_calibration(found: dict[str, Any] | None) -> str:
 
 
 def describe_labels(found: dict[str, Any] | None) -> str:
-    """One line on what the map's bundle adjustment found about its pose labels (``Map.labels``)."""
+    """One line on what the map's bundle adjustment found about its pose labels: the core's
+    summary in ``Map.labels`` (what ``geoloc-rs info`` prints too)."""
     if found is None:
         return "labels: kept as the keyframes' truth (--keep-labels)"
-    state = found["state"]
-    if found["observations"][0] == 0:
-        # no track linked the keyframes: the adjustment had only its priors, its figures are theirs
-        return f"labels {state}"
-    runs = ", ".join(f"{r['start']}-{r['end'] - 1}" for r in found["runs"]) or "none"
-    largest = sorted(found["steps"], key=lambda s: -s["translation_m"])[:3]
-    steps = ", ".join(f"{s['start']}-{s['end'] - 1} ({100 * s['translation_m']:.1f} cm / {s['rotation_deg']:.1f}°)"
-                      for s in largest) or "none"
-    before, after = found["rms_px"]
-    replaced = ", ".join(
-        f"{r['start']}-{r['end'] - 1} moved {100 * r['correction_m']:.1f} cm / {r['correction_deg']:.1f}°"
-        for r in found.get("replaced", []) if r["correction"] is not None
-    )
-    left = [b["at"] for b in found.get("breaks", []) if not b["repaired"]]
-    jumps = ""
-    if found.get("breaks"):
-        jumps = (f"; jumps in the labels the images show (before keyframe): {', '.join(str(b['at']) for b in found['breaks'])}"
-                 f" — re-placed: {replaced or 'none'}")
-        if left:
-            jumps += f"; WARNING: the images could not place the labels beyond {', '.join(map(str, left))}"
-    loops = found.get("loops", [])
-    if loops:
-        closed = sum(1 for lp in loops if lp["closed"])
-        pairs = ", ".join(f"{lp['a']}-{lp['b']}" for lp in loops[:3]) + (", …" if len(loops) > 3 else "")
-        jumps += (f"; {len(loops)} revisit(s) whose labels disagree with the images (keyframes {pairs}),"
-                  f" {closed} closed before the adjustment")
-        if closed < len(loops):
-            jumps += f"; {len(loops) - closed} left open (they disagree with the other loops and the labels' motion)"
-    return (
-        f"labels {state}: σ {1e3 * found['label_sigma_m']:.1f} mm / {found['label_sigma_deg']:.2f}°, median correction "
-        f"{1e3 * found['median_correction_m']:.1f} mm / {found['median_correction_deg']:.2f}°, label-to-camera offset "
-        f"{100 * float(np.linalg.norm(found['label_from_cam_translation_m'])):.1f} cm / {found['label_from_cam_rotation_deg']:.2f}°; "
-        f"track residuals {before:.2f} -> {after:.2f} px rms; runs of significant corrections (keyframes): {runs}; "
-        f"{len(found['steps'])} step(s) in the labels' motion, largest (keyframes): {steps}{jumps}"
-    )
+    return f"labels {found['summary']}"
 
 
 def describe_model(the_map: Any) -> str:

@@ -256,6 +256,12 @@ impl LabelAdjustment {
             text +=
                 &format!(" (largest {:.1} cm / {:.1}°)", 1e2 * se3::rho(&d).norm(), se3::phi(&d).norm().to_degrees());
         }
+        if closed.len() < self.loops.len() {
+            text += &format!(
+                "; {} left open (they disagree with the other loops and the labels' motion)",
+                self.loops.len() - closed.len()
+            );
+        }
         text
     }
 
@@ -292,7 +298,7 @@ impl LabelAdjustment {
             if moved.is_empty() { "none".to_string() } else { moved.join(", ") }
         );
         if !left.is_empty() {
-            text += &format!("; not repaired before keyframe(s) {}", left.join(", "));
+            text += &format!("; WARNING: the images could not place the labels beyond keyframe(s) {}", left.join(", "));
         }
         text
     }
@@ -317,7 +323,7 @@ impl LabelAdjustment {
         }
     }
 
-    /// The report as JSON: σ, offset (label_from_cam X as a 4×4 matrix, T_cam = T_label·X; its
+    /// The report as JSON: its [`LabelAdjustment::summary`], σ, offset (label_from_cam X as a 4×4 matrix, T_cam = T_label·X; its
     /// translation m, rotation deg, their σ, and its full 6×6 covariance Σ_X: right
     /// perturbation of X, translation first), medians, runs, the steps and their scale.
     pub fn report_json(&self) -> serde_json::Value {
@@ -328,6 +334,7 @@ impl LabelAdjustment {
         serde_json::json!({
             "applied": self.applied,
             "state": self.state(),
+            "summary": self.summary(),
             "label_sigma_m": self.label_sigma.translation_m,
             "label_sigma_deg": self.label_sigma.rotation_rad.to_degrees(),
             "correlation_keyframes": [self.correlation_keyframes.0, self.correlation_keyframes.1],
@@ -606,6 +613,52 @@ mod tests {
         assert_eq!(unchecked.summary(), unchecked.state());
         assert!(agreed.summary().starts_with("kept (the images agree with them): label σ"));
         assert_eq!(unchecked.report_json()["state"], unchecked.state());
+    }
+
+    /// The summary names the jumps, the parts re-placed and how far, warns of a jump no part
+    /// reconciles, and counts the loops and those left open; without them it says nothing of
+    /// them.
+    #[test]
+    fn the_summary_names_jumps_and_loops_and_warns_of_an_unrepaired_jump() {
+        use crate::map::label_breaks::{LabelBreak, LabelSegment};
+        use crate::map::label_loops::LabelLoop;
+        let quiet = LabelAdjustment { observations: (1000, 10), ..record(vec![0.0]) };
+        let jump = |at| LabelBreak { at, matches: 900, label_inliers: 40, image_inliers: 850, rotation_deg: 1.0 };
+        let moved =
+            se3::twist(&nalgebra::Vector3::new(0.3, 0.0, 0.25), &nalgebra::Vector3::new(0.0, 10f64.to_radians(), 0.0));
+        let revisit = |a: usize, closed| LabelLoop {
+            a,
+            b: a + 80,
+            matches: 900,
+            label_inliers: 0,
+            image_inliers: 850,
+            disagreement: Some(moved.into()),
+            closed,
+        };
+        let found = LabelAdjustment {
+            breaks: vec![jump(42), jump(90)],
+            replaced: vec![
+                LabelSegment { start: 30, end: 42, correction: Some(moved.into()), localized: 12, agreeing: 12 },
+                LabelSegment { start: 90, end: 95, correction: None, localized: 0, agreeing: 0 },
+            ],
+            loops: (0..5).map(|a| revisit(a, a != 4)).collect(),
+            ..quiet.clone()
+        };
+        let text = found.summary();
+        assert!(
+            text.contains("; 2 jump(s) in the labels the images show, re-placed: 30-41 by 39.1 cm / 10.0°; WARNING: the images could not place the labels beyond keyframe(s) 90;"),
+            "{text}"
+        );
+        assert!(
+            text.ends_with(
+                "; 5 revisit(s) whose labels disagree with the images, 4 closed before the adjustment (largest 39.1 cm \
+                 / 10.0°); 1 left open (they disagree with the other loops and the labels' motion)"
+            ),
+            "{text}"
+        );
+        assert_eq!(found.report_json()["summary"], text);
+        let plain = quiet.summary();
+        assert!(!plain.contains("jump") && !plain.contains("WARNING") && !plain.contains("revisit"), "{plain}");
     }
 
     /// Runs against a brute-force scan of every window.
