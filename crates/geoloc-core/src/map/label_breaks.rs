@@ -339,7 +339,7 @@ pub(super) fn located_correction(map: &Map, model: &SceneModel, start: &[SE3], k
 }
 
 /// Whether two corrections agree (within [`AGREE_M`] / [`AGREE_DEG`]).
-fn agree(a: &SE3, b: &SE3) -> bool {
+pub(super) fn agree(a: &SE3, b: &SE3) -> bool {
     let d: Vector6<f64> = (a.inverse() * *b).log();
     se3::rho(&d).norm() <= AGREE_M && se3::phi(&d).norm() <= AGREE_DEG.to_radians()
 }

@@ -19,7 +19,12 @@
 //! geometry keeps fewer than a third as many. Keyframe b is then located by PnP (RANSAC)
 //! against the points triangulated from the keyframes around a — a's window, [`LOOP_WINDOW`]
 //! wide, at their start poses S — which measures b's pose relative to a in a's frame:
-//! Z_ab = S_a⁻¹ P_b. Its disagreement with the labels is log((S_a⁻¹ S_b)⁻¹ Z_ab).
+//! Z_ab = S_a⁻¹ P_b. Its disagreement with the labels is D_ab = (S_a⁻¹ S_b)⁻¹ Z_ab. Drift
+//! moves neighbouring loops alike: a loop enters the pose graph only when another within
+//! [`LOOP_WINDOW`] of it at both ends has a disagreement that agrees with its own (within
+//! [`super::label_breaks::AGREE_M`] / [`super::label_breaks::AGREE_DEG`], [`corroborated`])
+//! — the labels' motion is too soft for the graph to refuse a wrong loop on its own (it
+//! would fold the chain to meet it).
 //!
 //! **Pose graph.** With right perturbations X_k ← X_k exp(δ_k) (twists translation first),
 //! the start poses X minimise
@@ -39,15 +44,16 @@
 //!
 //! and Gauss–Newton's normal matrix is a block envelope (a chain, widened by the loops)
 //! solved by [`crate::optim::envelope`]. A loop whose residual after the solve exceeds
-//! χ²₆ 99.9 % disagrees with the others and the labels' motion together: the worst is dropped
-//! and the graph solved again. The closed poses are the adjustment's start and its tracks are
+//! χ²₆ 99.9 % disagrees with the others and the labels' motion together: those are dropped
+//! and the graph solved again, at most [`MAX_ROUNDS`] times; the loops left within it in the
+//! last solve are the ones closed. The closed poses are the adjustment's start and its tracks are
 //! matched and triangulated from them; the labels stay its priors.
 
 use std::collections::BTreeMap;
 
 use nalgebra::{Matrix6, Vector6};
 
-use super::label_breaks::{PairDisagreement, disagreeing_pair, located_correction};
+use super::label_breaks::{PairDisagreement, agree, disagreeing_pair, located_correction};
 use super::{Keyframe, Map, ModelOptions, RetrievalQuery, SceneModel};
 use crate::error::{GeolocError, Result};
 use crate::lie::{SE3, se3};
@@ -78,10 +84,13 @@ pub const PRIOR_SIGMA_DEG: f64 = 10.0;
 /// A loop edge of the pose graph: keyframes a < b and Z_ab, b's pose relative to a.
 pub type LoopEdge = (usize, usize, SE3);
 
+/// Rounds of the pose graph at most, each dropping the loops its solution leaves beyond
+/// χ²₆ 99.9 %.
+const MAX_ROUNDS: usize = 4;
 /// Gauss–Newton iterations of the pose graph at most.
 const MAX_ITERATIONS: usize = 20;
-/// A Gauss–Newton step below this (largest twist component) ends the solve.
-const STEP_TOLERANCE: f64 = 1e-10;
+/// A Gauss–Newton step below this (largest twist component: 10 nm, 10 nrad) ends the solve.
+const STEP_TOLERANCE: f64 = 1e-8;
 
 /// A loop: keyframes `a` < `b` the map's retrieval paired that the images tie together while
 /// their labels' epipolar geometry does not (see the module doc).
@@ -175,7 +184,7 @@ pub fn closed_start(map: &Map, start: &[SE3]) -> Result<(Vec<SE3>, Vec<LabelLoop
         let z = located.map(|c| start[a].inverse() * c * start[b]);
         let disagreement = z.map(|z| ((start[a].inverse() * start[b]).inverse() * z).log().into());
         if let Some(z) = z {
-            measured.push((loops.len(), a, b, z));
+            measured.push((loops.len(), (a, b, z)));
         }
         loops.push(LabelLoop {
             a,
@@ -187,37 +196,71 @@ pub fn closed_start(map: &Map, start: &[SE3]) -> Result<(Vec<SE3>, Vec<LabelLoop
             closed: false,
         });
     }
-    let mut kept: Vec<(usize, usize, usize, SE3)> = measured;
-    loop {
-        if kept.is_empty() {
-            return Ok((start.to_vec(), loops));
+    let all: Vec<LoopEdge> = measured.iter().map(|&(_, e)| e).collect();
+    let measured: Vec<(usize, LoopEdge)> =
+        measured.into_iter().zip(corroborated(start, &all)).filter(|(_, c)| *c).map(|(m, _)| m).collect();
+    let edges: Vec<LoopEdge> = measured.iter().map(|&(_, e)| e).collect();
+    let (closed, kept) = close_loops(start, &edges)?;
+    for (&(l, _), k) in measured.iter().zip(kept) {
+        loops[l].closed = k;
+    }
+    Ok((closed, loops))
+}
+
+/// Per loop edge of `loops` over the poses `start`: whether another loop within
+/// [`LOOP_WINDOW`] of it at both ends disagrees with `start` as it does — their disagreements
+/// D = (S_a⁻¹ S_b)⁻¹ Z_ab agree within [`super::label_breaks::AGREE_M`] /
+/// [`super::label_breaks::AGREE_DEG`]. Drift moves neighbouring loops alike; a loop that no
+/// neighbour corroborates (a wrong retrieval the essential matrix let through, a PnP pose
+/// off) is left open: the labels' motion is too soft a constraint for the pose graph to
+/// refuse it, and it would fold the chain.
+pub fn corroborated(start: &[SE3], loops: &[LoopEdge]) -> Vec<bool> {
+    let disagreement: Vec<SE3> = loops.iter().map(|&(a, b, z)| (start[a].inverse() * start[b]).inverse() * z).collect();
+    let near = |i: usize, j: usize| {
+        let ((ai, bi, _), (aj, bj, _)) = (loops[i], loops[j]);
+        ai.abs_diff(aj) <= LOOP_WINDOW && bi.abs_diff(bj) <= LOOP_WINDOW
+    };
+    (0..loops.len())
+        .map(|i| (0..loops.len()).any(|j| j != i && near(i, j) && agree(&disagreement[i], &disagreement[j])))
+        .collect()
+}
+
+/// The pose graph over `start` solved with the loop edges `loops` in rounds (see the module
+/// doc): each solves with the loops kept and drops those its solution leaves beyond χ²₆
+/// 99.9 %, until none is dropped or after [`MAX_ROUNDS`]. Returns the last solution (`start`
+/// when no loop is left) and, per loop, whether it lies within the bound there.
+///
+/// # Errors
+/// As [`pose_graph`].
+pub fn close_loops(start: &[SE3], loops: &[LoopEdge]) -> Result<(Vec<SE3>, Vec<bool>)> {
+    let loop_w = information(LOOP_SIGMA_M, LOOP_SIGMA_DEG);
+    let mut kept = vec![true; loops.len()];
+    let mut closed = start.to_vec();
+    for _ in 0..MAX_ROUNDS {
+        let edges: Vec<LoopEdge> = loops.iter().zip(&kept).filter(|(_, k)| **k).map(|(e, _)| *e).collect();
+        if edges.is_empty() {
+            return Ok((start.to_vec(), kept));
         }
-        let edges: Vec<LoopEdge> = kept.iter().map(|&(_, a, b, z)| (a, b, z)).collect();
-        let closed = pose_graph(start, &edges)?;
-        let loop_w = information(LOOP_SIGMA_M, LOOP_SIGMA_DEG);
-        let worst = kept
-            .iter()
-            .enumerate()
-            .map(|(i, &(_, a, b, z))| {
-                let r = (z.inverse() * closed[a].inverse() * closed[b]).log();
-                (i, (r.transpose() * loop_w * r)[0])
-            })
-            .fold(None, |w: Option<(usize, f64)>, (i, c)| match w {
-                Some((_, wc)) if wc >= c => w,
-                _ => Some((i, c)),
-            });
-        match worst {
-            Some((i, c)) if c > CHI2_6_999 => {
-                kept.remove(i);
+        closed = pose_graph(start, &edges)?;
+        let within = |&(a, b, z): &LoopEdge| {
+            let r = (z.inverse() * closed[a].inverse() * closed[b]).log();
+            (r.transpose() * loop_w * r)[0] <= CHI2_6_999
+        };
+        let mut dropped = false;
+        for (e, k) in loops.iter().zip(kept.iter_mut()) {
+            if *k && !within(e) {
+                *k = false;
+                dropped = true;
             }
-            _ => {
-                for &(l, ..) in &kept {
-                    loops[l].closed = true;
-                }
-                return Ok((closed, loops));
-            }
+        }
+        if !dropped {
+            break;
         }
     }
+    if !kept.iter().any(|k| *k) {
+        closed = start.to_vec();
+    }
+    Ok((closed, kept))
 }
 
 /// The points triangulated from `map`'s keyframes `from` … `from + LOOP_WINDOW` at the poses
@@ -434,6 +477,29 @@ mod tests {
         assert!(loops.iter().filter(|l| l.closed).count() >= 20, "{loops:?}");
         let (before, after) = (between_passes(&labels), between_passes(&start));
         assert!(before > 0.1 && after < before / 5.0, "{before} -> {after}");
+    }
+
+    /// A wrong loop among right ones — keyframe 30 claimed where 2 is, 1.4 m away — bends the
+    /// soft chain of the labels' motion rather than stand out in the pose graph; no
+    /// neighbouring loop corroborates it, and it is left open. Of two loops that contradict
+    /// each other directly, the one 30 cm off is left open by the pose graph's rounds.
+    #[test]
+    fn a_loop_no_neighbour_corroborates_is_left_open() {
+        let (_, labels, mut loops) = drifting_chain(40);
+        let right = loops.len();
+        loops.push((2, 30, SE3::identity()));
+        let corroborated = corroborated(&labels, &loops);
+        assert!(corroborated[..right].iter().all(|c| *c) && !corroborated[right], "{corroborated:?}");
+        let (_, kept) = close_loops(&labels, &loops[..right]).expect("closes");
+        assert!(kept.iter().all(|k| *k), "{kept:?}");
+        // (3, 23) twice: as measured and 30 cm off
+        let (a, b, z) = loops[1];
+        let contradicting =
+            [loops[..right].to_vec(), vec![(a, b, z * SE3::exp(&Vector6::new(0.3, 0.0, 0.0, 0.0, 0.0, 0.0)))]].concat();
+        let (_, kept) = close_loops(&labels, &contradicting).expect("closes");
+        assert!(!kept[right], "the one 30 cm off is left open: {kept:?}");
+        let (unchanged, none) = close_loops(&labels, &[]).expect("nothing to close");
+        assert!(none.is_empty() && unchanged == labels);
     }
 
     #[test]
