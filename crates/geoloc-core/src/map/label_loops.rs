@@ -67,7 +67,7 @@ pub const LOOP_CANDIDATES: usize = 2;
 /// Keyframes closer than this in capture order are no loop candidates of each other.
 pub const LOOP_GAP: usize = 20;
 /// Keyframes whose points a loop's later keyframe is located against: a's window of this many
-/// around it (windows start at multiples of half of it, and are shared by the loops in them).
+/// around it (windows step by half of it and are shared by the loops in them).
 pub const LOOP_WINDOW: usize = 10;
 /// σ of an odometry edge's translation (m) …
 pub const ODOMETRY_SIGMA_M: f64 = 0.03;
@@ -264,8 +264,8 @@ pub fn close_loops(start: &[SE3], loops: &[LoopEdge]) -> Result<(Vec<SE3>, Vec<b
 }
 
 /// The points triangulated from `map`'s keyframes `from` … `from + LOOP_WINDOW` at the poses
-/// `start` (a loop's earlier keyframe lies at least a quarter window from either end, its
-/// later one [`LOOP_GAP`] after it: beyond the window); None when too few.
+/// `start` (a loop's earlier keyframe lies at least two keyframes from either end, its later
+/// one [`LOOP_GAP`] after it: beyond the window); None when too few.
 fn window_model(map: &Map, start: &[SE3], from: usize) -> Result<Option<SceneModel>> {
     let end = (from + LOOP_WINDOW).min(map.keyframes.len());
     if end < from + 2 {
