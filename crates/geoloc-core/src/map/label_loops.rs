@@ -84,6 +84,9 @@ pub const PRIOR_SIGMA_DEG: f64 = 10.0;
 /// A loop edge of the pose graph: keyframes a < b and Z_ab, b's pose relative to a.
 pub type LoopEdge = (usize, usize, SE3);
 
+/// Most poses the pose graph solves for: a longer map's graph is over every s-th keyframe
+/// ([`close_loops`]).
+pub const MAX_GRAPH_NODES: usize = 300;
 /// Rounds of the pose graph at most, each dropping the loops its solution leaves beyond
 /// χ²₆ 99.9 %.
 const MAX_ROUNDS: usize = 4;
@@ -230,9 +233,64 @@ pub fn corroborated(start: &[SE3], loops: &[LoopEdge]) -> Vec<bool> {
 /// 99.9 %, until none is dropped or after [`MAX_ROUNDS`]. Returns the last solution (`start`
 /// when no loop is left) and, per loop, whether it lies within the bound there.
 ///
+/// A map of more than [`MAX_GRAPH_NODES`] keyframes is solved over every s-th of them
+/// (s = ⌈n / MAX_GRAPH_NODES⌉, and the last): each loop is moved to the nearest of them by the
+/// labels' motion, Z_{a′b′} = S_{a′}⁻¹ S_a Z_ab S_b⁻¹ S_{b′}, and the keyframes between take
+/// the world-frame corrections C = X S⁻¹ of the two around them, interpolated on SE(3) by
+/// capture index. The Cholesky's cost grows with the cube of the loops' span in poses: 600
+/// keyframes with 300 loops spanning 300 took 3.7 s over every keyframe, 0.42 s over every
+/// second; 2000 keyframes looped end to end take 0.46 s over every seventh.
+///
 /// # Errors
 /// As [`pose_graph`].
 pub fn close_loops(start: &[SE3], loops: &[LoopEdge]) -> Result<(Vec<SE3>, Vec<bool>)> {
+    let n = start.len();
+    let step = n.div_ceil(MAX_GRAPH_NODES).max(1);
+    if step == 1 {
+        return close_loops_over(start, loops, 1.0);
+    }
+    let mut nodes: Vec<usize> = (0..n).step_by(step).collect();
+    if nodes.last() != Some(&(n - 1)) {
+        nodes.push(n - 1);
+    }
+    let node_of = |k: usize| ((k + step / 2) / step).min(nodes.len() - 1);
+    let node_start: Vec<SE3> = nodes.iter().map(|&k| start[k]).collect();
+    // loops whose ends fall on one node cannot be represented: left open
+    let moved: Vec<Option<LoopEdge>> = loops
+        .iter()
+        .map(|&(a, b, z)| {
+            let (na, nb) = (node_of(a), node_of(b));
+            let to_node = |k: usize, node: usize| start[k].inverse() * start[nodes[node]];
+            (na < nb).then(|| (na, nb, to_node(a, na).inverse() * z * to_node(b, nb)))
+        })
+        .collect();
+    let edges: Vec<LoopEdge> = moved.iter().flatten().copied().collect();
+    let (node_closed, node_kept) = close_loops_over(&node_start, &edges, step as f64)?;
+    let mut node_kept = node_kept.into_iter();
+    let kept: Vec<bool> = moved.iter().map(|m| m.is_some() && node_kept.next() == Some(true)).collect();
+    if !kept.iter().any(|k| *k) {
+        return Ok((start.to_vec(), kept));
+    }
+    let corrections: Vec<SE3> = node_closed.iter().zip(&node_start).map(|(x, s)| *x * s.inverse()).collect();
+    let closed = (0..n)
+        .map(|k| {
+            let i = nodes.partition_point(|&node| node <= k) - 1;
+            let c = match nodes.get(i + 1) {
+                Some(&next) => {
+                    let alpha = (k - nodes[i]) as f64 / (next - nodes[i]) as f64;
+                    corrections[i].interpolate(&corrections[i + 1], alpha)
+                }
+                None => corrections[i],
+            };
+            c * start[k]
+        })
+        .collect();
+    Ok((closed, kept))
+}
+
+/// [`close_loops`] over the poses `start`, each standing for `per_node` keyframes
+/// ([`pose_graph_of_nodes`]).
+fn close_loops_over(start: &[SE3], loops: &[LoopEdge], per_node: f64) -> Result<(Vec<SE3>, Vec<bool>)> {
     let loop_w = information(LOOP_SIGMA_M, LOOP_SIGMA_DEG);
     let mut kept = vec![true; loops.len()];
     let mut closed = start.to_vec();
@@ -241,7 +299,7 @@ pub fn close_loops(start: &[SE3], loops: &[LoopEdge]) -> Result<(Vec<SE3>, Vec<b
         if edges.is_empty() {
             return Ok((start.to_vec(), kept));
         }
-        closed = pose_graph(start, &edges)?;
+        closed = pose_graph_of_nodes(start, &edges, per_node)?;
         let within = |&(a, b, z): &LoopEdge| {
             let r = (z.inverse() * closed[a].inverse() * closed[b]).log();
             (r.transpose() * loop_w * r)[0] <= CHI2_6_999
@@ -290,14 +348,21 @@ fn information(sigma_m: f64, sigma_deg: f64) -> Matrix6<f64> {
 /// # Errors
 /// A loop's keyframe out of range (`loops`); a normal matrix that is not positive definite.
 pub fn pose_graph(labels: &[SE3], loops: &[LoopEdge]) -> Result<Vec<SE3>> {
+    pose_graph_of_nodes(labels, loops, 1.0)
+}
+
+/// [`pose_graph`] over poses each of which stands for `per_node` keyframes of the labels: its
+/// prior counts `per_node` times, and its step to the next is `per_node` steps of the labels'
+/// motion (the odometry's variance `per_node` times one step's).
+fn pose_graph_of_nodes(labels: &[SE3], loops: &[LoopEdge], per_node: f64) -> Result<Vec<SE3>> {
     let n = labels.len();
     if let Some(&(a, b, _)) = loops.iter().find(|&&(a, b, _)| a >= b || b >= n) {
         return Err(GeolocError::invalid("loops", format!("({a}, {b}) for {n} poses")));
     }
     let (odometry_w, loop_w, prior_w) = (
-        information(ODOMETRY_SIGMA_M, ODOMETRY_SIGMA_DEG),
+        information(ODOMETRY_SIGMA_M, ODOMETRY_SIGMA_DEG) / per_node,
         information(LOOP_SIGMA_M, LOOP_SIGMA_DEG),
-        information(PRIOR_SIGMA_M, PRIOR_SIGMA_DEG),
+        information(PRIOR_SIGMA_M, PRIOR_SIGMA_DEG) * per_node,
     );
     let odometry: Vec<(usize, usize, SE3, &Matrix6<f64>)> =
         (1..n).map(|k| (k - 1, k, labels[k - 1].inverse() * labels[k], &odometry_w)).collect();
@@ -500,6 +565,28 @@ mod tests {
         assert!(!kept[right], "the one 30 cm off is left open: {kept:?}");
         let (unchanged, none) = close_loops(&labels, &[]).expect("nothing to close");
         assert!(none.is_empty() && unchanged == labels);
+    }
+
+    /// A map longer than [`MAX_GRAPH_NODES`] is closed over every s-th keyframe: every loop's
+    /// relative pose comes back, at its own keyframes (interpolated between the nodes), within
+    /// 1 cm / 0.1° of the truth (measured 6.3 mm / 0.03°; over every keyframe 0.03 mm / 0.004°,
+    /// the labels 0.10 m / 1.0° over such spans).
+    #[test]
+    fn a_long_map_is_closed_over_a_subsample() {
+        let n = 2 * MAX_GRAPH_NODES + 50;
+        let (truth, labels, loops) = drifting_chain(n);
+        let (closed, kept) = close_loops(&labels, &loops).expect("closes");
+        assert!(kept.iter().all(|k| *k), "{kept:?}");
+        for &(a, b, _) in &loops {
+            let d = ((closed[a].inverse() * closed[b]).inverse() * (truth[a].inverse() * truth[b])).log();
+            assert!(se3::rho(&d).norm() < 0.01 && se3::phi(&d).norm() < 0.1f64.to_radians(), "({a}, {b}): {d}");
+        }
+        // a map of MAX_GRAPH_NODES keyframes is solved over every one of them
+        let (truth, labels, loops) = drifting_chain(MAX_GRAPH_NODES);
+        let (closed, _) = close_loops(&labels, &loops).expect("closes");
+        assert_eq!(closed, close_loops_over(&labels, &loops, 1.0).expect("closes").0);
+        let d = ((closed[0].inverse() * closed[20]).inverse() * (truth[0].inverse() * truth[20])).log();
+        assert!(se3::rho(&d).norm() < 0.001, "{d}");
     }
 
     #[test]
