@@ -370,7 +370,8 @@ class Map:
         """The labels' correction by bundle adjustment (``adjust_labels``), or None when the
         labels were not adjusted: ``applied`` (whether the map uses the adjusted poses),
         ``state`` (that in words: "adjusted", "kept (the images agree with them)", or "kept
-        (not checked: …)" when no track linked the keyframes), ``label_sigma_m`` /
+        (not checked: …)" when no track linked the keyframes), ``summary`` (the report in one
+        line, as ``geoloc build-map`` and ``geoloc-rs info`` print it), ``label_sigma_m`` /
         ``label_sigma_deg`` (the labels' σ the
         adjustment estimated), the label-to-camera offset (``label_from_cam``, the 4×4 X with
         T_cam = T_label·X, as nested lists; ``label_from_cam_translation_m``,

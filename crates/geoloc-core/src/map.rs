@@ -562,7 +562,7 @@ impl Map {
         // the first adjustment re-places the segments that jumps in the labels cut off
         // (label_breaks), then closes the revisits whose labels disagree with the images
         // (label_loops); a re-adjustment keeps what the first one found
-        let (labels, start, offset, correlation, found) = match self.labels.take() {
+        let (labels, start, offset, correlation, (breaks, replaced, loops)) = match self.labels.take() {
             Some(record) => (
                 record.labels.clone(),
                 record.label_poses(&self.poses()),
@@ -580,7 +580,7 @@ impl Map {
         // tracks from the start poses where a segment was re-placed or a loop closed (from
         // the labels, they would keep it an island), else from the keyframes' poses
         let moved = correlation.is_none()
-            && (found.1.iter().any(|r| r.correction.is_some()) || found.2.iter().any(|l| l.closed));
+            && (replaced.iter().any(|r| r.correction.is_some()) || loops.iter().any(|l| l.closed));
         let problem = self.skeleton_problem(&labels, &start, moved.then_some(&start[..]))?;
         let chosen = &problem.keyframes;
         let adjustment = crate::adjust::bundle_adjust_with_candidates(
@@ -601,7 +601,7 @@ impl Map {
             // re-adjusted with the σ found before: keep how it was found
             record.correlation_keyframes = tau;
         }
-        (record.breaks, record.replaced, record.loops) = found;
+        (record.breaks, record.replaced, record.loops) = (breaks, replaced, loops);
         // labels the images do not contradict stay as they are (the record says so); the
         // decision is the first adjustment's, a re-adjustment refines an applied one
         record.applied = correlation.is_some() || record.significant();

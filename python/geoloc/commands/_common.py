@@ -13,8 +13,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
-
-
 from ..exceptions import DatasetError, InvalidInputError
 from ..localizer import SEQUENCE_MODES
 

@@ -243,18 +243,15 @@ impl LabelAdjustment {
             return String::new();
         }
         let closed: Vec<&LabelLoop> = self.loops.iter().filter(|l| l.closed).collect();
-        let largest = closed
-            .iter()
-            .filter_map(|l| l.disagreement.map(Vector6::from))
-            .max_by(|a, b| se3::rho(a).norm().total_cmp(&se3::rho(b).norm()));
+        let largest =
+            closed.iter().filter_map(|l| l.disagreement.as_ref().map(twist_size)).max_by(|a, b| a.0.total_cmp(&b.0));
         let mut text = format!(
             "; {} revisit(s) whose labels disagree with the images, {} closed before the adjustment",
             self.loops.len(),
             closed.len()
         );
-        if let Some(d) = largest {
-            text +=
-                &format!(" (largest {:.1} cm / {:.1}°)", 1e2 * se3::rho(&d).norm(), se3::phi(&d).norm().to_degrees());
+        if let Some((m, deg)) = largest {
+            text += &format!(" (largest {:.1} cm / {:.1}°)", 1e2 * m, deg);
         }
         if closed.len() < self.loops.len() {
             text += &format!(
@@ -280,14 +277,8 @@ impl LabelAdjustment {
             .replaced
             .iter()
             .filter_map(|r| {
-                let c = Vector6::from(r.correction?);
-                Some(format!(
-                    "{}-{} by {:.1} cm / {:.1}°",
-                    r.start,
-                    r.end - 1,
-                    1e2 * se3::rho(&c).norm(),
-                    se3::phi(&c).norm().to_degrees()
-                ))
+                let (m, deg) = twist_size(r.correction.as_ref()?);
+                Some(format!("{}-{} by {:.1} cm / {:.1}°", r.start, r.end - 1, 1e2 * m, deg))
             })
             .collect();
         let left: Vec<String> =
@@ -361,10 +352,7 @@ impl LabelAdjustment {
                 "rotation_deg": b.rotation_deg, "repaired": self.break_repaired(b.at),
             })).collect::<Vec<_>>(),
             "replaced": self.replaced.iter().map(|r| {
-                let (t, deg) = r.correction.map_or((None, None), |c| {
-                    let c = Vector6::from(c);
-                    (Some(se3::rho(&c).norm()), Some(se3::phi(&c).norm().to_degrees()))
-                });
+                let (t, deg) = r.correction.as_ref().map(twist_size).unzip();
                 serde_json::json!({
                     "start": r.start, "end": r.end, "correction": r.correction,
                     "correction_m": t, "correction_deg": deg,
@@ -372,10 +360,7 @@ impl LabelAdjustment {
                 })
             }).collect::<Vec<_>>(),
             "loops": self.loops.iter().map(|l| {
-                let (t, deg) = l.disagreement.map_or((None, None), |d| {
-                    let d = Vector6::from(d);
-                    (Some(se3::rho(&d).norm()), Some(se3::phi(&d).norm().to_degrees()))
-                });
+                let (t, deg) = l.disagreement.as_ref().map(twist_size).unzip();
                 serde_json::json!({
                     "a": l.a, "b": l.b, "matches": l.matches,
                     "label_inliers": l.label_inliers, "image_inliers": l.image_inliers,
@@ -481,6 +466,12 @@ impl LabelAdjustment {
 
 /// "N step(s) in the labels' motion (largest X cm / Y° at keyframes a-b)", or "no step in
 /// the labels' motion".
+/// The size of a stored twist (translation first): ‖ρ‖ in metres and ‖φ‖ in degrees.
+fn twist_size(twist: &[f64; 6]) -> (f64, f64) {
+    let t = Vector6::from(*twist);
+    (se3::rho(&t).norm(), se3::phi(&t).norm().to_degrees())
+}
+
 fn describe_steps(steps: &[LabelStep]) -> String {
     match steps.iter().max_by(|a, b| a.translation_m.total_cmp(&b.translation_m)) {
         None => "no step in the labels' motion".to_string(),
