@@ -125,6 +125,55 @@ fn a_jump_reinitializes_and_a_long_failure_is_lost_then_recovers() {
     assert!(errors[76..].iter().all(|e| *e < 0.02), "{:?}", &errors[76..]);
 }
 
+/// Keyframes per pass of [`two_passes`].
+const KEYFRAMES_PER_PASS: usize = 80;
+
+/// The label-to-camera offset X = label_from_cam of the sensor-offset scenes: 3° and 5 cm.
+fn sensor_offset() -> SE3 {
+    use geoloc_core::lie::SO3;
+    use nalgebra::Vector3;
+    let axis = Vector3::new(0.3, -1.0, 0.5).normalize();
+    SE3::new(SO3::exp(&(axis * 3f64.to_radians())), Vector3::new(0.04, -0.02, 0.02))
+}
+
+/// What `world` shows a camera at `cam`, with the keypoints' noise made the 1 px the localizer
+/// assumes (the scene's 0.5 px, and another 0.75 px²).
+fn observe_1px(world: &LandmarkScene, rng: &mut SplitMix64, cam: &SE3) -> (Vec<nalgebra::Vector2<f64>>, Vec<u8>) {
+    let (mut keypoints, data) = world.observe(rng, cam, 3);
+    for k in &mut keypoints {
+        *k += nalgebra::Vector2::new(rng.normal(), rng.normal()) * 0.75f64.sqrt();
+    }
+    (keypoints, data)
+}
+
+/// Two passes of [`KEYFRAMES_PER_PASS`] keyframes along [`testing::walk`] 0.5 m apart, every
+/// 0.2 s, seen by [`observe_1px`] in a new [`LandmarkScene`]: keyframe j's label is
+/// `label(j, L)` of L = T [`sensor_offset`]⁻¹ with 3 mm / 0.11° of noise. Returns the scene,
+/// the keyframes, their times and the true camera poses T.
+fn two_passes(
+    rng: &mut SplitMix64,
+    label: impl Fn(usize, &SE3) -> SE3,
+) -> (LandmarkScene, Vec<Keyframe>, Vec<f64>, Vec<SE3>) {
+    let offset = sensor_offset();
+    let world = LandmarkScene::new(rng, LANDMARKS, 8.0);
+    let (mut keyframes, mut times, mut cameras) = (Vec::new(), Vec::new(), Vec::new());
+    for j in 0..2 * KEYFRAMES_PER_PASS {
+        let (i, side) = (j % KEYFRAMES_PER_PASS, 0.5 * (j / KEYFRAMES_PER_PASS) as f64);
+        let cam = testing::walk(i as f64 * 0.1, side, -2.5);
+        let (keypoints, data) = observe_1px(&world, rng, &cam);
+        let labelled = cam * offset.inverse() * SE3::exp(&rng.pose_noise(0.003, 0.002));
+        keyframes.push(Keyframe {
+            world_from_cam: label(j, &labelled),
+            keypoints,
+            descriptors: DescriptorSet::Binary { data, width: WIDTH },
+            global: None,
+        });
+        times.push(j as f64 * 0.2);
+        cameras.push(cam);
+    }
+    (world, keyframes, times, cameras)
+}
+
 /// Labels that sit on another sensor and a run of them displaced: two passes of 80 keyframes
 /// along [`testing::walk`] 0.5 m apart, every label on a sensor 3° and 5 cm from the camera
 /// (X = label_from_cam) with 3 mm / 0.11° of noise, and the labels of 12 keyframes moved by a
@@ -145,37 +194,15 @@ fn sensor_offset_scene_nees(seed: u64) -> Vec<f64> {
 /// [`sensor_offset_scene_nees`] with the run displaced `scale` times as far (translation and
 /// rotation), and the map's label report.
 fn sensor_offset_scene(seed: u64, scale: f64) -> (Vec<f64>, geoloc_core::map::LabelAdjustment) {
-    use geoloc_core::lie::{SO3, se3};
+    use geoloc_core::lie::se3;
     use geoloc_core::map::BuildOptions;
-    use nalgebra::{Vector2, Vector3};
-    const KEYFRAMES_PER_PASS: usize = 80;
+    use nalgebra::Vector3;
     let axis = Vector3::new(0.3, -1.0, 0.5).normalize();
-    let offset = SE3::new(SO3::exp(&(axis * 3f64.to_radians())), Vector3::new(0.04, -0.02, 0.02));
+    let offset = sensor_offset();
     let bump = SE3::exp(&se3::twist(&(Vector3::new(0.12, 0.1, -0.12) * scale), &(axis * (5.0 * scale).to_radians())));
-    // the scene's keypoints carry 0.5 px of noise: another 0.75 px² makes the 1 px assumed
-    let observe = |world: &LandmarkScene, rng: &mut SplitMix64, cam: &SE3| {
-        let (mut keypoints, data) = world.observe(rng, cam, 3);
-        for k in &mut keypoints {
-            *k += Vector2::new(rng.normal(), rng.normal()) * 0.75f64.sqrt();
-        }
-        (keypoints, data)
-    };
     let mut rng = SplitMix64::new(seed);
-    let world = LandmarkScene::new(&mut rng, LANDMARKS, 8.0);
-    let (mut keyframes, mut times) = (Vec::new(), Vec::new());
-    for j in 0..2 * KEYFRAMES_PER_PASS {
-        let (i, side) = (j % KEYFRAMES_PER_PASS, 0.5 * (j / KEYFRAMES_PER_PASS) as f64);
-        let cam = testing::walk(i as f64 * 0.1, side, -2.5);
-        let (keypoints, data) = observe(&world, &mut rng, &cam);
-        let label = cam * offset.inverse() * SE3::exp(&rng.pose_noise(0.003, 0.002));
-        keyframes.push(Keyframe {
-            world_from_cam: if (30..42).contains(&j) { bump * label } else { label },
-            keypoints,
-            descriptors: DescriptorSet::Binary { data, width: WIDTH },
-            global: None,
-        });
-        times.push(j as f64 * 0.2);
-    }
+    let (world, keyframes, times, _) =
+        two_passes(&mut rng, |j, label| if (30..42).contains(&j) { bump * *label } else { *label });
     let options = BuildOptions { refine_intrinsics: false, ..BuildOptions::default() };
     let map = Map::build_with_options(world.camera, keyframes, None, Some(&times), &options).expect("builds");
     let record = map.labels.clone().expect("adjusted");
@@ -192,7 +219,7 @@ fn sensor_offset_scene(seed: u64, scale: f64) -> (Vec<f64>, geoloc_core::map::La
     for q in 0..40 {
         let t = (q as f64 * 2.0 + 0.5) * 0.1;
         let cam = testing::walk(t, [0.0, 0.03, 0.1, 0.5][q % 4], -2.5);
-        let (keypoints, data) = observe(&world, &mut rng, &cam);
+        let (keypoints, data) = observe_1px(&world, &mut rng, &cam);
         loc.reset();
         let frame = testing::landmark_frame(t, &keypoints, &data);
         let result = map.to_label_convention(loc.localize(&frame).expect("valid"));
@@ -291,33 +318,15 @@ fn a_run_displaced_beyond_the_adjustments_reach_is_re_placed_from_the_images() {
 /// 0.1° of the truth (measured 1.4 cm / 0.02°; 2.3 cm / 0.5° from the pose graph alone).
 #[test]
 fn labels_that_drift_between_two_passes_are_closed_by_the_revisits() {
-    use geoloc_core::lie::{SO3, se3};
+    use geoloc_core::lie::se3;
     use geoloc_core::map::BuildOptions;
-    use nalgebra::{Vector2, Vector3};
-    const PASS: usize = 80;
-    let axis = Vector3::new(0.3, -1.0, 0.5).normalize();
-    let offset = SE3::new(SO3::exp(&(axis * 3f64.to_radians())), Vector3::new(0.04, -0.02, 0.02));
+    use nalgebra::Vector3;
+    const PASS: usize = KEYFRAMES_PER_PASS;
+    let offset = sensor_offset();
     let xi = se3::twist(&Vector3::new(0.4, 0.2, -0.2), &(Vector3::new(0.2, 1.0, 0.3).normalize() * 8f64.to_radians()));
     let mut rng = SplitMix64::new(1);
-    let world = LandmarkScene::new(&mut rng, LANDMARKS, 8.0);
-    let (mut keyframes, mut times, mut cameras) = (Vec::new(), Vec::new(), Vec::new());
-    for j in 0..2 * PASS {
-        let cam = testing::walk((j % PASS) as f64 * 0.1, 0.5 * (j / PASS) as f64, -2.5);
-        let (mut keypoints, data) = world.observe(&mut rng, &cam, 3);
-        for k in &mut keypoints {
-            *k += Vector2::new(rng.normal(), rng.normal()) * 0.75f64.sqrt();
-        }
-        let drift = SE3::exp(&(xi * (j as f64 / (2 * PASS - 1) as f64)));
-        let label = drift * cam * offset.inverse() * SE3::exp(&rng.pose_noise(0.003, 0.002));
-        keyframes.push(Keyframe {
-            world_from_cam: label,
-            keypoints,
-            descriptors: DescriptorSet::Binary { data, width: WIDTH },
-            global: None,
-        });
-        times.push(j as f64 * 0.2);
-        cameras.push(cam);
-    }
+    let (world, keyframes, times, cameras) =
+        two_passes(&mut rng, |j, label| SE3::exp(&(xi * (j as f64 / (2 * PASS - 1) as f64))) * *label);
     // the median over the passes' pairs (j, j + PASS) of how far their relative pose is off
     let between_passes = |poses: &[SE3]| {
         let mut errors: Vec<(f64, f64)> = (0..PASS)
