@@ -345,15 +345,15 @@ pub fn bundle_adjust_with_candidates(
             // the corrections of neighbouring keyframes are correlated (labels drift): an
             // i.i.d. prior of the scatter σ would hold the trajectory's slow shape τ times
             // too tightly, so σ grows by √τ
-            let inflated = |tau: (f64, f64)| LabelSigma {
+            let inflated = |sigma: LabelSigma, tau: (f64, f64)| LabelSigma {
                 translation_m: sigma.translation_m * tau.0.sqrt(),
                 rotation_rad: sigma.rotation_rad * tau.1.sqrt(),
             };
-            // ... but not by the corrections that prior holds as outliers (a run of wrong
-            // labels is the kernel's, not drift)
-            let all = correlation_lengths(labels, &state.labels);
-            correlation = correlation_lengths_within(labels, &state.labels, Some(inflated(all)));
-            inflated(correlation)
+            // ... but neither τ nor the scatter counts the corrections that prior holds as
+            // outliers (a run of wrong labels is the kernel's, not drift nor noise)
+            let prior = inflated(sigma, correlation_lengths(labels, &state.labels));
+            correlation = correlation_lengths_within(labels, &state.labels, Some(prior));
+            inflated(estimate_label_sigma_within(labels, &state.labels, Some(prior)), correlation)
         }
     };
     let problem = Problem::new(camera, labels, observations, &inliers, options, label_sigma);
@@ -465,8 +465,8 @@ mod problem;
 mod scale;
 
 use problem::{Problem, State, classify_observations, rms_px};
-use scale::estimate_label_sigma;
 pub use scale::{CORRELATION_SPACING, correlation_lengths, correlation_lengths_within, robust_sigma, skeleton};
+use scale::{estimate_label_sigma, estimate_label_sigma_within};
 
 #[cfg(test)]
 mod tests;

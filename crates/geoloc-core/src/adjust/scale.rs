@@ -15,8 +15,31 @@ const MIN_LABEL_SIGMA: LabelSigma = LabelSigma { translation_m: 1e-3, rotation_r
 /// σ² = median(‖e‖²) / median(χ²₃) of the translation and rotation parts of the label
 /// corrections e_k = log(L_k⁻¹ B_k), floored at [`MIN_LABEL_SIGMA`] ([`robust_sigma`]).
 pub(super) fn estimate_label_sigma(labels: &[SE3], adjusted: &[SE3]) -> LabelSigma {
-    let corrections: Vec<Vector6<f64>> = labels.iter().zip(adjusted).map(|(l, b)| (l.inverse() * *b).log()).collect();
+    estimate_label_sigma_within(labels, adjusted, None)
+}
+
+/// [`estimate_label_sigma`] over the corrections a label prior of σ `prior` holds inside its
+/// 99.9 % region ([`held_by`]); all of them for None. The median of ‖e‖² is robust to the
+/// others but not unmoved by them: a run of m wrong labels among n puts the median at the
+/// (n/2)-th of the n − m others, their 0.5 n/(n − m) quantile (12 of 160 labels displaced by
+/// 20 cm: σ 4 % high in a synthetic map with 3 mm of noise, 8–11 % with the adjusted poses'
+/// own error; over the held ones 0–2 %).
+pub(super) fn estimate_label_sigma_within(labels: &[SE3], adjusted: &[SE3], prior: Option<LabelSigma>) -> LabelSigma {
+    let corrections: Vec<Vector6<f64>> = labels
+        .iter()
+        .zip(adjusted)
+        .map(|(l, b)| (l.inverse() * *b).log())
+        .filter(|e| prior.is_none_or(|p| held_by(e, &p)))
+        .collect();
     robust_sigma(&corrections)
+}
+
+/// Whether a label prior of σ `prior` holds the correction `e` inside its 99.9 % region:
+/// eᵀ Λ e ≤ χ²₆(0.999), Λ = diag(σ_t⁻², σ_r⁻²).
+fn held_by(e: &Vector6<f64>, prior: &LabelSigma) -> bool {
+    let m = se3::rho(e).norm_squared() / prior.translation_m.powi(2)
+        + se3::phi(e).norm_squared() / prior.rotation_rad.powi(2);
+    m <= CHI2_6_999
 }
 
 /// The robust per-axis scale of twists e (right perturbation, translation first):
@@ -64,16 +87,7 @@ pub fn correlation_lengths(labels: &[SE3], adjusted: &[SE3]) -> (f64, f64) {
 pub fn correlation_lengths_within(labels: &[SE3], adjusted: &[SE3], prior: Option<LabelSigma>) -> (f64, f64) {
     let kept = skeleton(adjusted);
     let e: Vec<Vector6<f64>> = kept.iter().map(|&k| (labels[k].inverse() * adjusted[k]).log()).collect();
-    let counts: Vec<bool> = e
-        .iter()
-        .map(|v| {
-            prior.is_none_or(|p| {
-                let m = se3::rho(v).norm_squared() / p.translation_m.powi(2)
-                    + se3::phi(v).norm_squared() / p.rotation_rad.powi(2);
-                m <= CHI2_6_999
-            })
-        })
-        .collect();
+    let counts: Vec<bool> = e.iter().map(|v| prior.is_none_or(|p| held_by(v, &p))).collect();
     let n = e.len();
     let used = counts.iter().filter(|c| **c).count();
     if used == 0 {

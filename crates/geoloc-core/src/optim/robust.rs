@@ -83,6 +83,66 @@ impl RobustLoss {
             Self::Cauchy { width: k } => 1.0 / (1.0 + s / (k * k)),
         }
     }
+
+    /// w'(s) = ρ''(s) (0 inside the Huber kink, its right derivative at it).
+    pub fn weight_derivative(&self, s: f64) -> f64 {
+        match *self {
+            Self::None => 0.0,
+            Self::Huber { width: k } => {
+                if s <= k * k {
+                    0.0
+                } else {
+                    -0.5 * k * s.powf(-1.5)
+                }
+            }
+            Self::Cauchy { width: k } => -1.0 / (k * k) / (1.0 + s / (k * k)).powi(2),
+        }
+    }
+
+    /// κ: the factor that turns this kernel's IRLS weights into the information of the
+    /// estimate they give, for terms of `dof` whitened residuals that are Gaussian inliers.
+    ///
+    /// A term r ~ N(0, I_d) weighted by w(s), s = ‖r‖², is an M-estimator with
+    /// ψ(r) = w(s) r, whose asymptotic covariance is the sandwich a⁻² b (JᵀJ)⁻¹ (Huber 1964):
+    ///
+    ///   a = E[∂ψ/∂r] = E[w] + (2/d) E[w'(s) s],   b = E[‖ψ‖²]/d = E[w² s]/d,
+    ///
+    /// while Gauss–Newton's (Σ w JᵀJ)⁻¹ claims E[w]⁻¹ (JᵀJ)⁻¹ over such terms. Scaling each
+    /// term's weight by κ = a² / (b E[w]) gives the sandwich's information in sum over the
+    /// inliers, and keeps an outlier's weight as small, relative to theirs, as the kernel made
+    /// it. Expectations over s ~ χ²_d by the trapezoid rule on a fine grid. κ = 1 without a
+    /// kernel; Cauchy k = 3 in 6 dimensions: E[w] = 0.63, a²/b = 0.954, κ = 1.52 — the weights
+    /// alone overstate the variance 1.59 times, the estimate's is 1.048 times least squares'.
+    pub fn information_scale(&self, dof: usize) -> f64 {
+        if matches!(self, Self::None) || dof == 0 {
+            return 1.0;
+        }
+        let d = dof as f64;
+        let (steps, end) = (200_000usize, 40.0 * d + 400.0);
+        let h = end / steps as f64;
+        let (mut mass, mut ew, mut ews, mut ew2s) = (0.0, 0.0, 0.0, 0.0);
+        for i in 0..=steps {
+            let s = i as f64 * h;
+            // χ²_d density up to its constant (which cancels in the ratios)
+            let f = if s > 0.0 {
+                ((0.5 * d - 1.0) * s.ln() - 0.5 * s).exp()
+            } else if dof == 2 {
+                1.0
+            } else {
+                0.0
+            };
+            let t = if i == 0 || i == steps { 0.5 * f } else { f };
+            let w = self.weight(s);
+            mass += t;
+            ew += t * w;
+            ews += t * self.weight_derivative(s) * s;
+            ew2s += t * w * w * s;
+        }
+        let (ew, ews, ew2s) = (ew / mass, ews / mass, ew2s / mass);
+        let a = ew + 2.0 * ews / d;
+        let b = ew2s / d;
+        a * a / (b * ew)
+    }
 }
 
 #[cfg(test)]
@@ -102,6 +162,55 @@ mod tests {
                 assert!((numeric - loss.weight(s)).abs() < 1e-7, "{loss:?} at {s}");
             }
         }
+    }
+
+    /// w' against central differences of w, away from the Huber kink.
+    #[test]
+    fn weight_derivative_is_the_derivative_of_the_weight() {
+        let h = 1e-6;
+        for loss in [RobustLoss::None, RobustLoss::Huber { width: 1.3 }, RobustLoss::Cauchy { width: 0.7 }] {
+            for &s in &[0.01, 0.5, 1.0, 2.5, 10.0, 400.0] {
+                let numeric = (loss.weight(s + h) - loss.weight(s - h)) / (2.0 * h);
+                assert!((numeric - loss.weight_derivative(s)).abs() < 1e-7, "{loss:?} at {s}");
+            }
+        }
+    }
+
+    /// κ against a Monte-Carlo of the M-estimator it describes: the mean of 100 i.i.d.
+    /// N(0, I_d) vectors estimated by IRLS with the kernel; over 2000 draws its squared error
+    /// per axis against Gauss–Newton's claim (Σ w)⁻¹ with the weights scaled by κ. Huber k = 2
+    /// (d = 2, κ ≈ 1) and Cauchy k = 3 (d = 6, κ = 1.52: unscaled, the claim is 1.5 times the
+    /// variance), within 6 % (the Monte-Carlo's σ ≈ 2 %).
+    #[test]
+    fn information_scale_matches_the_estimators_variance() {
+        use crate::testing::SplitMix64;
+        assert!((RobustLoss::None.information_scale(6) - 1.0).abs() < f64::EPSILON);
+        let mut rng = SplitMix64::new(7);
+        for (loss, d) in [(RobustLoss::Huber { width: 2.0 }, 2usize), (RobustLoss::Cauchy { width: 3.0 }, 6)] {
+            let n = 100;
+            let draws = 2000;
+            let (mut err2, mut claimed) = (0.0, 0.0);
+            for _ in 0..draws {
+                let x: Vec<Vec<f64>> = (0..n).map(|_| (0..d).map(|_| rng.normal()).collect()).collect();
+                let mut mu = vec![0.0; d];
+                let mut weights = vec![1.0; n];
+                for _ in 0..50 {
+                    weights = x
+                        .iter()
+                        .map(|v| loss.weight(v.iter().zip(&mu).map(|(a, m)| (a - m) * (a - m)).sum()))
+                        .collect();
+                    let total: f64 = weights.iter().sum();
+                    mu = (0..d).map(|a| x.iter().zip(&weights).map(|(v, w)| v[a] * w).sum::<f64>() / total).collect();
+                }
+                err2 += mu.iter().map(|m| m * m).sum::<f64>() / d as f64;
+                // Gauss–Newton's variance per axis, (Σ w)⁻¹, and the same with the weights × κ
+                claimed += 1.0 / (weights.iter().sum::<f64>() * loss.information_scale(d));
+            }
+            let ratio = err2 / claimed;
+            assert!((ratio - 1.0).abs() < 0.06, "{loss:?}, d = {d}: variance / κ-scaled claim {ratio}");
+        }
+        let cauchy = RobustLoss::Cauchy { width: 3.0 }.information_scale(6);
+        assert!((cauchy - 1.517).abs() < 0.01, "{cauchy}");
     }
 
     #[test]
