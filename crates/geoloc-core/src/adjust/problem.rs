@@ -247,14 +247,14 @@ impl<'a> Problem<'a> {
     /// dimensions for a pixel, 6 for a label prior), the normal equations its covariances are
     /// taken from. The IRLS weights alone are Gauss–Newton's information of the weighted
     /// problem, not the estimate's: the kernel down-weights inliers too, and with the label
-    /// priors' Cauchy kernel (k = 3, mean weight 0.63 over χ²₆) they claimed 1.59 times the
+    /// priors' Cauchy kernel (k = 3, mean weight 0.63 over χ²₆) they claim 1.59 times the
     /// variance the estimate has (1.048 times least squares'). Capped at 1: no term gives more
     /// than least squares would — labels whose σ was widened for their correlation
     /// ([`super::scale::correlation_lengths`]) sit well inside it, where κ w would exceed 1 —
     /// so over χ²₆ inliers the claim is 1.12 times. A synthetic map with labels of 3 mm /
     /// 0.11° on an offset sensor shows it: the error its neighbourhoods share is 0.1–0.25
-    /// mrad per rotation axis, the weights alone claimed 0.22–0.26 (scaled: 0.19–0.21), and
-    /// queries beside the path fell inside their χ²₆ 95 % region for 98.3 % of 1600 (scaled:
+    /// mrad per rotation axis, the weights alone claim 0.22–0.26 (scaled: 0.19–0.21), and
+    /// queries beside the path fall inside their χ²₆ 95 % region for 98.3 % of 1600 (scaled:
     /// 97.25 % of 400).
     pub(super) fn for_covariances(&self) -> Problem<'a> {
         Problem {

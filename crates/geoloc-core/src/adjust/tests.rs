@@ -561,14 +561,19 @@ fn bad_inputs_are_refused_by_name() {
     assert!(err.to_string().contains("observations[1]"), "{err}");
 }
 
+/// n poses 10 cm apart along x, unrotated: a path for the label-σ and τ tests, whose
+/// corrections do not depend on it.
+fn poses_along_x(n: usize) -> Vec<SE3> {
+    (0..n).map(|k| SE3::new(SO3::identity(), Vector3::new(0.1 * k as f64, 0.0, 0.0))).collect()
+}
+
 /// τ against the closed form of an AR(1) sequence, (1 + φ)/(1 − φ), and thinning: keyframes
 /// closer than the spacing are not counted.
 #[test]
 fn correlation_length_of_an_ar1_sequence() {
     let mut rng = SplitMix64::new(21);
     let n = 4000;
-    let adjusted: Vec<SE3> =
-        (0..n).map(|k| SE3::new(SO3::identity(), Vector3::new(0.1 * k as f64, 0.0, 0.0))).collect();
+    let adjusted = poses_along_x(n);
     for phi in [0.0f64, 0.5, 0.8] {
         let mut e = Vector6::zeros();
         let labels: Vec<SE3> = adjusted
@@ -604,8 +609,7 @@ fn the_labels_sigma_is_not_moved_by_a_displaced_run() {
     use crate::stats::chi2::{CHI2_3_MEDIAN, quantile};
     let mut rng = SplitMix64::new(29);
     let n = 5000;
-    let adjusted: Vec<SE3> =
-        (0..n).map(|k| SE3::new(SO3::identity(), Vector3::new(0.1 * k as f64, 0.0, 0.0))).collect();
+    let adjusted = poses_along_x(n);
     let sigma = 0.01;
     let labels: Vec<SE3> = adjusted
         .iter()
@@ -636,8 +640,7 @@ fn the_labels_sigma_is_not_moved_by_a_displaced_run() {
 fn a_displaced_run_is_not_counted_as_drift() {
     let mut rng = SplitMix64::new(23);
     let n = 1000;
-    let adjusted: Vec<SE3> =
-        (0..n).map(|k| SE3::new(SO3::identity(), Vector3::new(0.1 * k as f64, 0.0, 0.0))).collect();
+    let adjusted = poses_along_x(n);
     let labels: Vec<SE3> = adjusted
         .iter()
         .enumerate()
