@@ -121,12 +121,19 @@ impl RobustLoss {
         let d = dof as f64;
         let (steps, end) = (200_000usize, (40.0 * d + 400.0).sqrt());
         let h = end / steps as f64;
+        // the χ_d density of u = √s up to its constant (which cancels in the ratios), in logs
+        // and divided by its value at the mode u² = d − 1: u^(d−1) itself overflows past
+        // d ≈ 150 on this grid
+        let log_density = |u: f64| {
+            let power = if dof == 1 { 0.0 } else { (d - 1.0) * u.ln() };
+            let mode = if dof == 1 { 0.0 } else { 0.5 * (d - 1.0) * ((d - 1.0).ln() - 1.0) };
+            power - 0.5 * u * u - mode
+        };
         let (mut mass, mut ew, mut ews, mut ew2s) = (0.0, 0.0, 0.0, 0.0);
         for i in 0..=steps {
             let u = i as f64 * h;
             let s = u * u;
-            // the χ_d density of u = √s up to its constant (which cancels in the ratios)
-            let f = u.powi(dof as i32 - 1) * (-0.5 * s).exp();
+            let f = log_density(u).exp();
             let t = if i == 0 || i == steps { 0.5 * f } else { f };
             let w = self.weight(s);
             mass += t;
@@ -206,6 +213,49 @@ mod tests {
         }
         let cauchy = RobustLoss::Cauchy { width: 3.0 }.information_scale(6);
         assert!((cauchy - 1.517).abs() < 0.01, "{cauchy}");
+    }
+
+    /// κ in many dimensions, where the χ_d density's power u^(d−1) alone would overflow: for
+    /// Huber k = 2 in d = 400 dimensions every inlier lies beyond the kink (P(χ²₄₀₀ ≤ 4) is
+    /// nil), w = k/√s, and κ has the closed form (1 − 1/d)² d E[s^(−1/2)] / k with
+    /// E[s^(−1/2)] = Γ((d − 1)/2) / (√2 Γ(d/2)), the Γ ratio by its asymptotic series
+    /// x^(−1/2) (1 + 3/(8x) + 25/(128x²) − 105/(1024x³)) at x = d/2 (error below 1e-9 there).
+    /// Up to d = 100, where the power does not overflow, the log-density integral is
+    /// compared with the plain one (u^(d−1) e^(−u²/2)) on the same grid.
+    #[test]
+    fn information_scale_holds_in_many_dimensions() {
+        let (k, d) = (2.0, 400.0);
+        let x: f64 = d / 2.0;
+        let ratio = x.powf(-0.5) * (1.0 + 3.0 / (8.0 * x) + 25.0 / (128.0 * x * x) - 105.0 / (1024.0 * x.powi(3)));
+        let want = (1.0 - 1.0 / d).powi(2) * d * ratio / std::f64::consts::SQRT_2 / k;
+        let got = RobustLoss::Huber { width: k }.information_scale(400);
+        assert!((got / want - 1.0).abs() < 1e-6, "κ {got} against the closed form {want}");
+        for loss in [RobustLoss::Huber { width: 2.0 }, RobustLoss::Cauchy { width: 3.0 }] {
+            for dof in [1usize, 2, 3, 6, 30, 100, 1000] {
+                let kappa = loss.information_scale(dof);
+                assert!(kappa.is_finite() && kappa > 0.0, "{loss:?}, d = {dof}: {kappa}");
+                if dof > 100 {
+                    continue;
+                }
+                // the plain integral, written out
+                let dd = dof as f64;
+                let (steps, end) = (200_000usize, (40.0 * dd + 400.0).sqrt());
+                let h = end / steps as f64;
+                let (mut m, mut ew, mut ews, mut ew2s) = (0.0, 0.0, 0.0, 0.0);
+                for i in 0..=steps {
+                    let u = i as f64 * h;
+                    let s = u * u;
+                    let f = u.powi(dof as i32 - 1) * (-0.5 * s).exp() * if i == 0 || i == steps { 0.5 } else { 1.0 };
+                    m += f;
+                    ew += f * loss.weight(s);
+                    ews += f * loss.weight_derivative(s) * s;
+                    ew2s += f * loss.weight(s).powi(2) * s;
+                }
+                let a = ew / m + 2.0 * ews / m / dd;
+                let plain = a * a / (ew2s / m / dd * (ew / m));
+                assert!((kappa / plain - 1.0).abs() < 1e-9, "{loss:?}, d = {dof}: {kappa} against {plain}");
+            }
+        }
     }
 
     #[test]
