@@ -462,6 +462,56 @@ def map_noise_scale_for_coverage(frames: list[dict[str, Any]], key: str, c_map: 
     return hi
 
 
+#: Lower edges of the bins of a held-out keyframe's support n/n̄ (n its PnP inliers, n̄ its
+#: map's median: ``Map.map_noise["holdout_inliers"]``); the last bin is open.
+SUPPORT_BINS = (0.0, 0.25, 0.5, 0.75, 1.0)
+
+
+def excess_by_support(noises: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Pooled over maps' held-out keyframes (each of ``noises`` a ``map_noise`` entry of
+    :func:`evaluate`: ``holdout`` and ``holdout_inliers``), per bin of n/n̄
+    (:data:`SUPPORT_BINS`): ``count``, ``support`` (the mean n/n̄), ``rule`` (the mean factor
+    max(1, n̄/n) the localizer puts on C_map at that support), ``translation_m2`` and
+    ``rotation_rad2``: the mean excess second moment δ² − C_G summed over the three axes of
+    each. Empty bins are left out. C_map·max(1, n̄/n) holds if the excess grows as ``rule``."""
+    rows = []
+    for noise in noises:
+        h = noise["holdout"]
+        n_bar = noise["holdout_inliers"]
+        if n_bar <= 0:
+            continue
+        delta, cov = np.asarray(h["delta"], dtype=float), np.asarray(h["covariance"], dtype=float)
+        excess = delta**2 - np.einsum("nii->ni", cov)
+        for e, n in zip(excess, h["inliers"]):
+            rows.append((n / n_bar, max(1.0, n_bar / n) if n > 0 else 1.0, e[:3].sum(), e[3:].sum()))
+    out = []
+    edges = (*SUPPORT_BINS, np.inf)
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        inside = [r for r in rows if lo <= r[0] < hi]
+        if inside:
+            support, rule, t, r = np.mean(inside, axis=0)
+            out.append({"bin": [lo, None if np.isinf(hi) else hi], "count": len(inside), "support": float(support),
+                        "rule": float(rule), "translation_m2": float(t), "rotation_rad2": float(r)})
+    return out
+
+
+def excess_by_support_line(bins: list[dict[str, Any]]) -> str:
+    """``[0, 0.25): 19, 54.4 cm² / 1126 mrad² (×43 / ×41 of n ≥ n̄, the rule ×6.7); …``: per bin of
+    :func:`excess_by_support`, the count, the excess and its ratio to the open top bin's (n ≥ n̄),
+    beside the support rule's mean factor."""
+    top = next((b for b in bins if b["bin"][1] is None), None)
+    parts = []
+    for b in bins:
+        lo, hi = b["bin"]
+        name = f"[{lo:g}, {hi:g})" if hi is not None else f"≥ {lo:g}"
+        text = f"{name}: {b['count']}, {1e4 * b['translation_m2']:.2f} cm² / {1e6 * b['rotation_rad2']:.0f} mrad²"
+        if top is not None and b is not top and top["translation_m2"] > 0 and top["rotation_rad2"] > 0:
+            text += (f" (×{b['translation_m2'] / top['translation_m2']:.1f} / ×{b['rotation_rad2'] / top['rotation_rad2']:.1f}"
+                     f" of n ≥ n̄, the rule ×{b['rule']:.1f})")
+        parts.append(text)
+    return "; ".join(parts) if parts else "—"
+
+
 def row(name: str, mode: str, s: dict[str, Any]) -> str:
     med = "lost" if s["median_translation_m"] is None else f"{100 * s['median_translation_m']:.1f} cm / {s['median_rotation_deg']:.2f}°"
     all_t, all_r = s.get("median_translation_all_m"), s.get("median_rotation_all_deg")
@@ -597,6 +647,10 @@ def main() -> int:
                   f"{np.prod(p_both):.3f} (NEES and every axis), expected blocks in it "
                   f"{sum(p_nees):.1f} / {sum(p_both):.1f}; and cover every block at least as "
                   f"well as the answers did (NEES) with p {np.prod([c['p_at_least'] for c in chances]):.1e}", flush=True)
+        bins = excess_by_support([report[name]["map_noise"] for name in folds])
+        report["held-out excess by support"] = bins
+        print(f"folds {','.join(folds)}, the maps' held-out keyframes' excess second moment δ² − C_G (translation / "
+              f"rotation, summed over the axes) by support n/n̄: {excess_by_support_line(bins)}", flush=True)
         print(f"folds {','.join(folds)} pooled, outside the 99.9 % region against the {against}: " + ", ".join(
             "{} {} of {}".format(mode, *np.sum([outside_region(report[name]["frames"][mode], key) for name in folds], axis=0))
             for mode in ("single", "sequential")), flush=True)

@@ -229,3 +229,39 @@ def test_a_right_covariance_lands_independent_frames_in_the_band_as_the_binomial
     shared = cal.calibrated_band_probability(np.full(6, 0.5), np.full(6, 5.0), trials=500)
     assert shared == cal.calibrated_band_probability(np.full(6, 0.5), np.full(6, 5.0), trials=500)
     assert shared[0] < p_nees - 0.2, "a shared offset makes a block's coverage all or nothing"
+
+
+def test_the_held_out_excess_is_binned_by_support_as_written_out() -> None:
+    """Two maps (n̄ 100 and 200) whose held-out keyframes have δ = a on tx and b on φx and
+    C_G = c·I (c = 1e-7): the excess is a² − 3c on translation and b² − 3c on rotation, binned by n/n̄.
+    Written out: n/n̄ = 0.1 and 0.2 fall in [0, 0.25) (rule factors 10 and 5, mean 7.5), 0.6 in
+    [0.5, 0.75), 1.0 and 2.5 in ≥ 1; [0.25, 0.5) and [0.75, 1) are empty and left out; a map
+    without n̄ contributes nothing."""
+    cal = _calibration_module()
+
+    def noise(n_bar: float, samples: list[tuple[int, float, float]], c: float = 1e-7) -> dict:
+        delta = [[a, 0, 0, b, 0, 0] for _, a, b in samples]
+        return {"holdout_inliers": n_bar, "holdout": {"inliers": [n for n, _, _ in samples], "delta": delta,
+                                                      "covariance": [(c * np.eye(6)).tolist()] * len(samples)}}
+
+    bins = cal.excess_by_support([
+        noise(100.0, [(10, 0.03, 0.002), (60, 0.01, 0.001), (250, 0.002, 0.0005)]),
+        noise(200.0, [(40, 0.05, 0.004), (200, 0.004, 0.0015)]),
+        noise(0.0, [(1, 9.0, 9.0)]),
+    ])
+    assert [b["bin"] for b in bins] == [[0.0, 0.25], [0.5, 0.75], [1.0, None]]
+    assert [b["count"] for b in bins] == [2, 1, 2]
+    low, mid, top = bins
+    assert low["support"] == pytest.approx(0.15) and low["rule"] == pytest.approx(7.5)
+    assert low["translation_m2"] == pytest.approx((0.03**2 + 0.05**2) / 2 - 3e-7, rel=1e-12)
+    assert low["rotation_rad2"] == pytest.approx((0.002**2 + 0.004**2) / 2 - 3e-7, rel=1e-12)
+    assert mid["rule"] == pytest.approx(100 / 60) and mid["translation_m2"] == pytest.approx(1e-4 - 3e-7, rel=1e-12)
+    assert top["rule"] == 1.0 and top["support"] == pytest.approx(1.75)
+    assert top["translation_m2"] == pytest.approx((0.002**2 + 0.004**2) / 2 - 3e-7, rel=1e-12)
+    line = cal.excess_by_support_line(bins)
+    # translation 0.0017 − 3e-7 m² (17.00 cm²) against the top bin's 1e-5 − 3e-7: ×175.2;
+    # rotation 1e-5 − 3e-7 rad² (10 mrad²) against 1.25e-6 − 3e-7: ×10.2
+    assert line == ("[0, 0.25): 2, 17.00 cm² / 10 mrad² (×175.2 / ×10.2 of n ≥ n̄, the rule ×7.5); "
+                    "[0.5, 0.75): 1, 1.00 cm² / 1 mrad² (×10.3 / ×0.7 of n ≥ n̄, the rule ×1.7); "
+                    "≥ 1: 2, 0.10 cm² / 1 mrad²"), line
+    assert cal.excess_by_support_line([]) == "—"
