@@ -496,7 +496,7 @@ def excess_by_support(noises: list[dict[str, Any]]) -> list[dict[str, Any]]:
 
 
 def excess_by_support_line(bins: list[dict[str, Any]]) -> str:
-    """``[0, 0.25): 19, 54.4 cm² / 1126 mrad² (×43 / ×41 of n ≥ n̄, the rule ×6.7); …``: per bin of
+    """``[0, 0.25): 19, 54.37 cm² / 1126 mrad² (×43.1 / ×41.5 of n ≥ n̄, the rule ×8.4); …``: per bin of
     :func:`excess_by_support`, the count, the excess and its ratio to the open top bin's (n ≥ n̄),
     beside the support rule's mean factor."""
     top = next((b for b in bins if b["bin"][1] is None), None)

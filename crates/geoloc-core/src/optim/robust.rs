@@ -123,11 +123,11 @@ impl RobustLoss {
         let h = end / steps as f64;
         // the χ_d density of u = √s up to its constant (which cancels in the ratios), in logs
         // and divided by its value at the mode u² = d − 1: u^(d−1) itself overflows past
-        // d ≈ 150 on this grid
+        // d ≈ 150 on this grid (d = 1 has no power, and 0·ln 0 would be NaN at u = 0)
+        let at_mode = if dof == 1 { 0.0 } else { 0.5 * (d - 1.0) * ((d - 1.0).ln() - 1.0) };
         let log_density = |u: f64| {
             let power = if dof == 1 { 0.0 } else { (d - 1.0) * u.ln() };
-            let mode = if dof == 1 { 0.0 } else { 0.5 * (d - 1.0) * ((d - 1.0).ln() - 1.0) };
-            power - 0.5 * u * u - mode
+            power - 0.5 * u * u - at_mode
         };
         let (mut mass, mut ew, mut ews, mut ew2s) = (0.0, 0.0, 0.0, 0.0);
         for i in 0..=steps {
